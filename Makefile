@@ -1,0 +1,35 @@
+# Two commands from a fresh clone: `make demo` and `make test` (README.md).
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+# Each test/demo process gets its own domain; discovery stays on this machine.
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces ros-jazzy-std-srvs
+
+.PHONY: venv demo test test-fast bench lint clean
+
+venv: $(VENV)/.installed
+
+$(VENV)/.installed: setup.py package.xml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet $(ROS_WHEELS) -e '.[test,report]'
+	$(PY) -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, rosbags, scipy'
+	touch $@
+
+demo: venv
+	$(VENV)/bin/coreg calibrate bags/sample_full_pose --method tls
+
+test: venv
+	$(PY) -c 'import rclpy' || (echo 'rclpy cannot be imported: the node tests cannot run'; exit 1)
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -q test
+
+bench: venv
+	$(PY) bench/run.py
+
+lint: venv
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache

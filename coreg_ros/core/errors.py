@@ -1,0 +1,40 @@
+"""
+Typed errors of coreg_ros.
+
+Every error names what is wrong and what the user can do about it, in one line, so that the
+command-line tools and the node can show ``str(error)`` to a person without a traceback.
+All are ``ValueError`` compatible, as scipy raises ``ValueError`` for bad input.
+"""
+
+
+class CoregError(ValueError):
+    """Base class of every error coreg_ros raises on purpose."""
+
+
+class InputError(CoregError):
+    """Input data are malformed: NaN, non-unit quaternions, bad shapes, bad stamps."""
+
+
+class TooFewPairsError(CoregError):
+    """Not enough paired samples to estimate the parameters."""
+
+
+class UnobservableError(CoregError):
+    """The recorded motion leaves some parameter direction unobservable."""
+
+    def __init__(self, message: str, directions: tuple = ()):
+        super().__init__(message)
+        #: human-readable names of the unobservable parameter directions
+        self.directions = tuple(directions)
+
+
+class ConvergenceError(CoregError):
+    """The estimator did not converge."""
+
+
+class BagError(CoregError):
+    """A rosbag2 recording cannot be read or written as asked."""
+
+
+class ConfigError(CoregError):
+    """A configuration value or command-line option is invalid."""

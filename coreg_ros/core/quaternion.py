@@ -1,0 +1,366 @@
+"""
+Unit quaternions in (w, x, y, z) order, rotation matrices and the reduced quaternion.
+
+Every function is vectorised over leading axes: a quaternion argument has shape ``(..., 4)``
+in (w, x, y, z) order (Hamilton convention, active rotation), a rotation matrix ``(..., 3, 3)``,
+a rotation vector ``(..., 3)`` in radians. ROS messages carry (x, y, z, w); that order appears
+only at the message boundary (``coreg_ros.bag`` and ``coreg_ros.ros``).
+
+References
+----------
+Ikits, M. (2000). Coregistration of pose measurement devices using nonlinear least squares
+parameter estimation. UUCS-00-018. Section 3.1 (reduced quaternion, eqs. 7-10), section 3.2
+(error metric, eqs. 11-15), appendix A (rotation matrix, eq. 21).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coreg_ros.core.errors import InputError
+
+#: Largest accepted deviation of a measured quaternion's norm from 1 before it is refused.
+UNIT_NORM_TOLERANCE = 1e-2
+
+#: For a reduced quaternion with chart k (the index of the component computed from the unit
+#: constraint), the indices of the three free components s, in order (Ikits eq. 7).
+CHART_OTHERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+
+
+def validate_quaternions(q, name: str = 'quaternion') -> np.ndarray:
+    """
+    Check measured quaternions and return them normalised, in canonical sign (w >= 0).
+
+    Parameters
+    ----------
+    q : array_like, shape (..., 4)
+        Quaternions in (w, x, y, z) order.
+    name : str
+        What the quaternions are, used in the error message.
+
+    Returns
+    -------
+    q : ndarray, shape (..., 4)
+        Unit quaternions with w >= 0.
+
+    Raises
+    ------
+    InputError
+        If the shape is wrong, a value is NaN or infinite, or a norm differs from 1 by more
+        than ``UNIT_NORM_TOLERANCE`` (a zero or malformed quaternion, or a wrong field order).
+
+    """
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 0 or q.shape[-1] != 4:
+        raise InputError(f'{name}: expected shape (..., 4) in (w, x, y, z) order, got {q.shape}')
+    finite = np.isfinite(q).all(axis=-1)
+    if not finite.all():
+        first = int(np.flatnonzero(~finite.reshape(-1))[0])
+        raise InputError(
+            f'{name}: {int((~finite).sum())} quaternion(s) contain NaN or inf (first at index '
+            f'{first}); drop those samples before calibrating')
+    norm = np.linalg.norm(q, axis=-1)
+    bad = np.abs(norm - 1.0) > UNIT_NORM_TOLERANCE
+    if bad.any():
+        first = int(np.flatnonzero(bad.reshape(-1))[0])
+        raise InputError(
+            f'{name}: {int(bad.sum())} quaternion(s) are not unit length (first at index '
+            f'{first}, norm {norm.reshape(-1)[first]:.4g}); check the field order '
+            f'(w, x, y, z inside, x, y, z, w in ROS messages) and drop zero quaternions')
+    return canonical(q / norm[..., None])
+
+
+def canonical(q: np.ndarray) -> np.ndarray:
+    """
+    Return the sign-canonical representative (w >= 0) of each quaternion, shape (..., 4).
+
+    q and -q are the same rotation; where a sign must be chosen we keep w >= 0.
+    """
+    q = np.asarray(q, dtype=float)
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """
+    Hamilton product p ⊗ q of quaternions in (w, x, y, z) order, shapes broadcast to (..., 4).
+
+    With active rotations, ``R(p ⊗ q) = R(p) R(q)``.
+    """
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack([
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    ], axis=-1)
+
+
+def conjugate(q: np.ndarray) -> np.ndarray:
+    """Quaternion conjugate (the inverse of a unit quaternion), shape (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def left_matrix(q: np.ndarray) -> np.ndarray:
+    """
+    Matrix L(q), shape (..., 4, 4), such that ``q ⊗ p = L(q) p``.
+
+    Used for derivatives of products with respect to the right operand.
+    """
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    return np.stack([
+        np.stack([w, -x, -y, -z], axis=-1),
+        np.stack([x, w, -z, y], axis=-1),
+        np.stack([y, z, w, -x], axis=-1),
+        np.stack([z, -y, x, w], axis=-1),
+    ], axis=-2)
+
+
+def right_matrix(q: np.ndarray) -> np.ndarray:
+    """
+    Matrix R(q), shape (..., 4, 4), such that ``p ⊗ q = R(q) p``.
+
+    Used for derivatives of products with respect to the left operand.
+    """
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    return np.stack([
+        np.stack([w, -x, -y, -z], axis=-1),
+        np.stack([x, w, z, -y], axis=-1),
+        np.stack([y, -z, w, x], axis=-1),
+        np.stack([z, y, -x, w], axis=-1),
+    ], axis=-2)
+
+
+def to_matrix(q: np.ndarray) -> np.ndarray:
+    """
+    Rotation matrix of unit quaternions (Ikits eq. 21), shape (..., 3, 3).
+
+    Parameters
+    ----------
+    q : ndarray, shape (..., 4)
+        Unit quaternions (w, x, y, z).
+
+    """
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    return np.stack([
+        np.stack([ww + xx - yy - zz, 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+        np.stack([2 * (x * y + w * z), ww - xx + yy - zz, 2 * (y * z - w * x)], axis=-1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), ww - xx - yy + zz], axis=-1),
+    ], axis=-2)
+
+
+def matrix_derivatives(q: np.ndarray) -> np.ndarray:
+    """
+    Partial derivatives of ``to_matrix`` with respect to (w, x, y, z), Ikits eqs. 22-25.
+
+    Returns
+    -------
+    dR : ndarray, shape (..., 4, 3, 3)
+        ``dR[..., j, :, :] = ∂R/∂q_j``.
+
+    """
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+
+    def mat(rows):
+        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+    return 2.0 * np.stack([
+        mat([[w, -z, y], [z, w, -x], [-y, x, w]]),
+        mat([[x, y, z], [y, -x, -w], [z, w, -x]]),
+        mat([[-y, x, w], [x, y, z], [-w, z, -y]]),
+        mat([[-z, -w, x], [w, -z, y], [x, y, z]]),
+    ], axis=-3)
+
+
+def rotate_jacobian(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """
+    Derivative of ``R(q) v`` with respect to the four components of q, shape (..., 3, 4).
+
+    ``R(q) v`` is quadratic in q, so this is exact for any (not necessarily unit) q.
+    """
+    dR = matrix_derivatives(q)
+    return np.einsum('...jab,...b->...aj', dR, np.asarray(v, dtype=float))
+
+
+def from_matrix(R: np.ndarray) -> np.ndarray:
+    """
+    Unit quaternion (w >= 0) of rotation matrices, shape (..., 3, 3) -> (..., 4).
+
+    Uses the largest of the four squared components for numerical stability (Shepperd).
+    """
+    R = np.asarray(R, dtype=float)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    candidates = np.stack([
+        1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22,
+        1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], axis=-1)
+    k = np.argmax(candidates, axis=-1)
+    t = np.sqrt(np.maximum(np.take_along_axis(candidates, k[..., None], -1)[..., 0], 1e-300))
+    d = 0.5 / t
+    r21_12, r02_20, r10_01 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], \
+        R[..., 1, 0] - R[..., 0, 1]
+    r10p01, r02p20, r21p12 = R[..., 1, 0] + R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], \
+        R[..., 2, 1] + R[..., 1, 2]
+    q = np.select(
+        [k[..., None] == 0, k[..., None] == 1, k[..., None] == 2],
+        [np.stack([0.5 * t, r21_12 * d, r02_20 * d, r10_01 * d], axis=-1),
+         np.stack([r21_12 * d, 0.5 * t, r10p01 * d, r02p20 * d], axis=-1),
+         np.stack([r02_20 * d, r10p01 * d, 0.5 * t, r21p12 * d], axis=-1)],
+        np.stack([r10_01 * d, r02p20 * d, r21p12 * d, 0.5 * t], axis=-1))
+    return canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def exp(rotvec: np.ndarray) -> np.ndarray:
+    """
+    Unit quaternion of rotation vectors (axis times angle, rad), shape (..., 3) -> (..., 4).
+
+    Accurate near zero angle (Taylor series of sin(θ/2)/θ).
+    """
+    v = np.asarray(rotvec, dtype=float)
+    theta = np.linalg.norm(v, axis=-1)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    k = np.where(small, 0.5 - theta ** 2 / 48.0, np.sin(0.5 * safe) / safe)
+    return np.concatenate([np.cos(0.5 * theta)[..., None], k[..., None] * v], axis=-1)
+
+
+def log(q: np.ndarray) -> np.ndarray:
+    """
+    Rotation vector (rad) of unit quaternions, shape (..., 4) -> (..., 3), angle in [0, π].
+
+    The sign of q is irrelevant: q and -q give the same rotation vector.
+    """
+    q = canonical(q)
+    w = np.clip(q[..., 0], -1.0, 1.0)
+    vec = q[..., 1:]
+    s = np.linalg.norm(vec, axis=-1)
+    theta = 2.0 * np.arctan2(s, w)
+    small = s < 1e-9
+    k = np.where(small, 2.0 / np.maximum(w, 1e-300), theta / np.where(small, 1.0, s))
+    return k[..., None] * vec
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """
+    Spherical linear interpolation from q0 (t = 0) to q1 (t = 1) along the shorter arc.
+
+    Parameters
+    ----------
+    q0, q1 : ndarray, shape (..., 4)
+        Unit quaternions.
+    t : ndarray, shape (...)
+        Interpolation fractions.
+
+    """
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    # q1 relative to q0, on the shorter arc; then q0 ⊗ Exp(t Log(rel)).
+    rel = multiply(conjugate(q0), q1)
+    return canonical(multiply(q0, exp(np.asarray(t, dtype=float)[..., None] * log(rel))))
+
+
+def angle_between(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad, in [0, π]) between two orientations, shape (...)."""
+    d = np.abs(np.sum(np.asarray(q0) * np.asarray(q1), axis=-1))
+    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+
+
+def rotation_error(q_model: np.ndarray, q_meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Quaternion error metric of Ikits §3.2 and its derivative with respect to the model.
+
+    The error is the vector part of ``q_model ⊗ q_meas*`` with the sign chosen so that its scalar
+    part is >= 0 (q and -q are one rotation). For a measurement ``q_meas = Exp(δθ) ⊗ q_model``,
+    the error is ``-sin(|δθ|/2) δθ/|δθ| ≈ -δθ/2``: half the rotation angle, so a rotation noise
+    covariance Σθ (rad²) enters the metric as Σθ/4 (DESIGN.md §1).
+
+    Parameters
+    ----------
+    q_model, q_meas : ndarray, shape (..., 4)
+
+    Returns
+    -------
+    e : ndarray, shape (..., 3)
+        Error vector (dimensionless, ≈ half-angle, expressed in the base frame of the pose).
+    de_dq : ndarray, shape (..., 3, 4)
+        ∂e/∂q_model (Ikits eq. 15 in our ordering).
+
+    """
+    rm = right_matrix(conjugate(q_meas))
+    prod = np.einsum('...ij,...j->...i', rm, q_model)
+    sign = np.where(prod[..., :1] < 0.0, -1.0, 1.0)
+    return sign * prod[..., 1:], sign[..., None] * rm[..., 1:, :]
+
+
+def reduce(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Reduced quaternion (Ikits eq. 7): the three components other than the largest.
+
+    Parameters
+    ----------
+    q : ndarray, shape (..., 4)
+        Unit quaternions.
+
+    Returns
+    -------
+    s : ndarray, shape (..., 3)
+        The free components, in index order.
+    chart : ndarray of int, shape (...)
+        Index k of the largest-magnitude component, computed from the unit constraint.
+    sign : ndarray, shape (...)
+        Sign of that component (+1 or -1), fixed until the next re-chart.
+
+    """
+    q = np.asarray(q, dtype=float)
+    chart = np.argmax(np.abs(q), axis=-1)
+    qk = np.take_along_axis(q, chart[..., None], -1)[..., 0]
+    sign = np.where(qk < 0.0, -1.0, 1.0)
+    s = np.take_along_axis(q, CHART_OTHERS[chart], -1)
+    return s, chart, sign
+
+
+def expand(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Full quaternion from a reduced one and the derivative dq/ds (Ikits eqs. 8-10).
+
+    Parameters
+    ----------
+    s : ndarray, shape (..., 3)
+    chart : ndarray of int, shape (...)
+    sign : ndarray, shape (...)
+
+    Returns
+    -------
+    q : ndarray, shape (..., 4)
+        Unit quaternion; NaN where ``|s| > 1`` (outside the chart, a step to reject).
+    dq_ds : ndarray, shape (..., 4, 3)
+
+    """
+    s = np.asarray(s, dtype=float)
+    chart = np.asarray(chart)
+    rest = 1.0 - np.sum(s * s, axis=-1)
+    qk = np.asarray(sign) * np.sqrt(np.where(rest >= 0.0, rest, np.nan))
+    others = CHART_OTHERS[chart]
+    q = np.empty(s.shape[:-1] + (4,))
+    np.put_along_axis(q, others, s, -1)
+    np.put_along_axis(q, chart[..., None], qk[..., None], -1)
+    jac = np.zeros(s.shape[:-1] + (4, 3))
+    eye = np.broadcast_to(np.eye(3), s.shape[:-1] + (3, 3))
+    np.put_along_axis(jac, others[..., None].repeat(3, -1), eye, -2)
+    np.put_along_axis(jac, chart[..., None, None].repeat(3, -1), (-s / qk[..., None])[..., None, :],
+                      -2)
+    return q, jac
+
+
+def needs_rechart(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """
+    True where another component has become larger than the computed one (§3.1, re-charting).
+
+    Shape (...). Re-charting keeps dq/ds well conditioned: |q_k| >= 1/2 in every chart.
+    """
+    q, _ = expand(s, chart, sign)
+    qk = np.abs(np.take_along_axis(q, np.asarray(chart)[..., None], -1)[..., 0])
+    return np.max(np.abs(s), axis=-1) > qk

@@ -1,0 +1,121 @@
+"""
+Calibration settings shared by the command-line tools and the node.
+
+The keys are those of ``config/coreg.yaml`` (ROS parameter file form, under
+``coreg_node: ros__parameters:``); the node declares each one as a ROS parameter with a
+descriptor, the CLI reads the same file with ``--config`` and overrides keys with flags.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Mapping
+
+from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.types import METHODS, MODELS
+
+DEFAULT_TOPIC_A = '/device_a/pose'
+DEFAULT_TOPIC_B = ('/device_b/pose',)
+DEFAULT_TOPICS_B_THREE_MARKER = (
+    '/device_b/marker1/pose', '/device_b/marker2/pose', '/device_b/marker3/pose')
+
+
+@dataclass(frozen=True)
+class Settings:
+    """
+    What to calibrate and how.
+
+    Attributes
+    ----------
+    topic_a : str
+        PoseStamped topic of device A (input: tool pose in A's base frame).
+    topic_b : tuple of str
+        PoseStamped topic(s) of device B (output: marker pose in B's base frame); three
+        topics for ``three_marker``.
+    model : str
+        ``full_pose`` (Ikits eq. 16), ``position_only`` (eq. 18) or ``three_marker`` (eq. 19).
+    method : str
+        ``ols`` (B.1, errors in B only) or ``tls`` (B.2, errors in both devices).
+    sigma_a, sigma_b : tuple of float
+        Noise standard deviation of each device: (position m, rotation rad).
+    max_gap : float
+        Largest distance in time (s) from a B stamp to each of the two A samples it is
+        interpolated between.
+    time_offset : float
+        B's clock minus A's clock, s: A is interpolated at ``t_B - time_offset``.
+    min_pairs : int
+        Fewest pairs a calibration accepts.
+    max_iterations : int
+        Iteration limit of the estimator.
+
+    """
+
+    topic_a: str = DEFAULT_TOPIC_A
+    topic_b: tuple = DEFAULT_TOPIC_B
+    model: str = 'full_pose'
+    method: str = 'tls'
+    sigma_a: tuple = (0.0002, 0.0005)
+    sigma_b: tuple = (0.0005, 0.002)
+    max_gap: float = 0.05
+    time_offset: float = 0.0
+    min_pairs: int = 30
+    max_iterations: int = 100
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise ConfigError(f'model {self.model!r} is unknown; use one of {", ".join(MODELS)}')
+        if self.method not in METHODS:
+            raise ConfigError(f'method {self.method!r} is unknown; use one of {", ".join(METHODS)}')
+        for name in ('sigma_a', 'sigma_b'):
+            value = tuple(float(v) for v in getattr(self, name))
+            if len(value) != 2 or not all(v > 0 and v < float('inf') for v in value):
+                raise ConfigError(
+                    f'{name} must be two positive numbers (position m, rotation rad), got '
+                    f'{getattr(self, name)!r}')
+            object.__setattr__(self, name, value)
+        topics = (self.topic_b,) if isinstance(self.topic_b, str) else tuple(self.topic_b)
+        object.__setattr__(self, 'topic_b', topics)
+        needed = 3 if self.model == 'three_marker' else 1
+        if len(topics) != needed:
+            if self.model == 'three_marker' and topics == DEFAULT_TOPIC_B:
+                object.__setattr__(self, 'topic_b', DEFAULT_TOPICS_B_THREE_MARKER)
+            else:
+                raise ConfigError(
+                    f'model {self.model} needs {needed} device B topic(s), got {len(topics)}: '
+                    f'give --topic-b {"T1 T2 T3" if needed == 3 else "T"}')
+        if not self.max_gap > 0:
+            raise ConfigError(f'max_gap must be > 0 s, got {self.max_gap}')
+        if int(self.min_pairs) < 3:
+            raise ConfigError(f'min_pairs must be >= 3, got {self.min_pairs}')
+        if int(self.max_iterations) < 1:
+            raise ConfigError(f'max_iterations must be >= 1, got {self.max_iterations}')
+
+    @property
+    def max_gap_ns(self) -> int:
+        """Maximum pairing gap in nanoseconds."""
+        return int(round(self.max_gap * 1e9))
+
+    @property
+    def time_offset_ns(self) -> int:
+        """Time offset in nanoseconds."""
+        return int(round(self.time_offset * 1e9))
+
+    def updated(self, **changes: Any) -> 'Settings':
+        """Return a copy with the given keys changed (None values are ignored)."""
+        return replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def as_dict(self) -> dict:
+        """Plain dict of the settings (lists for tuples), e.g. for YAML or JSON."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = None) -> Settings:
+    """
+    Settings from a mapping of parameter names, e.g. the ``ros__parameters`` of coreg.yaml.
+
+    Unknown keys that belong to the node only (frame ids, storage paths, QoS) are ignored here.
+    """
+    known = {f.name for f in fields(Settings)}
+    base = base or Settings()
+    return base.updated(**{k: v for k, v in values.items() if k in known})
+

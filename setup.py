@@ -1,0 +1,33 @@
+"""Install coreg_ros as an ament_python package (colcon) or with pip."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'coreg_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    python_requires='>=3.10',
+    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML'],
+    extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib']},
+    zip_safe=True,
+    maintainer='coreg_ros developers',
+    maintainer_email='dev@coreg-ros.invalid',
+    description='Coregistration of two pose measurement devices (Ikits OLS/TLS) for ROS 2.',
+    license='BSD-3-Clause',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'coreg = coreg_ros.cli.main:main',
+            'coreg_node = coreg_ros.ros.node:main',
+        ],
+    },
+)
