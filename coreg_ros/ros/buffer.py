@@ -1,0 +1,159 @@
+"""
+Bounded, preallocated storage of one pose stream, with cheap per-message validation.
+
+The subscription callback of the node only calls ``StreamBuffer.push`` with Python scalars:
+no numpy allocation and no logging per message, because rclpy's executor handles only a few
+thousand messages per second. Rejected messages are counted by reason; when the buffer is full
+the OLDEST samples are overwritten (and counted as dropped), so a long session keeps the most
+recent ``capacity`` samples.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+
+from coreg_ros.core.quaternion import UNIT_NORM_TOLERANCE
+from coreg_ros.core.types import PoseStream
+
+#: Reasons a message is rejected, in the order they are checked (one reason per message).
+REASONS = ('non_finite', 'non_unit_quaternion', 'frame_id_changed', 'stamp_backwards',
+           'duplicate_stamp')
+
+_HINTS = {
+    'non_finite': 'position or orientation holds NaN or inf',
+    'non_unit_quaternion': (f'quaternion norm differs from 1 by more than {UNIT_NORM_TOLERANCE} '
+                            f'(zero quaternion or wrong field order?)'),
+    'frame_id_changed': 'header.frame_id differs from the first message of the topic',
+    'stamp_backwards': ('header stamp earlier than the previous one (clock jump); call ~/reset '
+                        'if the device clock was reset'),
+    'duplicate_stamp': 'header stamp equal to the previous one (repeated message)',
+}
+
+
+def reason_hint(reason: str) -> str:
+    """One line explaining a rejection reason."""
+    return _HINTS.get(reason, reason)
+
+
+class StreamBuffer:
+    """
+    Ring buffer of one PoseStamped stream, in arrival order.
+
+    Parameters
+    ----------
+    capacity : int
+        Samples kept; the oldest are overwritten when full.
+
+    Notes
+    -----
+    Thread-safe: ``push`` (executor thread) and ``snapshot``/``clear`` (service thread) take
+    one lock. Accepted stamps strictly increase, which is what pairing needs.
+
+    """
+
+    def __init__(self, capacity: int):
+        if capacity < 1:
+            raise ValueError(f'capacity must be >= 1, got {capacity}')
+        self.capacity = int(capacity)
+        self._stamps = np.zeros(self.capacity, dtype=np.int64)
+        self._recv = np.zeros(self.capacity, dtype=np.int64)
+        # columns x, y, z, qw, qx, qy, qz
+        self._vals = np.zeros((self.capacity, 7), dtype=float)
+        self._lock = threading.Lock()
+        self._clear_locked()
+        # Counters run since start-up; ``clear`` forgets samples, not counts.
+        self.received = 0
+        self.accepted = 0
+        self.dropped = 0  # accepted samples overwritten because the buffer was full
+        self.rejected = dict.fromkeys(REASONS, 0)
+
+    def _clear_locked(self) -> None:
+        self._next = 0          # index the next sample goes to
+        self._size = 0          # samples held
+        self.frame_id = None
+        self._last_stamp = None
+
+    def __len__(self) -> int:
+        return self._size
+
+    def push(self, stamp_ns: int, recv_ns: int, x: float, y: float, z: float,
+             qw: float, qx: float, qy: float, qz: float, frame_id: str):
+        """
+        Validate one message and store it.
+
+        Parameters
+        ----------
+        stamp_ns, recv_ns : int
+            Header stamp (device clock) and receive time, ns.
+        x, y, z : float
+            Position in ``frame_id``, m.
+        qw, qx, qy, qz : float
+            Orientation (w, x, y, z).
+        frame_id : str
+            ``header.frame_id``.
+
+        Returns
+        -------
+        reason : str or None
+            None if stored, else the rejection reason (one of ``REASONS``).
+
+        """
+        with self._lock:
+            self.received += 1
+            reason = None
+            isf = math.isfinite
+            if not (isf(x) and isf(y) and isf(z) and isf(qw) and isf(qx) and isf(qy)
+                    and isf(qz)):
+                reason = 'non_finite'
+            elif abs(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) - 1.0) > \
+                    UNIT_NORM_TOLERANCE:
+                reason = 'non_unit_quaternion'
+            elif self.frame_id is not None and frame_id != self.frame_id:
+                reason = 'frame_id_changed'
+            elif self._last_stamp is not None and stamp_ns <= self._last_stamp:
+                reason = 'stamp_backwards' if stamp_ns < self._last_stamp else 'duplicate_stamp'
+            if reason is not None:
+                self.rejected[reason] += 1
+                return reason
+            if self.frame_id is None:
+                self.frame_id = frame_id
+            self._last_stamp = stamp_ns
+            i = self._next
+            self._stamps[i] = stamp_ns
+            self._recv[i] = recv_ns
+            v = self._vals[i]
+            v[0] = x
+            v[1] = y
+            v[2] = z
+            v[3] = qw
+            v[4] = qx
+            v[5] = qy
+            v[6] = qz
+            self._next = i + 1 if i + 1 < self.capacity else 0
+            if self._size < self.capacity:
+                self._size += 1
+            else:
+                self.dropped += 1
+            self.accepted += 1
+            return None
+
+    def snapshot(self) -> PoseStream:
+        """Return a copy of the held samples, oldest first, as a PoseStream."""
+        with self._lock:
+            if self._size < self.capacity:
+                idx = slice(0, self._size)
+                stamps, recv, vals = self._stamps[idx], self._recv[idx], self._vals[idx]
+            else:  # full ring: oldest sample sits at the write index
+                order = np.r_[self._next:self.capacity, 0:self._next]
+                stamps, recv, vals = self._stamps[order], self._recv[order], self._vals[order]
+            return PoseStream(stamps=stamps.copy(), position=vals[:, :3].copy(),
+                              quat_wxyz=vals[:, 3:].copy(), frame_id=self.frame_id or '',
+                              receive_stamps=recv.copy())
+
+    def clear(self) -> None:
+        """Forget the samples, the reference frame id and the last stamp (not the counters)."""
+        with self._lock:
+            self._clear_locked()
