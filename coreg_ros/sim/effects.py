@@ -1,0 +1,109 @@
+"""
+Extension point for unmodelled effects applied to simulated recordings (DESIGN.md §5).
+
+An effect is any callable ``effect(streams, context, rng) -> streams`` that returns new
+``PoseStream`` objects (never modifies its input) for some of the topics: a time offset or
+clock drift changes B's stamps, jitter perturbs stamps, a field distortion or a scale error
+changes B's positions as a function of the true ones, outliers replace a few samples, and so
+on. ``simulate_recording(..., effects=[...])`` applies them in order after the Gaussian device
+noise, each with its own random generator (so adding an effect changes neither the base
+recording nor the draws of the effects before it), and records ``effect.as_dict()`` in
+``Truth.effects`` so that a diagnosis can be scored against what was really done.
+
+No effect is implemented here yet; see the table of DESIGN.md §5 for the candidates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Protocol, runtime_checkable
+
+import numpy as np
+
+from coreg_ros.core.types import PoseStream
+from coreg_ros.sim.motion import Motion
+from coreg_ros.sim.truth import Truth
+
+
+@dataclass(frozen=True, eq=False)
+class EffectContext:
+    """
+    What an effect may know about the simulation besides the streams it changes.
+
+    Attributes
+    ----------
+    truth : Truth
+        The true calibration (``effects`` still empty).
+    motion : Motion
+        A's tool motion in A's base frame; ``motion.pose((stamps - start_ns) * 1e-9)``
+        evaluates the true pose at any instant (e.g. for a time offset).
+    start_ns : int
+        Origin of the motion's time, nanoseconds on the common clock.
+    topic_a : str
+        Topic of device A.
+    topics_b : tuple of str
+        Topic(s) of device B.
+    true_streams : dict of str to PoseStream
+        Noise-free streams at the same stamps as the noisy ones.
+    sigma_a, sigma_b : tuple of float
+        Device noise (position m, rotation rad).
+
+    """
+
+    truth: Truth
+    motion: Optional[Motion]
+    start_ns: int
+    topic_a: str
+    topics_b: tuple
+    true_streams: dict
+    sigma_a: tuple
+    sigma_b: tuple
+
+
+@runtime_checkable
+class Effect(Protocol):
+    """
+    An unmodelled effect: a callable on the streams of a recording.
+
+    ``__call__(streams, context, rng)`` takes the dict of topic to ``PoseStream`` after the
+    device noise, the ``EffectContext`` and a ``numpy.random.Generator`` of its own, and returns
+    a new dict of topic to ``PoseStream`` (stamps int64 ns, quaternions (w, x, y, z), w >= 0).
+    ``as_dict()`` describes the effect and its true size, JSON-friendly, e.g.
+    ``{'name': 'time_offset', 'tau_s': 0.012}``.
+    """
+
+    def __call__(self, streams: dict[str, PoseStream], context: EffectContext,
+                 rng: np.random.Generator) -> dict[str, PoseStream]:
+        """Return the streams with the effect applied."""
+        ...  # pragma: no cover
+
+    def as_dict(self) -> dict:
+        """Describe the effect and its size."""
+        ...  # pragma: no cover
+
+
+def describe(effect) -> dict:
+    """``effect.as_dict()``, or ``{'name': <its class or function name>}`` if it has none."""
+    if hasattr(effect, 'as_dict'):
+        return dict(effect.as_dict())
+    return {'name': getattr(effect, '__name__', type(effect).__name__)}
+
+
+def apply_effects(streams: dict[str, PoseStream], effects, context: EffectContext,
+                  seed_sequence: np.random.SeedSequence) -> tuple[dict, tuple]:
+    """
+    Apply effects in order, each with its own generator spawned from ``seed_sequence``.
+
+    Returns
+    -------
+    streams : dict of str to PoseStream
+    descriptions : tuple of dict
+        ``describe(effect)`` for each effect, in order.
+
+    """
+    effects = tuple(effects)
+    children = seed_sequence.spawn(len(effects)) if effects else []
+    out = dict(streams)
+    for effect, child in zip(effects, children, strict=True):
+        out = dict(effect(out, context, np.random.default_rng(child)))
+    return out, tuple(describe(e) for e in effects)
