@@ -1,0 +1,169 @@
+"""
+The ``coreg`` subcommands that need ROS: ``play``, ``record``, ``call``, ``echo``.
+
+``register(subparsers)`` adds them to the ``coreg`` command; rclpy is imported only inside the
+commands, so ``coreg calibrate`` works without ROS. Every command returns an exit code and
+reports a failure in one line (what is wrong and what to do), never with a traceback.
+Also runnable alone: ``python -m coreg_ros.cli.ros_commands play BAG``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import math
+from pathlib import Path
+import sys
+
+SERVICES = ('calibrate', 'reset', 'save_samples')
+
+
+def _fail(command: str, message: str) -> int:
+    print(f'coreg {command}: error: {message}', file=sys.stderr)
+    return 1
+
+
+def _guarded(command: str):
+    """Turn CoregErrors and a missing rclpy into one line and exit code 1."""
+    def wrap(func):
+        @functools.wraps(func)
+        def run(args) -> int:
+            try:
+                from coreg_ros.core.errors import CoregError
+            except ImportError as e:  # pragma: no cover - broken installation
+                return _fail(command, f'coreg_ros is not importable ({e})')
+            try:
+                return func(args)
+            except ImportError as e:
+                return _fail(command, f'ROS 2 Python packages are missing ({e}); source a Jazzy '
+                                      f'installation or run `make venv`')
+            except CoregError as e:
+                return _fail(command, str(e))
+            except KeyboardInterrupt:
+                return 130
+        return run
+    return wrap
+
+
+@_guarded('play')
+def cmd_play(args) -> int:
+    """Publish a bag on live topics with its original timing."""
+    from coreg_ros.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
+    from coreg_ros.ros.tools import RosSession, play_streams
+
+    topics = args.topics or [t for t, ty in list_topics(args.bag).items() if POSE_STAMPED in ty]
+    if not topics:
+        return _fail('play', f'bag {args.bag} has no {POSE_STAMPED} topic; pass --topics')
+    streams = read_pose_bag(args.bag, topics)
+    with RosSession('coreg_play') as session:
+        play_streams(session, streams, rate=args.rate, wait_subscribers=args.wait)
+    return 0
+
+
+@_guarded('record')
+def cmd_record(args) -> int:
+    """Record live PoseStamped topics to a new bag."""
+    from coreg_ros.bag.posebag import write_pose_bag
+    from coreg_ros.core.errors import BagError
+    from coreg_ros.ros.tools import RosSession, record_streams
+
+    out = Path(args.out_bag)
+    if out.exists():
+        raise BagError(f'{str(out)!r} exists already; choose a new bag name')
+    with RosSession('coreg_record') as session:
+        streams = record_streams(session, args.topics, duration=args.duration)
+    n = {t: len(s) for t, s in streams.items()}
+    write_pose_bag(out, streams, storage=args.storage)
+    print(f'wrote {out}: ' + ', '.join(f'{t} {k}' for t, k in n.items()))
+    return 0
+
+
+@_guarded('call')
+def cmd_call(args) -> int:
+    """Call one of coreg_node's Trigger services; exit 0 if it answered success."""
+    from coreg_ros.ros.tools import RosSession, call_trigger, service_name
+
+    name = service_name(args.service, args.node)
+    with RosSession('coreg_call') as session:
+        success, message = call_trigger(session, name, timeout=args.timeout)
+    print(f'{name}: {"success" if success else "FAILED"}: {message}')
+    return 0 if success else 1
+
+
+@_guarded('echo')
+def cmd_echo(args) -> int:
+    """Print the published PoseWithCovarianceStamped of a topic (latched results included)."""
+    from coreg_ros.ros.tools import RosSession, format_pose_msg, service_name, wait_for_result
+
+    topic = service_name(args.topic, args.node)
+    timeout = args.timeout
+    if timeout is None and args.once:
+        timeout = 10.0
+    with RosSession('coreg_echo') as session:
+        printed = 0
+        while session.ok():
+            msg = wait_for_result(session, topic, timeout)
+            if msg is None:
+                break
+            print(format_pose_msg(msg, topic), flush=True)
+            printed += 1
+            if args.once:
+                break
+    if printed == 0:
+        return _fail('echo', f'nothing received on {topic} within {timeout:g} s; has coreg_node '
+                             f'calibrated (coreg call calibrate) on this ROS_DOMAIN_ID?')
+    return 0
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0 or math.isnan(value):
+        raise argparse.ArgumentTypeError(f'must be > 0, got {text}')
+    return value
+
+
+def register(subparsers) -> None:
+    """Add the ``play``, ``record``, ``call`` and ``echo`` subcommands to ``subparsers``."""
+    p = subparsers.add_parser('play', help='publish a bag on live topics with its timing')
+    p.add_argument('bag', help='rosbag2 directory')
+    p.add_argument('--rate', type=_positive, default=1.0,
+                   help='speed factor (default 1: real time; inf: as fast as possible)')
+    p.add_argument('--topics', nargs='+', help='topics to play (default: every PoseStamped)')
+    p.add_argument('--wait', type=float, default=10.0,
+                   help='seconds to wait for subscribers first (0: do not wait; default 10)')
+    p.set_defaults(func=cmd_play)
+
+    p = subparsers.add_parser('record', help='record live PoseStamped topics to a bag')
+    p.add_argument('out_bag', help='rosbag2 directory to create')
+    p.add_argument('--topics', nargs='+', required=True, help='PoseStamped topics')
+    p.add_argument('--duration', type=_positive, help='seconds (default: until Ctrl-C)')
+    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    p.set_defaults(func=cmd_record)
+
+    p = subparsers.add_parser('call', help='call a coreg_node service and print the answer')
+    p.add_argument('service', choices=SERVICES)
+    p.add_argument('--node', default='coreg_node', help='node name (default coreg_node)')
+    p.add_argument('--timeout', type=_positive, default=60.0,
+                   help='seconds to wait for the answer (default 60)')
+    p.set_defaults(func=cmd_call)
+
+    p = subparsers.add_parser('echo', help='print a published pose with covariance')
+    p.add_argument('topic', help='e.g. base_to_base, tool_to_marker or a full topic name')
+    p.add_argument('--node', default='coreg_node',
+                   help='node whose private topic a relative name means (default coreg_node)')
+    p.add_argument('--once', action='store_true', help='exit after the first message')
+    p.add_argument('--timeout', type=_positive,
+                   help='seconds to wait for a message (default: 10 with --once, else forever)')
+    p.set_defaults(func=cmd_echo)
+
+
+def main(argv=None) -> int:
+    """Run one of these subcommands alone (``python -m coreg_ros.cli.ros_commands``)."""
+    parser = argparse.ArgumentParser(prog='coreg')
+    register(parser.add_subparsers(dest='command', required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
