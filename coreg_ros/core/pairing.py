@@ -1,0 +1,337 @@
+"""
+Pairing of two pose streams by timestamp: the one pairing rule of the package.
+
+Device A (the input) is interpolated at device B's stamps: linearly in position, by slerp in
+rotation, and only between two A samples that are each close enough to the B stamp. The
+function is pure and deterministic, vectorised with ``np.searchsorted``, and shared by the
+offline bag tools and the live node (which calls it on its whole buffer every time).
+
+Stamps are int64 nanoseconds (DESIGN.md §3); no float seconds are used to decide what pairs
+with what. Quaternions are (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+import numbers
+from typing import Union
+
+import numpy as np
+
+from coreg_ros.core.errors import InputError
+from coreg_ros.core.quaternion import validate_quaternions
+from coreg_ros.core.types import PairingReport, Pairs, PoseStream
+
+#: Reasons a B sample is not paired, in the order they are tested (one reason per sample).
+UNPAIRED_REASONS = ('before_first_a', 'after_last_a', 'gap_too_large', 'marker_missing')
+
+
+def _as_int(value: object, name: str) -> int:
+    """Return a Python int, refusing floats (pairing never uses float seconds)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise InputError(f'{name} must be an integer number of nanoseconds, got {value!r}; '
+                         f'convert seconds with int(round(s * 1e9))')
+    return int(value)
+
+
+def _stamps(values: object, name: str) -> np.ndarray:
+    """Return stamps as a 1-D int64 array, refusing anything that is not integer ns."""
+    try:
+        arr = np.asarray(values)
+    except Exception as err:  # ragged or exotic input: the message below names the fix
+        raise InputError(f'{name}: stamps are not an array of integers ({err}); give int64 '
+                         f'nanoseconds (sec * 10**9 + nanosec)') from err
+    if arr.ndim != 1:
+        raise InputError(f'{name}: stamps must have shape (N,), got {arr.shape}')
+    if arr.dtype.kind == 'u' and arr.size and int(arr.max()) > np.iinfo(np.int64).max:
+        raise InputError(f'{name}: a stamp exceeds the int64 range; give int64 nanoseconds '
+                         f'(sec * 10**9 + nanosec)')
+    if arr.dtype.kind not in 'iu':
+        raise InputError(
+            f'{name}: stamps must be integer nanoseconds, got dtype {arr.dtype}; convert with '
+            f'sec * 10**9 + nanosec in integers (float seconds lose sub-microsecond precision)')
+    return arr.astype(np.int64, copy=False)
+
+
+def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) -> PoseStream:
+    """
+    Check one device's stream before pairing and return it with normalised quaternions.
+
+    Parameters
+    ----------
+    stream : PoseStream
+        ``stamps`` (N,) int64 ns, ``position`` (N, 3) m, ``quat_wxyz`` (N, 4) (w, x, y, z),
+        all in the device's base frame.
+    name : str
+        What the stream is (e.g. ``'stream_a'``), used in the error messages.
+    orientation : bool
+        Whether the quaternions are used. If False (a 3-DOF tracker, or B in the position-only
+        and three-marker models) they are neither checked nor normalised.
+
+    Returns
+    -------
+    stream : PoseStream
+        The same samples with int64 stamps, float positions and unit quaternions of sign
+        w >= 0 (when ``orientation``).
+
+    Raises
+    ------
+    InputError
+        One line naming the problem, the first offending index and the fix: an empty stream,
+        stamps that are not integers, wrong shapes, duplicate stamps, stamps going backwards
+        (out-of-order messages or a clock jump, with the size of the jump), NaN or infinite
+        positions, NaN, zero or non-unit quaternions.
+
+    """
+    n = len(np.asarray(stream.stamps).reshape(-1))
+    if n == 0:
+        raise InputError(f'{name}: the stream is empty; record or select samples of this '
+                         f'device (check the topic name and the time range)')
+    stamps = _stamps(stream.stamps, name)
+    position = np.asarray(stream.position, dtype=float)
+    if position.shape != (n, 3):
+        raise InputError(f'{name}: position must have shape ({n}, 3), got {position.shape}; '
+                         f'give one position per stamp')
+    quat = np.asarray(stream.quat_wxyz, dtype=float)
+    if quat.shape != (n, 4):
+        raise InputError(f'{name}: quat_wxyz must have shape ({n}, 4), got {quat.shape}; give '
+                         f'one (w, x, y, z) quaternion per stamp')
+    receive = stream.receive_stamps
+    if receive is not None:
+        receive = _stamps(receive, f'{name} receive_stamps')
+        if receive.shape != (n,):
+            raise InputError(f'{name}: receive_stamps must have shape ({n},), got '
+                             f'{receive.shape}; give one receive stamp per sample or None')
+
+    step = np.diff(stamps)
+    bad = np.flatnonzero(step <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        if step[i - 1] == 0:
+            raise InputError(
+                f'{name}: duplicate stamp {int(stamps[i])} ns at index {i} (same as index '
+                f'{i - 1}; {int((step == 0).sum())} duplicate(s) in all); drop repeated '
+                f'messages before pairing')
+        jump = -int(step[i - 1])
+        raise InputError(
+            f'{name}: stamps go backwards at index {i} by {jump} ns ({jump / 1e6:.3f} ms), '
+            f'from {int(stamps[i - 1])} to {int(stamps[i])} ({int((step < 0).sum())} '
+            f'backward step(s) in all): out-of-order messages or a clock jump; sort by stamp '
+            f'or split the recording at the jump')
+
+    finite = np.isfinite(position).all(axis=1)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise InputError(
+            f'{name}: position contains NaN or inf at index {i} ({int((~finite).sum())} '
+            f'sample(s) in all); drop those samples (tracking lost) before pairing')
+    if orientation:
+        quat = validate_quaternions(quat, f'{name} quat_wxyz')
+    return PoseStream(stamps=stamps, position=position, quat_wxyz=quat,
+                      frame_id=stream.frame_id, receive_stamps=receive)
+
+
+def _bracket(t_src: np.ndarray, t: np.ndarray,
+             max_gap_ns: int) -> tuple[np.ndarray, ...]:
+    """
+    Locate each time t among the source stamps t_src and decide whether it can be interpolated.
+
+    Parameters
+    ----------
+    t_src : ndarray of int64, shape (M,)
+        Strictly increasing source stamps, ns.
+    t : ndarray of int64, shape (K,)
+        Query times in the same clock, ns.
+    max_gap_ns : int
+        Largest distance of either bracketing sample from t, ns.
+
+    Returns
+    -------
+    lo, hi : ndarray of int, shape (K,)
+        Indices of the bracketing samples (lo == hi on an exact match); only meaningful where
+        ``ok``.
+    alpha : ndarray, shape (K,)
+        Interpolation fraction from lo (0) to hi (1); 0 on an exact match.
+    ok : ndarray of bool, shape (K,)
+    before, after : ndarray of bool, shape (K,)
+        t lies before the first or after the last source stamp.
+
+    """
+    m = t_src.shape[0]
+    j = np.searchsorted(t_src, t, side='right')  # t_src[j-1] <= t < t_src[j]
+    lo = np.clip(j - 1, 0, m - 1)
+    exact = (j >= 1) & (t_src[lo] == t)
+    before = j == 0
+    after = (j == m) & ~exact
+    inside = ~before & ~after & ~exact
+    hi = np.where(inside, np.minimum(j, m - 1), lo)
+    # Integer differences: exact in int64, converted to float only for the fraction.
+    d_lo = t - t_src[lo]
+    d_hi = t_src[hi] - t
+    ok = exact | (inside & (d_lo <= max_gap_ns) & (d_hi <= max_gap_ns))
+    span = (t_src[hi] - t_src[lo]).astype(float)
+    alpha = np.where(inside, d_lo.astype(float) / np.where(inside, span, 1.0), 0.0)
+    return lo, hi, alpha, ok, before, after
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """
+    Slerp of unit quaternions along the shorter arc, rows (K, 4) (w, x, y, z), fractions (K,).
+
+    Same result as ``quaternion.slerp`` (to rounding, sign w >= 0) in a fraction of the time,
+    which matters for a million pairs: the weights sin((1-α)θ)/sin θ and sin(αθ)/sin θ are
+    computed on (K,) vectors, and the (K, 4) arrays are touched only to combine them. The angle
+    θ from arccos is imprecise near 0, but the weights depend on θ only at second order there.
+
+    """
+    dot = np.einsum('ij,ij->i', q0, q1)
+    shorter = np.where(dot < 0.0, -1.0, 1.0)  # q and -q are one rotation: take the short arc
+    theta = np.arccos(np.minimum(np.abs(dot), 1.0))
+    small = theta < 1e-6  # sin θ -> 0: the weights tend to the linear ones, error O(θ²)
+    sin_theta = np.sin(np.where(small, 1.0, theta))
+    w0 = np.where(small, 1.0 - alpha, np.sin((1.0 - alpha) * theta) / sin_theta)
+    w1 = shorter * np.where(small, alpha, np.sin(alpha * theta) / sin_theta)
+    # Canonical sign (w >= 0) chosen on the scalar part before forming the (K, 4) result.
+    flip = np.where(w0 * q0[:, 0] + w1 * q1[:, 0] < 0.0, -1.0, 1.0)
+    # In place: with a million rows every (K, 4) temporary costs as much as the arithmetic.
+    out = q0 * (flip * w0)[:, None]
+    out += q1 * (flip * w1)[:, None]
+    return out
+
+
+def _lerp(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Linear interpolation values[lo] + α (values[hi] - values[lo]), rows (K, d)."""
+    v_lo = values[lo]
+    out = values[hi]
+    out -= v_lo
+    out *= alpha[:, None]
+    out += v_lo
+    return out
+
+
+def pair_streams(stream_a: PoseStream,
+                 streams_b: Union[PoseStream, Sequence[PoseStream]], *,
+                 max_gap_ns: int, offset_ns: int = 0,
+                 with_orientation_b: bool = True) -> tuple[Pairs, PairingReport]:
+    """
+    Pair device A (input) with device B (output) by interpolating A at B's stamps.
+
+    For each B sample at stamp ``t_B`` (B's clock), A is evaluated at ``t = t_B - offset_ns``
+    (A's clock): linearly in position and by slerp in rotation between the two A samples that
+    bracket t, provided each of them is at most ``max_gap_ns`` from t. An A sample stamped
+    exactly t is used alone. Each B sample gives at most one pair.
+
+    Parameters
+    ----------
+    stream_a : PoseStream
+        Device A: tool pose in A's base frame, stamps in A's clock (int64 ns).
+    streams_b : PoseStream or sequence of PoseStream
+        Device B: marker pose in B's base frame, stamps in B's clock. A sequence of three
+        streams is the three-marker model (Ikits eq. 19): markers 2 and 3 are interpolated
+        linearly at marker 1's stamps by the same gap rule (all three in B's clock), and
+        their orientations are ignored. A sequence of one stream is the same as the stream.
+    max_gap_ns : int
+        Largest distance (ns) of each bracketing sample from the interpolation time.
+    offset_ns : int
+        B's clock minus A's clock (ns), e.g. a known latency of B.
+    with_orientation_b : bool
+        False for the position-only model: B's orientations are ignored (neither checked nor
+        returned) and ``Pairs.quat_b`` is None.
+
+    Returns
+    -------
+    pairs : Pairs
+        ``stamps`` (N,) the paired B stamps (B's clock, ns); ``pos_a`` (N, 3) m and ``quat_a``
+        (N, 4) (w, x, y, z), A's tool pose in A's base frame interpolated at those stamps;
+        ``pos_b`` (N, 3) m, or (N, 3, 3) for three markers (axis 1 = marker 1..3), in B's base
+        frame; ``quat_b`` (N, 4) or None; ``a_var_scale`` (N,) = α² + (1 - α)² for the
+        interpolation fraction α (1 on an exact stamp match), the factor on A's noise variance.
+    report : PairingReport
+        ``n_a``, ``n_b`` (samples offered; for three markers ``n_b`` counts marker 1),
+        ``n_paired``, ``unpaired`` with the keys of ``UNPAIRED_REASONS`` (one reason per B
+        sample, the first that applies in that order), ``n_a_unused`` (A samples that bracket
+        no pair). ``n_paired + sum(unpaired.values()) == n_b``.
+
+    Raises
+    ------
+    InputError
+        If a stream fails ``validate_stream`` (the message names the stream and the index),
+        ``max_gap_ns`` is negative or not an integer, or the number of B streams is not 1 or 3.
+
+    Notes
+    -----
+    The function is pure and deterministic: the live node may call it on its whole buffer
+    each time, and gets the same pairs the offline tools get from the same samples.
+
+    """
+    max_gap_ns = _as_int(max_gap_ns, 'max_gap_ns')
+    offset_ns = _as_int(offset_ns, 'offset_ns')
+    if max_gap_ns < 0:
+        raise InputError(f'max_gap_ns must be >= 0, got {max_gap_ns}; give the largest '
+                         f'allowed distance to a bracketing sample in nanoseconds')
+    if isinstance(streams_b, PoseStream):
+        markers = [streams_b]
+    else:
+        markers = list(streams_b)
+        if len(markers) not in (1, 3):
+            raise InputError(f'streams_b: expected one stream or three marker streams, got '
+                             f'{len(markers)}; pass a PoseStream or [marker1, marker2, '
+                             f'marker3]')
+    three = len(markers) == 3
+    a = validate_stream(stream_a, 'stream_a')
+    if three:
+        bs = [validate_stream(s, f'streams_b[{k}]', orientation=False)
+              for k, s in enumerate(markers)]
+    else:
+        bs = [validate_stream(markers[0], 'stream_b', orientation=with_orientation_b)]
+    b = bs[0]
+    n_a, n_b = len(a), len(b)
+
+    t_query = b.stamps - np.int64(offset_ns)
+    lo, hi, alpha, ok, before, after = _bracket(a.stamps, t_query, max_gap_ns)
+    gap = ~ok & ~before & ~after
+    # Marker 2 and 3 at marker 1's stamps (same clock, same gap rule).
+    marker_ok = np.ones(n_b, dtype=bool)
+    marker_pos = []
+    for m in bs[1:]:
+        m_lo, m_hi, m_alpha, m_ok, _, _ = _bracket(m.stamps, b.stamps, max_gap_ns)
+        marker_ok &= m_ok
+        marker_pos.append((m, m_lo, m_hi, m_alpha))
+    missing = ok & ~marker_ok
+    keep = ok & marker_ok
+
+    idx = np.flatnonzero(keep)
+    lo_k, hi_k, alpha_k = lo[idx], hi[idx], alpha[idx]
+    pos_a = _lerp(a.position, lo_k, hi_k, alpha_k)
+    quat_a = a.quat_wxyz[lo_k]
+    interp = alpha_k > 0.0
+    if interp.any():
+        # An exact match keeps its sample unchanged; only true interpolations are slerped.
+        quat_a[interp] = _slerp(a.quat_wxyz[lo_k[interp]], a.quat_wxyz[hi_k[interp]],
+                                alpha_k[interp])
+    a_var_scale = alpha_k ** 2 + (1.0 - alpha_k) ** 2
+
+    if three:
+        pos_b = np.empty((idx.size, 3, 3))
+        pos_b[:, 0, :] = b.position[idx]
+        for k, (m, m_lo, m_hi, m_alpha) in enumerate(marker_pos, start=1):
+            pos_b[:, k, :] = _lerp(m.position, m_lo[idx], m_hi[idx], m_alpha[idx])
+        quat_b = None
+    else:
+        pos_b = b.position[idx]
+        quat_b = b.quat_wxyz[idx] if with_orientation_b else None
+
+    used = np.zeros(n_a, dtype=bool)
+    used[lo_k] = True
+    used[hi_k] = True
+    report = PairingReport(
+        n_a=n_a, n_b=n_b, n_paired=int(idx.size),
+        unpaired={'before_first_a': int(before.sum()), 'after_last_a': int(after.sum()),
+                  'gap_too_large': int(gap.sum()), 'marker_missing': int(missing.sum())},
+        n_a_unused=int(n_a - used.sum()))
+    pairs = Pairs(stamps=b.stamps[idx], pos_a=pos_a, quat_a=quat_a, pos_b=pos_b,
+                  quat_b=quat_b, a_var_scale=a_var_scale)
+    return pairs, report
+
+
+__all__ = ['UNPAIRED_REASONS', 'pair_streams', 'validate_stream']
