@@ -153,42 +153,9 @@ def to_matrix(q: np.ndarray) -> np.ndarray:
     ], axis=-2)
 
 
-def matrix_derivatives(q: np.ndarray) -> np.ndarray:
-    """
-    Partial derivatives of ``to_matrix`` with respect to (w, x, y, z), Ikits eqs. 22-25.
-
-    Returns
-    -------
-    dR : ndarray, shape (..., 4, 3, 3)
-        ``dR[..., j, :, :] = ∂R/∂q_j``.
-
-    """
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
-
-    def mat(rows):
-        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-    return 2.0 * np.stack([
-        mat([[w, -z, y], [z, w, -x], [-y, x, w]]),
-        mat([[x, y, z], [y, -x, -w], [z, w, -x]]),
-        mat([[-y, x, w], [x, y, z], [-w, z, -y]]),
-        mat([[-z, -w, x], [w, -z, y], [x, y, z]]),
-    ], axis=-3)
-
-
-def rotate_jacobian(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """
-    Derivative of ``R(q) v`` with respect to the four components of q, shape (..., 3, 4).
-
-    ``R(q) v`` is quadratic in q, so this is exact for any (not necessarily unit) q.
-    """
-    dR = matrix_derivatives(q)
-    return np.einsum('...jab,...b->...aj', dR, np.asarray(v, dtype=float))
-
-
 def from_matrix(R: np.ndarray) -> np.ndarray:
     """
-    Unit quaternion (w >= 0) of rotation matrices, shape (..., 3, 3) -> (..., 4).
+    Convert rotation matrices (..., 3, 3) to unit quaternions (..., 4) with w >= 0.
 
     Uses the largest of the four squared components for numerical stability (Shepperd).
     """
@@ -215,7 +182,7 @@ def from_matrix(R: np.ndarray) -> np.ndarray:
 
 def exp(rotvec: np.ndarray) -> np.ndarray:
     """
-    Unit quaternion of rotation vectors (axis times angle, rad), shape (..., 3) -> (..., 4).
+    Map rotation vectors (axis times angle, rad), shape (..., 3), to unit quaternions (..., 4).
 
     Accurate near zero angle (Taylor series of sin(θ/2)/θ).
     """
@@ -350,14 +317,14 @@ def expand(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> tuple[np.ndarr
     jac = np.zeros(s.shape[:-1] + (4, 3))
     eye = np.broadcast_to(np.eye(3), s.shape[:-1] + (3, 3))
     np.put_along_axis(jac, others[..., None].repeat(3, -1), eye, -2)
-    np.put_along_axis(jac, chart[..., None, None].repeat(3, -1), (-s / qk[..., None])[..., None, :],
-                      -2)
+    row_k = (-s / qk[..., None])[..., None, :]
+    np.put_along_axis(jac, chart[..., None, None].repeat(3, -1), row_k, -2)
     return q, jac
 
 
 def needs_rechart(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> np.ndarray:
     """
-    True where another component has become larger than the computed one (§3.1, re-charting).
+    Flag where another component has outgrown the computed one (§3.1, re-charting).
 
     Shape (...). Re-charting keeps dq/ds well conditioned: |q_k| >= 1/2 in every chart.
     """

@@ -8,8 +8,9 @@ descriptor, the CLI reads the same file with ``--config`` and overrides keys wit
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Mapping
+from typing import Any
 
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import METHODS, MODELS
@@ -65,7 +66,8 @@ class Settings:
         if self.model not in MODELS:
             raise ConfigError(f'model {self.model!r} is unknown; use one of {", ".join(MODELS)}')
         if self.method not in METHODS:
-            raise ConfigError(f'method {self.method!r} is unknown; use one of {", ".join(METHODS)}')
+            raise ConfigError(
+                f'method {self.method!r} is unknown; use one of {", ".join(METHODS)}')
         for name in ('sigma_a', 'sigma_b'):
             value = tuple(float(v) for v in getattr(self, name))
             if len(value) != 2 or not all(v > 0 and v < float('inf') for v in value):
@@ -100,7 +102,7 @@ class Settings:
         """Time offset in nanoseconds."""
         return int(round(self.time_offset * 1e9))
 
-    def updated(self, **changes: Any) -> 'Settings':
+    def updated(self, **changes: Any) -> Settings:
         """Return a copy with the given keys changed (None values are ignored)."""
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
 
@@ -111,7 +113,7 @@ class Settings:
 
 def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = None) -> Settings:
     """
-    Settings from a mapping of parameter names, e.g. the ``ros__parameters`` of coreg.yaml.
+    Build Settings from a mapping of parameter names, e.g. the ``ros__parameters`` of coreg.yaml.
 
     Unknown keys that belong to the node only (frame ids, storage paths, QoS) are ignored here.
     """

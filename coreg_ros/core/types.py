@@ -113,7 +113,8 @@ class PairingReport:
     def summary(self) -> str:
         """One line for a person."""
         why = ', '.join(f'{k}: {v}' for k, v in self.unpaired.items() if v) or 'none'
-        return f'{self.n_paired} pairs from {self.n_a} A and {self.n_b} B samples; unpaired B: {why}'
+        return (f'{self.n_paired} pairs from {self.n_a} A and {self.n_b} B samples; '
+                f'unpaired B: {why}')
 
 
 @dataclass(frozen=True)
@@ -175,6 +176,8 @@ class CalibrationResult:
     iterations : int
     cov_joint : ndarray, shape (12, 12), optional
         Joint covariance of (T0, T1) in the ROS layout, for propagation.
+    input_residuals : ndarray, shape (N, 6), optional
+        Whitened input residuals (TLS only): adjusted minus measured A, (position, rotation).
 
     """
 
@@ -195,3 +198,4 @@ class CalibrationResult:
     residuals: np.ndarray
     iterations: int
     cov_joint: Optional[np.ndarray] = None
+    input_residuals: Optional[np.ndarray] = None

@@ -1,0 +1,145 @@
+"""
+Calibration from pairs: validation, closed-form start, OLS, TLS, observability, covariance.
+
+This is the one entry point the CLI and the node use (through ``pipeline.calibrate_streams``),
+so that both give the same numbers from the same pairs.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+from scipy import stats
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.covariance import Prior, result_poses
+from coreg_ros.core.errors import InputError, TooFewPairsError
+from coreg_ros.core.estimator import Problem, Solution, solve_ols, solve_tls
+from coreg_ros.core.initialize import initialize
+from coreg_ros.core.models import SPECS, ModelSpec
+from coreg_ros.core.observability import check_observability
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import CalibrationResult, Pairs
+
+
+def noise_covariance(sigma) -> np.ndarray:
+    """6×6 covariance (ROS layout) of isotropic noise given as (position m, rotation rad)."""
+    pos, rot = float(sigma[0]), float(sigma[1])
+    return np.diag([pos ** 2] * 3 + [rot ** 2] * 3)
+
+
+def whitening(cov: np.ndarray, spec: Optional[ModelSpec], device: str) -> np.ndarray:
+    """
+    L with LᵀL the inverse covariance of the error metric, for device 'a' (6×6) or 'b' (m×m).
+
+    The rotation metric is about half the angle (Ikits §3.2), so a rotation covariance Σθ
+    enters as Σθ/4 (and position-rotation cross terms as -1/2).
+    """
+    cov = np.asarray(cov, dtype=float).reshape(6, 6)
+    T = np.diag([1.0, 1.0, 1.0, -0.5, -0.5, -0.5])
+    metric = T @ cov @ T
+    if device == 'b' and spec.name != 'full_pose':
+        blocks = [metric[0:3, 0:3]] * spec.n_markers
+        metric = np.zeros((3 * len(blocks),) * 2)
+        for j, b in enumerate(blocks):
+            metric[3 * j:3 * j + 3, 3 * j:3 * j + 3] = b
+    try:
+        return np.linalg.inv(np.linalg.cholesky(metric))
+    except np.linalg.LinAlgError as e:
+        raise InputError(f'noise covariance of device {device.upper()} is not positive '
+                         f'definite; give positive standard deviations') from e
+
+
+def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
+    n = len(pairs)
+    min_pairs = max(int(settings.min_pairs), spec.n_params // spec.n_res + 2)
+    if n < min_pairs:
+        raise TooFewPairsError(
+            f'only {n} pairs (need at least {min_pairs}); record longer, move while recording, '
+            f'or raise max_gap if the devices were not paired')
+    pos_a = np.asarray(pairs.pos_a, dtype=float)
+    pos_b = np.asarray(pairs.pos_b, dtype=float)
+    want_b = (n, 3, 3) if spec.name == 'three_marker' else (n, 3)
+    if pos_a.shape != (n, 3) or pos_b.shape != want_b:
+        raise InputError(f'pairs have shapes {pos_a.shape} and {pos_b.shape}; model '
+                         f'{spec.name} needs (N, 3) and {want_b}')
+    for name, arr in (('device A position', pos_a), ('device B position', pos_b)):
+        bad = ~np.isfinite(arr).reshape(n, -1).all(axis=1)
+        if bad.any():
+            raise InputError(f'{name}: {int(bad.sum())} pair(s) contain NaN or inf (first at '
+                             f'pair {int(np.flatnonzero(bad)[0])}); drop those samples')
+    quat_a = quat.validate_quaternions(pairs.quat_a, 'device A orientation')
+    quat_b = None
+    if spec.has_q1:
+        if pairs.quat_b is None:
+            raise InputError('model full_pose needs device B orientations; use '
+                             '--model position_only for a position-only tracker')
+        quat_b = quat.validate_quaternions(pairs.quat_b, 'device B orientation')
+    scale = None
+    if pairs.a_var_scale is not None:
+        scale = np.asarray(pairs.a_var_scale, dtype=float)
+        if scale.shape != (n,) or not (scale > 0).all():
+            raise InputError('a_var_scale must be positive, one per pair')
+    return pos_a, quat_a, pos_b, quat_b, scale
+
+
+def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional[Prior] = None,
+              cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None
+              ) -> CalibrationResult:
+    """
+    Estimate T0 = T_bbase_abase and T1 = T_atool_bmarker from paired samples.
+
+    Closed-form start (no guess needed), OLS (Ikits B.1) refined by TLS (B.2) when
+    ``settings.method == 'tls'``, a priori estimates (B.3), chi-square goodness of fit (B.4.1)
+    and posterior covariance (B.4.2) converted to the ROS layout.
+
+    Parameters
+    ----------
+    pairs : Pairs
+    settings : Settings
+        Model, method, noise (``sigma_a``, ``sigma_b``), iteration limit, minimum pairs.
+    prior : Prior, optional
+    cov_a, cov_b : ndarray, shape (6, 6), optional
+        Full noise covariances (ROS layout) overriding ``sigma_a`` / ``sigma_b``.
+
+    Returns
+    -------
+    CalibrationResult
+        ``success`` is False (with the reason in ``message``) if the estimator did not converge.
+
+    Raises
+    ------
+    TooFewPairsError, InputError, UnobservableError
+
+    """
+    settings = settings or Settings()
+    spec = SPECS[settings.model]
+    pos_a, quat_a, pos_b, quat_b, scale = _validated(pairs, spec, settings)
+    cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
+    cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
+    problem = Problem(spec, pos_a, quat_a, pos_b, quat_b, whitening(cov_b, spec, 'b'),
+                      whitening(cov_a, None, 'a'), scale,
+                      prior.terms(spec) if prior is not None else [])
+    start = initialize(spec, pos_a, quat_a, pos_b, quat_b)
+    sol = solve_ols(problem, start, max_iterations=settings.max_iterations)
+    check_observability(sol.info, sol.params, quat_a)
+    if settings.method == 'tls':
+        sol = solve_tls(problem, sol.params, max_iterations=settings.max_iterations)
+        check_observability(sol.info, sol.params, quat_a)
+    return _result(sol, spec, settings, len(pairs))
+
+
+def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int) -> CalibrationResult:
+    t0, t1, joint = result_poses(sol.params, sol.cov)
+    dof = sol.n_rows - spec.n_params
+    p_value = float(stats.chi2.sf(sol.chi2, dof)) if dof > 0 else float('nan')
+    success = sol.status > 0 and sol.cov is not None
+    message = sol.message if sol.cov is not None else (
+        sol.message + '; the covariance is singular (see observability)')
+    return CalibrationResult(
+        success=success, status=sol.status, message=message, model=spec.name,
+        method=settings.method, n_pairs=n, base_to_base=t0, tool_to_marker=t1,
+        markers=sol.params.markers.copy(), params=sol.params.phi.copy(), param_cov=sol.cov,
+        chi2=float(sol.chi2), dof=int(dof), p_value=p_value, residuals=sol.residuals,
+        iterations=sol.iterations, cov_joint=joint, input_residuals=sol.input_residuals)

@@ -1,0 +1,141 @@
+"""
+Covariance of φ in the ``geometry_msgs/PoseWithCovariance`` convention, and priors.
+
+The estimator's covariance is over φ's coordinates (positions and reduced quaternions s).
+Published covariances are 6×6 over (x, y, z, δθx, δθy, δθz) with ``R_true = Exp(δθ) R_est``
+about the fixed axes of the header frame (DESIGN.md §3). A chart step δs moves q to
+``Exp(G δs) ⊗ q`` with ``G = 2 vec(R(q*)) dq/ds`` (``models.tangent_of_chart``), so the
+conversion is the linear map T: ``C_ros = T C_φ Tᵀ`` (Hoff & Vincent eq. 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.errors import InputError
+from coreg_ros.core.models import (
+    S0,
+    S1,
+    ModelSpec,
+    Parameters,
+    error_rotation_jacobian,
+    tangent_of_chart,
+)
+from coreg_ros.core.types import UncertainPose
+
+#: Diagonal value that marks a component as not estimated (sensor_msgs' "unknown" convention).
+UNKNOWN = -1.0
+
+
+def tangent_map(params: Parameters) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Linear map from δφ to (δp0, δθ0, δp1, δθ1).
+
+    Returns
+    -------
+    T : ndarray, shape (12, P)
+        Rows of T1's rotation are zero where q1 is not estimated.
+    known : ndarray of bool, shape (12,)
+        Which of the 12 pose components are estimated.
+
+    """
+    spec = params.spec
+    T = np.zeros((12, spec.n_params))
+    T[0:3, 0:3] = np.eye(3)
+    T[3:6, S0] = tangent_of_chart(params.q0, params.dq0)
+    T[6:9, spec.marker_slice(0)] = np.eye(3)
+    known = np.ones(12, dtype=bool)
+    if spec.has_q1:
+        T[9:12, S1] = tangent_of_chart(params.q1, params.dq1)
+    else:
+        known[9:12] = False
+    return T, known
+
+
+def joint_pose_covariance(params: Parameters, param_cov: np.ndarray) -> np.ndarray:
+    """
+    Joint 12×12 covariance of (T0, T1) in the ROS layout, UNKNOWN on unestimated diagonals.
+
+    Parameters
+    ----------
+    params : Parameters
+    param_cov : ndarray, shape (P, P)
+
+    """
+    T, known = tangent_map(params)
+    C = T @ param_cov @ T.T
+    C = 0.5 * (C + C.T)
+    unknown = ~known
+    C[unknown, :] = 0.0
+    C[:, unknown] = 0.0
+    C[unknown, unknown] = UNKNOWN
+    return C
+
+
+def result_poses(params: Parameters, param_cov: Optional[np.ndarray]):
+    """
+    T0 and T1 as UncertainPose, plus the joint 12×12 covariance (or None).
+
+    T1's orientation is the identity (with UNKNOWN covariance) where it is not estimated.
+    """
+    joint = None if param_cov is None else joint_pose_covariance(params, param_cov)
+    cov0 = None if joint is None else joint[0:6, 0:6]
+    cov1 = None if joint is None else joint[6:12, 6:12]
+    t0 = UncertainPose(params.p0.copy(), quat.canonical(params.q0), cov0)
+    t1 = UncertainPose(params.markers[0].copy(), quat.canonical(params.q1), cov1)
+    return t0, t1, joint
+
+
+@dataclass(frozen=True)
+class Prior:
+    """
+    A priori estimates of T0 and/or T1 (Ikits B.3), each with a 6×6 ROS-layout covariance.
+
+    For models that do not estimate q1, only the position part of a T1 prior is used.
+    """
+
+    base_to_base: Optional[UncertainPose] = None
+    tool_to_marker: Optional[UncertainPose] = None
+
+    def terms(self, spec: ModelSpec) -> list:
+        """Prior terms for the estimator: callables φ -> (whitened rows, Jacobian)."""
+        out = []
+        if self.base_to_base is not None:
+            out.append(_pose_prior(self.base_to_base, spec, 0))
+        if self.tool_to_marker is not None:
+            out.append(_pose_prior(self.tool_to_marker, spec, 1))
+        return out
+
+
+def _pose_prior(pose: UncertainPose, spec: ModelSpec, which: int):
+    """Residual rows ``L [p - p̂; δθ]`` with ``q = Exp(δθ) ⊗ q̂`` (eqs. 54-56)."""
+    if pose.covariance is None:
+        raise InputError('a prior needs a covariance; give its 6×6 covariance')
+    cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
+    with_rotation = which == 0 or spec.has_q1
+    keep = slice(0, 6) if with_rotation else slice(0, 3)
+    try:
+        L = np.linalg.inv(np.linalg.cholesky(cov[keep, keep]))
+    except np.linalg.LinAlgError as e:
+        raise InputError('prior covariance is not positive definite; fix it') from e
+    q_hat = quat.validate_quaternions(pose.quat_wxyz, 'prior orientation')
+    p_slice = slice(0, 3) if which == 0 else spec.marker_slice(0)
+
+    def term(params: Parameters):
+        J = np.zeros((6, spec.n_params))
+        e = np.zeros(6)
+        e[0:3] = params.phi[p_slice] - pose.position
+        J[0:3, p_slice] = np.eye(3)
+        if with_rotation:
+            q = params.q0 if which == 0 else params.q1
+            dq = params.dq0 if which == 0 else params.dq1
+            e_rot, de_da = error_rotation_jacobian(q[None], q_hat[None])
+            e[3:6] = 2.0 * e_rot[0]  # ≈ δθ (the metric is half the angle)
+            J[3:6, S0 if which == 0 else S1] = 2.0 * de_da[0] @ tangent_of_chart(q, dq)
+        return L @ e[keep], L @ J[keep]
+
+    return term

@@ -1,0 +1,444 @@
+"""
+Weighted OLS (Ikits B.1) and errors-in-variables TLS (B.2) by Levenberg-Marquardt.
+
+Both work through the pairs in chunks, so memory stays O(chunk) above the O(N) state, and time
+is O(N) per iteration:
+
+- OLS accumulates the normal equations ``JᵀJ δφ = -Jᵀg`` (eq. 36) chunk by chunk.
+- TLS treats every input pose as a parameter (eq. 42). Its normal matrix is block-arrowhead:
+  one 6×6 block ``U_i`` per pair, coupled to φ by ``W_i`` (6×P). Eliminating the per-pair
+  blocks (Schur complement) leaves a P×P system ``S δφ = b`` with
+  ``S = V - Σ W_iᵀ U_i⁻¹ W_i``; the input corrections follow pair by pair,
+  ``δx_i = U_i⁻¹(-g_i - W_i δφ)``. No dense (6N+P)² matrix ever exists. The posterior
+  covariance of φ is ``S⁻¹`` (the φ block of the inverse, B.4.2).
+
+Residuals are whitened (eq. 29-30): ``r = L e`` with ``W = LᵀL``; the chi-square is ``Σ r²``
+(eq. 57).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.batched import spd_solve
+from coreg_ros.core.models import (
+    ModelSpec,
+    Parameters,
+    error_rotation_jacobian,
+    linearize,
+    output_error,
+)
+
+#: Pairs processed at once; bounds the transient memory (about 3 KB per pair in a chunk).
+CHUNK = 4096
+
+#: A prior term returns whitened residual rows (k,) and their Jacobian (k, P) at φ (Ikits B.3).
+PriorTerm = Callable[[Parameters], tuple]
+
+
+@dataclass
+class Problem:
+    """
+    A calibration problem: pairs, noise whitening and optional priors.
+
+    Attributes
+    ----------
+    spec : ModelSpec
+    pos_a : ndarray, shape (N, 3)
+    quat_a : ndarray, shape (N, 4)
+    pos_b : ndarray, shape (N, 3) or (N, 3, 3)
+    quat_b : ndarray, shape (N, 4) or None
+    whiten_b : ndarray, shape (m, m)
+        L_y with ``L_yᵀ L_y`` the inverse covariance of the output error metric.
+    whiten_a : ndarray, shape (6, 6)
+        L_x for the input error metric (TLS only).
+    a_scale : ndarray, shape (N,) or None
+        Per-pair factor on A's noise variance.
+    priors : list of PriorTerm
+
+    """
+
+    spec: ModelSpec
+    pos_a: np.ndarray
+    quat_a: np.ndarray
+    pos_b: np.ndarray
+    quat_b: Optional[np.ndarray]
+    whiten_b: np.ndarray
+    whiten_a: np.ndarray
+    a_scale: Optional[np.ndarray] = None
+    priors: list = field(default_factory=list)
+
+    def __post_init__(self):
+        # Diagonal whitening (independent noise per axis, the usual case) is applied by
+        # broadcasting instead of a batched matrix product.
+        self.diag_b = _diagonal_or_none(self.whiten_b)
+        self.diag_a = _diagonal_or_none(self.whiten_a)
+
+    def whiten_out(self, M: np.ndarray) -> np.ndarray:
+        """L_y M for a stack M of shape (c, m, k)."""
+        return M * self.diag_b[:, None] if self.diag_b is not None else np.matmul(self.whiten_b, M)
+
+    @property
+    def n(self) -> int:
+        """Number of pairs N."""
+        return len(self.pos_a)
+
+    def chunks(self):
+        """Slices of at most CHUNK pairs covering all pairs."""
+        return [slice(i, min(i + CHUNK, self.n)) for i in range(0, self.n, CHUNK)]
+
+    def output(self, sl: slice):
+        """Measured output of the pairs in ``sl``."""
+        return self.pos_b[sl], None if self.quat_b is None else self.quat_b[sl]
+
+
+@dataclass(frozen=True)
+class Solution:
+    """
+    Outcome of a solver run.
+
+    Attributes
+    ----------
+    params : Parameters
+    cov : ndarray, shape (P, P) or None
+        Posterior covariance of φ (eq. 58; TLS: inverse Schur complement).
+    info : ndarray, shape (P, P)
+        Information matrix JᵀJ (OLS) or Schur complement S (TLS) at the solution.
+    chi2 : float
+    n_rows : int
+        Residual rows beyond the input blocks: N·m plus prior rows.
+    residuals : ndarray, shape (N, m)
+        Whitened output residuals.
+    input_residuals : ndarray, shape (N, 6) or None
+        Whitened input residuals (TLS).
+    iterations : int
+    status : int
+        1 step small, 2 cost change small, 0 iteration limit, -1 no acceptable step.
+    message : str
+
+    """
+
+    params: Parameters
+    cov: Optional[np.ndarray]
+    info: np.ndarray
+    chi2: float
+    n_rows: int
+    residuals: np.ndarray
+    input_residuals: Optional[np.ndarray]
+    iterations: int
+    status: int
+    message: str
+
+
+def _diagonal_or_none(L: np.ndarray):
+    """Return the diagonal of L if L is diagonal, else None."""
+    return np.diag(L).copy() if np.count_nonzero(L - np.diag(np.diag(L))) == 0 else None
+
+
+def _prior_rows(problem: Problem, params: Parameters):
+    """Stacked prior residuals, Jacobian and count (Ikits eqs. 55-56)."""
+    P = problem.spec.n_params
+    if not problem.priors:
+        return np.zeros(0), np.zeros((0, P))
+    parts = [term(params) for term in problem.priors]
+    return np.concatenate([r for r, _ in parts]), np.concatenate([j for _, j in parts])
+
+
+def _inverse_or_none(info: np.ndarray) -> Optional[np.ndarray]:
+    """Inverse of a symmetric information matrix, None if it is singular."""
+    try:
+        cov = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.isfinite(cov).all() or (np.diag(cov) <= 0).any():
+        return None
+    return 0.5 * (cov + cov.T)
+
+
+def _converged(delta: np.ndarray, info: np.ndarray, cost_old: float, cost_new: float,
+               xtol: float, ftol: float) -> int:
+    """Status code: 1 if the step is tiny against the parameter uncertainty, 2 if cost flat."""
+    cov = _inverse_or_none(info)
+    if cov is not None and np.all(np.abs(delta) <= xtol * np.sqrt(np.diag(cov))):
+        return 1
+    if cost_old - cost_new <= ftol * max(cost_new, 1.0):
+        return 2
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------
+# OLS (B.1)
+# ----------------------------------------------------------------------------------------------
+
+def _ols_cost(problem: Problem, params: Parameters) -> float:
+    cost = 0.0
+    for sl in problem.chunks():
+        pos_b, quat_b = problem.output(sl)
+        e = output_error(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b)
+        cost += float(np.sum((e @ problem.whiten_b.T) ** 2))
+    r_prior, _ = _prior_rows(problem, params)
+    return cost + float(r_prior @ r_prior)
+
+
+def _ols_normal(problem: Problem, params: Parameters, keep_residuals: bool = False):
+    """Accumulate JᵀJ, Jᵀg and the cost at φ (eqs. 32-36), chunk by chunk."""
+    P = problem.spec.n_params
+    H = np.zeros((P, P))
+    g = np.zeros(P)
+    cost = 0.0
+    res = np.empty((problem.n, problem.spec.n_res)) if keep_residuals else None
+    L = problem.whiten_b
+    for sl in problem.chunks():
+        pos_b, quat_b = problem.output(sl)
+        e, j_phi, _ = linearize(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b,
+                                with_input=False)
+        r = e @ L.T
+        J = problem.whiten_out(j_phi).reshape(-1, P)
+        H += J.T @ J
+        g += J.T @ r.reshape(-1)
+        cost += float(np.sum(r * r))
+        if keep_residuals:
+            res[sl] = r
+    r_prior, j_prior = _prior_rows(problem, params)
+    H += j_prior.T @ j_prior
+    g += j_prior.T @ r_prior
+    cost += float(r_prior @ r_prior)
+    return H, g, cost, res, len(r_prior)
+
+
+def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
+              xtol: float = 1e-8, ftol: float = 1e-14) -> Solution:
+    """
+    Weighted OLS by Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    Parameters
+    ----------
+    problem : Problem
+    params : Parameters
+        Initial φ (e.g. from ``initialize``).
+    max_iterations : int
+    xtol : float
+        Stop when every |δφ_j| <= xtol · σ_j.
+    ftol : float
+        Stop when the relative cost decrease is below ftol.
+
+    Returns
+    -------
+    Solution
+
+    """
+    lam = 1e-6
+    status, it = 0, 0
+    H, g, cost, _, _ = _ols_normal(problem, params)
+    for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
+        accepted = False
+        while lam < 1e16:
+            A = H + lam * np.diag(np.diag(H))
+            delta = -np.linalg.lstsq(A, g, rcond=None)[0]
+            trial = params.stepped(delta)
+            new_cost = _ols_cost(problem, trial) if trial.valid else np.inf
+            if new_cost <= cost:
+                accepted = True
+                break
+            if new_cost - cost <= ftol * max(cost, 1.0):
+                break  # at the minimum: rounding noise only
+            lam *= 10.0
+        if not accepted:
+            status = 2 if new_cost - cost <= ftol * max(cost, 1.0) else -1
+            break
+        status = _converged(delta, H, cost, new_cost, xtol, ftol)
+        params = trial.recharted()
+        lam = max(lam / 10.0, 1e-12)
+        H, g, cost, _, _ = _ols_normal(problem, params)
+        if status:
+            break
+    H, g, cost, res, n_prior = _ols_normal(problem, params, keep_residuals=True)
+    return Solution(params, _inverse_or_none(H), H, cost, problem.n * problem.spec.n_res + n_prior,
+                    res, None, it, status, _status_message(status, it))
+
+
+# ----------------------------------------------------------------------------------------------
+# TLS (B.2) with the Schur complement over the per-pair input blocks
+# ----------------------------------------------------------------------------------------------
+
+class InputState:
+    """
+    The TLS estimates of the inputs x_i = (p_A, q_A), shapes (N, 3) and (N, 4).
+
+    Each orientation is stepped multiplicatively, ``q ← Exp(δ) ⊗ q``: a chart centred at the
+    current estimate (the limit of §3.1's re-charting), so no per-pair chart bookkeeping is
+    needed and every input block is equally well conditioned.
+    """
+
+    def __init__(self, pos: np.ndarray, quats: np.ndarray):
+        self.pos = np.array(pos, dtype=float)
+        self.quat = np.array(quats, dtype=float)
+
+    def stepped(self, dx: np.ndarray) -> InputState:
+        """Return the state after the step dx (N, 6) = (δp, δθ)."""
+        q = quat.multiply(quat.exp(dx[:, 3:6]), self.quat)
+        return InputState(self.pos + dx[:, 0:3], q / np.linalg.norm(q, axis=1, keepdims=True))
+
+
+def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
+    """
+    Whitened residuals and Jacobian blocks of the pairs in ``sl`` (eqs. 44, 48, 49).
+
+    Returns r_x (c, 6), r_y (c, m), A_x (c, 6, 6), A_y (c, m, 6), B (c, m, P).
+    """
+    pos_b, quat_b = problem.output(sl)
+    e_y, j_phi, j_x = linearize(params, x.pos[sl], x.quat[sl], pos_b, quat_b, with_input=True)
+    ex_rot, dex = error_rotation_jacobian(x.quat[sl], problem.quat_a[sl])
+    e_x = np.concatenate([x.pos[sl] - problem.pos_a[sl], ex_rot], axis=1)
+    Lx = problem.whiten_a
+    A_x = np.empty((len(e_x), 6, 6))
+    A_x[:, :, 0:3] = Lx[:, 0:3]
+    A_x[:, :, 3:6] = Lx[:, 3:6] @ dex
+    r_x = e_x @ Lx.T
+    if problem.a_scale is not None:
+        w = 1.0 / np.sqrt(problem.a_scale[sl])
+        r_x = r_x * w[:, None]
+        A_x = A_x * w[:, None, None]
+    return r_x, e_y @ problem.whiten_b.T, A_x, problem.whiten_out(j_x), problem.whiten_out(j_phi)
+
+
+def _tls_cost(problem: Problem, params: Parameters, x: InputState) -> float:
+    cost = 0.0
+    for sl in problem.chunks():
+        pos_b, quat_b = problem.output(sl)
+        e_y = output_error(params, x.pos[sl], x.quat[sl], pos_b, quat_b)
+        ex_rot, _ = error_rotation_jacobian(x.quat[sl], problem.quat_a[sl])
+        r_x = np.concatenate([x.pos[sl] - problem.pos_a[sl], ex_rot], axis=1) @ problem.whiten_a.T
+        if problem.a_scale is not None:
+            r_x = r_x / np.sqrt(problem.a_scale[sl])[:, None]
+        cost += float(np.sum(r_x ** 2) + np.sum((e_y @ problem.whiten_b.T) ** 2))
+    r_prior, _ = _prior_rows(problem, params)
+    return cost + float(r_prior @ r_prior)
+
+
+def _damped(U: np.ndarray, lam: float) -> np.ndarray:
+    """U + λ diag(U) for a stack of 6×6 blocks."""
+    if lam == 0.0:
+        return U
+    U = U.copy()
+    idx = np.arange(6)
+    U[:, idx, idx] *= 1.0 + lam
+    return U
+
+
+def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float,
+               keep_residuals: bool = False):
+    """
+    Reduced system S δφ = b, cost, and the per-pair back-substitution terms, chunk by chunk.
+
+    Returns S, b, cost, (Y, z) with ``Y_i = U_i⁻¹ W_i`` (N, 6, P) and ``z_i = U_i⁻¹ g_i``
+    (N, 6) so that ``δx_i = -(z_i + Y_i δφ)``, and the residuals if asked.
+    """
+    P = problem.spec.n_params
+    S = np.zeros((P, P))
+    v_diag = np.zeros(P)
+    b = np.zeros(P)
+    cost = 0.0
+    Y_all = np.empty((problem.n, 6, P))
+    z_all = np.empty((problem.n, 6))
+    res_y = np.empty((problem.n, problem.spec.n_res)) if keep_residuals else None
+    res_x = np.empty((problem.n, 6)) if keep_residuals else None
+    for sl in problem.chunks():
+        r_x, r_y, A_x, A_y, B = _tls_blocks(problem, params, x, sl)
+        A = np.concatenate([A_x, A_y], axis=1)  # (c, 6 + m, 6)
+        At = np.ascontiguousarray(A.transpose(0, 2, 1))
+        U = At @ A
+        # W_i = A_yᵀ B_i and g_i = Aᵀ r_i in one product
+        Wg = At[:, :, 6:] @ np.concatenate([B, r_y[:, :, None]], axis=2)
+        W = Wg[:, :, :P]
+        g_x = Wg[:, :, P] + (At[:, :, :6] @ r_x[:, :, None])[:, :, 0]
+        # U⁻¹ [W | g] by a batched Cholesky solve over the chunk's 6×6 blocks
+        sol = spd_solve(_damped(U, lam), np.concatenate([W, g_x[:, :, None]], axis=2))
+        Y, z = sol[:, :, :P], sol[:, :, P]
+        Y_all[sl], z_all[sl] = Y, z
+        B2, W2 = B.reshape(-1, P), W.reshape(-1, P)
+        S += B2.T @ B2 - W2.T @ Y.reshape(-1, P)
+        v_diag += np.einsum('ij,ij->j', B2, B2)
+        b += -(B2.T @ r_y.reshape(-1)) + W2.T @ z.reshape(-1)
+        cost += float(np.sum(r_x ** 2) + np.sum(r_y ** 2))
+        if keep_residuals:
+            res_y[sl], res_x[sl] = r_y, r_x
+    r_prior, j_prior = _prior_rows(problem, params)
+    S += j_prior.T @ j_prior + lam * np.diag(v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
+    b -= j_prior.T @ r_prior
+    cost += float(r_prior @ r_prior)
+    return S, b, cost, (Y_all, z_all), res_y, res_x, len(r_prior)
+
+
+def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
+              xtol: float = 1e-8, ftol: float = 1e-14) -> Solution:
+    """
+    Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
+
+    The inputs start at their measured values; damping λ·diag is applied to both the per-pair
+    blocks and the φ block, so a damped step is the exact minimiser of the damped linearised
+    problem. Time and memory per iteration are O(N).
+
+    Parameters
+    ----------
+    problem : Problem
+    params : Parameters
+        Initial φ, e.g. the OLS solution.
+    max_iterations : int
+    xtol, ftol : float
+        As in ``solve_ols``.
+
+    Returns
+    -------
+    Solution
+
+    """
+    x = InputState(problem.pos_a, problem.quat_a)
+    lam = 1e-6
+    status, it = 0, 0
+    cost = _tls_cost(problem, params, x)
+    for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
+        accepted = False
+        while lam < 1e16:
+            S, b, _, (Y, z), _, _, _ = _tls_schur(problem, params, x, lam)
+            delta = np.linalg.lstsq(S, b, rcond=None)[0]
+            trial = params.stepped(delta)
+            if trial.valid:
+                trial_x = x.stepped(-(z + Y @ delta))
+                new_cost = _tls_cost(problem, trial, trial_x)
+            else:
+                new_cost = np.inf
+            del Y, z
+            if new_cost <= cost:
+                accepted = True
+                break
+            if new_cost - cost <= ftol * max(cost, 1.0):
+                break  # at the minimum: rounding noise only
+            lam *= 10.0
+        if not accepted:
+            status = 2 if new_cost - cost <= ftol * max(cost, 1.0) else -1
+            break
+        status = _converged(delta, S, cost, new_cost, xtol, ftol)
+        params, x, cost = trial.recharted(), trial_x, new_cost
+        lam = max(lam / 10.0, 1e-12)
+        if status:
+            break
+    S, _, cost, _, res_y, res_x, n_prior = _tls_schur(problem, params, x, 0.0, keep_residuals=True)
+    return Solution(params, _inverse_or_none(S), S, cost, problem.n * problem.spec.n_res + n_prior,
+                    res_y, res_x, it, status, _status_message(status, it))
+
+
+def _status_message(status: int, iterations: int) -> str:
+    return {
+        1: f'converged in {iterations} iterations: steps below 1e-8 standard deviations',
+        2: f'converged in {iterations} iterations: cost no longer decreases',
+        0: f'stopped at the iteration limit ({iterations}) before converging; raise '
+           f'max_iterations or check the noise settings',
+        -1: f'no step reduced the cost after {iterations} iterations; the model does not '
+            f'fit the data (check stream directions and units)',
+    }[status]

@@ -1,0 +1,124 @@
+"""
+Closed-form initial estimates, so that no initial guess is ever needed.
+
+All solves are O(N) accumulations into small matrices followed by an SVD:
+
+- full pose: rotations from ``R0 R_Ai = R_Bi R1ᵀ``, a bilinear problem whose relaxed solution
+  is the top singular pair of a 9×9 matrix (the Kronecker form of the rotation equations),
+  each factor projected onto SO(3); then p0, p1 by linear least squares;
+- position only: a linear lifting ``p_B = p0 + R0 p_A + G vec(R_A)`` with G = R0 ⊗ p1ᵀ
+  (13 regressors per axis), R0 projected onto SO(3), then p0, p1 by linear least squares;
+- three markers: the lifting per marker, the R0 estimates averaged on SO(3), then p0 and the
+  three marker positions jointly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.models import ModelSpec, Parameters
+
+
+def project_to_so3(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (Frobenius norm) to a 3×3 matrix, via its SVD."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def rotations_from_pairs(Ra: np.ndarray, Rb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    R0, R1 minimising Σ ‖R0 R_Ai - R_Bi R1ᵀ‖², relaxed to a rank-one problem.
+
+    With X = R0 and Z = R1ᵀ, ``Σ tr(R_Aiᵀ Xᵀ R_Bi Z) = vec(X)ᵀ K vec(Z)``, so the relaxed
+    optimum is the top singular pair of K (9×9), accumulated as one BLAS product over the pairs.
+
+    Parameters
+    ----------
+    Ra, Rb : ndarray, shape (N, 3, 3)
+
+    Returns
+    -------
+    R0, R1 : ndarray, shape (3, 3)
+
+    """
+    n = len(Ra)
+    # P[(k, j), (l, m)] = Σ_i Ra[i, k, j] Rb[i, l, m]; K[(l, k), (m, j)] = P[k, j, l, m].
+    P = (Ra.reshape(n, 9).T @ Rb.reshape(n, 9)).reshape(3, 3, 3, 3)
+    K = P.transpose(2, 0, 3, 1).reshape(9, 9)
+    U, _, Vt = np.linalg.svd(K)
+    X, Z = U[:, 0].reshape(3, 3), Vt[0].reshape(3, 3)
+    if np.linalg.det(X) < 0:  # the singular pair's joint sign is arbitrary
+        X, Z = -X, -Z
+    return project_to_so3(X), project_to_so3(Z).T
+
+
+def _translations(R0: np.ndarray, Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray):
+    """
+    p0 and marker positions p_j by linear least squares given R0.
+
+    ``p_Bj - R0 p_A = p0 + (R0 R_A) p_j`` for every marker j; normal equations of size 3(k+1).
+
+    Parameters
+    ----------
+    pos_b : ndarray, shape (N, k, 3)
+
+    """
+    n, k = pos_b.shape[0], pos_b.shape[1]
+    M = R0 @ Ra  # (N, 3, 3)
+    d = pos_b - (pos_a @ R0.T)[:, None, :]  # (N, k, 3)
+    dim = 3 * (k + 1)
+    A = np.zeros((dim, dim))
+    rhs = np.zeros(dim)
+    A[0:3, 0:3] = k * n * np.eye(3)
+    rhs[0:3] = d.sum(axis=(0, 1))
+    sum_m = M.sum(axis=0)
+    for j in range(k):
+        sl = slice(3 + 3 * j, 6 + 3 * j)
+        A[0:3, sl] = sum_m
+        A[sl, 0:3] = sum_m.T
+        A[sl, sl] = n * np.eye(3)  # Σ MᵢᵀMᵢ = N·I for rotations
+        rhs[sl] = np.einsum('nab,na->b', M, d[:, j, :])
+    sol = np.linalg.lstsq(A, rhs, rcond=1e-12)[0]
+    return sol[0:3], sol[3:].reshape(k, 3)
+
+
+def _lifted_rotation(Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray) -> np.ndarray:
+    """R0 from the linear lifting of the position-only model (13 regressors per axis)."""
+    n = len(Ra)
+    Phi = np.concatenate([np.ones((n, 1)), pos_a, Ra.reshape(n, 9)], axis=1)
+    scale = np.maximum(np.abs(Phi).max(axis=0), 1e-12)  # column scaling for conditioning
+    theta = np.linalg.lstsq(Phi / scale, pos_b, rcond=1e-12)[0] / scale[:, None]
+    return project_to_so3(theta[1:4].T)
+
+
+def initialize(spec: ModelSpec, pos_a, quat_a, pos_b, quat_b=None) -> Parameters:
+    """
+    Closed-form estimate of φ from the pairs, for any T0, T1 over SO(3).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+    pos_a : ndarray, shape (N, 3)
+    quat_a : ndarray, shape (N, 4)
+    pos_b : ndarray, shape (N, 3) or (N, 3, 3)
+    quat_b : ndarray, shape (N, 4), optional (full pose)
+
+    Returns
+    -------
+    params : Parameters
+        In the charts of the estimate's largest quaternion components.
+
+    """
+    Ra = quat.to_matrix(quat_a)
+    pos_b3 = pos_b if pos_b.ndim == 3 else pos_b[:, None, :]
+    q1 = None
+    if spec.has_q1:
+        R0, R1 = rotations_from_pairs(Ra, quat.to_matrix(quat_b))
+        q1 = quat.from_matrix(R1)
+    else:
+        rotations = [_lifted_rotation(Ra, pos_a, pos_b3[:, j, :]) for j in range(pos_b3.shape[1])]
+        R0 = project_to_so3(np.sum(rotations, axis=0))
+    p0, markers = _translations(R0, Ra, pos_a, pos_b3)
+    return Parameters.from_transforms(spec, p0, quat.from_matrix(R0), markers, q1)

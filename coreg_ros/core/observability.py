@@ -1,0 +1,162 @@
+"""
+Observability of φ from the whitened Jacobian, and a plain-language account of what is missing.
+
+The information matrix (JᵀJ for OLS, the Schur complement for TLS) is scaled to unit diagonal;
+eigenvalues below ``RANK_TOLERANCE`` of the largest mark directions the data cannot determine
+at all, and a posterior standard deviation above ``WEAK_POSITION_M`` / ``WEAK_ROTATION_RAD``
+marks directions determined too poorly to be of use. Either way the calibration is refused with
+the parameter direction named and the motion that would fix it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.errors import UnobservableError
+from coreg_ros.core.models import Parameters, tangent_of_chart
+
+RANK_TOLERANCE = 1e-10
+WEAK_POSITION_M = 0.1
+WEAK_ROTATION_RAD = 0.1
+#: Rotation spread (rad, RMS about a principal axis) below which the tool counts as not turning.
+STILL_RAD = 0.02
+
+_BLOCK_NAMES = {
+    'p0': 'base-to-base translation',
+    's0': 'base-to-base rotation',
+    's1': 'tool-to-marker rotation',
+}
+
+
+def _blocks(params: Parameters) -> dict:
+    spec = params.spec
+    out = {'p0': slice(0, 3), 's0': slice(3, 6)}
+    for j in range(spec.n_markers):
+        out[f'p{j + 1}'] = spec.marker_slice(j)
+    if spec.has_q1:
+        out['s1'] = slice(9, 12)
+    return out
+
+
+def _block_name(key: str, n_markers: int) -> str:
+    if key in _BLOCK_NAMES:
+        return _BLOCK_NAMES[key]
+    if n_markers == 1:
+        return 'tool-to-marker translation'
+    return f'marker {key[1]} position'
+
+
+def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    How the tool turned: RMS rotation (rad) about its principal axes, in A's tool frame.
+
+    Parameters
+    ----------
+    quat_a : ndarray, shape (N, 4)
+
+    Returns
+    -------
+    spread : ndarray, shape (3,)
+        Descending RMS angles about the principal axes.
+    axes : ndarray, shape (3, 3)
+        Rows are the principal axes (unit vectors in the tool frame).
+
+    """
+    ref = quat_a[len(quat_a) // 2]
+    rotvecs = quat.log(quat.multiply(quat.conjugate(ref), quat_a))  # body-frame rotations
+    rotvecs = rotvecs - rotvecs.mean(axis=0)
+    _, sv, vt = np.linalg.svd(rotvecs / np.sqrt(len(rotvecs)), full_matrices=False)
+    return sv, vt
+
+
+def describe_motion(quat_a: np.ndarray) -> str:
+    """One phrase on what the rotation of device A's tool lacks."""
+    spread, axes = rotation_spread(quat_a)
+    if spread[0] < STILL_RAD:
+        return (f"device A's tool hardly rotated ({np.degrees(spread[0]):.1f}° RMS): rotate it "
+                'about at least two different axes while recording')
+    if spread[1] < max(STILL_RAD, 0.1 * spread[0]):
+        a = axes[0]
+        return (f'rotation about only one axis (tool axis [{a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}]): '
+                f'rotate about a second axis')
+    deg = np.degrees(spread)
+    return (f'the recorded rotations (RMS {deg[0]:.1f}°, {deg[1]:.1f}°, {deg[2]:.1f}° about the '
+            f'principal axes) are too small or too few: rotate the tool more widely about all '
+            f'three axes')
+
+
+def check_observability(info: np.ndarray, params: Parameters, quat_a: np.ndarray) -> None:
+    """
+    Refuse (UnobservableError) when the data leave a direction of φ undetermined.
+
+    Parameters
+    ----------
+    info : ndarray, shape (P, P)
+        Information matrix of φ (whitened JᵀJ or the TLS Schur complement).
+    params : Parameters
+        The estimate (for the units of the rotation coordinates).
+    quat_a : ndarray, shape (N, 4)
+        Device A's tool orientations, to explain which motion is missing.
+
+    """
+    spec = params.spec
+    blocks = _blocks(params)
+    d = np.sqrt(np.clip(np.diag(info), 0.0, None))
+    problems = []
+    if (d == 0).any():
+        scaled = np.eye(len(d))
+    else:
+        scaled = info / np.outer(d, d)
+    w, V = np.linalg.eigh(scaled)
+    for k in np.flatnonzero(w <= RANK_TOLERANCE * w[-1]):
+        u = V[:, k] / np.where(d > 0, d, 1.0)
+        problems.append(_direction_phrase(u, blocks, spec.n_markers, params, 'unobservable'))
+    if not problems and (d > 0).all():
+        cov = np.linalg.inv(info)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        for key, sl in blocks.items():
+            if key.startswith('p'):
+                worst = float(sd[sl].max())
+                if worst > WEAK_POSITION_M:
+                    problems.append(
+                        f'{_block_name(key, spec.n_markers)} is barely observable '
+                        f'(σ = {worst:.2g} m)')
+            else:
+                q, dq = (params.q0, params.dq0) if key == 's0' else (params.q1, params.dq1)
+                G = tangent_of_chart(q, dq)
+                c = G @ cov[sl, sl] @ G.T
+                worst = float(np.sqrt(max(np.linalg.eigvalsh(c).max(), 0.0)))
+                if worst > WEAK_ROTATION_RAD:
+                    problems.append(
+                        f'{_block_name(key, spec.n_markers)} is barely observable '
+                        f'(σ = {np.degrees(worst):.2g}°)')
+    if (d == 0).any():
+        for key, sl in blocks.items():
+            if (d[sl] == 0).any():
+                problems.append(f'{_block_name(key, spec.n_markers)} is unobservable')
+    if problems:
+        unique = list(dict.fromkeys(problems))
+        raise UnobservableError(
+            f'{describe_motion(quat_a)}; {"; ".join(unique)}', directions=unique)
+
+
+def _direction_phrase(u: np.ndarray, blocks: dict, n_markers: int, params: Parameters,
+                      what: str) -> str:
+    """Name the parameter block that dominates a null direction and the axis along it."""
+    weights = {key: float(np.linalg.norm(u[sl])) for key, sl in blocks.items()}
+    # a translation of T1 along the axis is what single-axis rotation cannot see; prefer
+    # naming the tool-side block, whose direction is meaningful in the tool frame
+    key = max(weights, key=lambda k: (weights[k] * (2.0 if k not in ('p0', 's0') else 1.0)))
+    v = u[blocks[key]]
+    v = v / (np.linalg.norm(v) or 1.0)
+    if key.startswith('s'):
+        q, dq = (params.q0, params.dq0) if key == 's0' else (params.q1, params.dq1)
+        v = tangent_of_chart(q, dq) @ v
+        v = v / (np.linalg.norm(v) or 1.0)
+        frame = "B's base frame" if key == 's0' else 'the tool frame'
+        return (f'{_block_name(key, n_markers)} about axis [{v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}] '
+                f'({frame}) is {what}')
+    frame = "B's base frame" if key == 'p0' else 'the tool frame'
+    return (f'{_block_name(key, n_markers)} along [{v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}] '
+            f'({frame}) is {what}')
