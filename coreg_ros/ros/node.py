@@ -36,6 +36,7 @@ from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -62,6 +63,7 @@ WARN_PERIOD = 5.0
 #: History depth of the subscriptions: absorbs a pause of the executor (GIL held by the
 #: estimator, a slow disk) of a second at 1 kHz before DDS drops anything.
 SUB_DEPTH = 1000
+RCLError = _rclpy.RCLError
 
 
 def stream_qos(reliable: bool) -> QoSProfile:
@@ -395,6 +397,11 @@ def main(args=None) -> int:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # A signal can shut the context down between spin's ok() check and its wait set;
+        # rcl then refuses the wait set. That is a normal shutdown, anything else is not.
+        if rclpy.ok():
+            raise
     except CoregError as e:
         print(f'coreg_node: {e}', file=sys.stderr)
         code = 1

@@ -19,7 +19,7 @@ import numpy as np
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose, pose_stamped_values
-from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME
+from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME, RCLError
 
 #: Publisher QoS of ``play``: reliable with a deep history, so a reliable subscriber loses
 #: nothing, and it still matches best-effort (sensor-data) subscribers.
@@ -77,7 +77,11 @@ class RosSession:
                 break
             try:
                 self.executor.spin_once(timeout_sec=min(0.1, left))
-            except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+            except (KeyboardInterrupt, ExternalShutdownException):
+                break
+            except RCLError:
+                if self.ok():  # only the shutdown race (see coreg_ros.ros.node.main) is normal
+                    raise
                 break
         return done()
 
