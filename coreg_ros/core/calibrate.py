@@ -18,7 +18,7 @@ from coreg_ros.core.errors import InputError, TooFewPairsError
 from coreg_ros.core.estimator import Problem, Solution, solve_ols, solve_tls
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS, ModelSpec
-from coreg_ros.core.observability import check_observability
+from coreg_ros.core.observability import check_motion, check_observability
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
 
@@ -121,6 +121,7 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     problem = Problem(spec, pos_a, quat_a, pos_b, quat_b, whitening(cov_b, spec, 'b'),
                       whitening(cov_a, None, 'a'), scale,
                       prior.terms(spec) if prior is not None else [])
+    check_motion(quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
     start = initialize(spec, pos_a, quat_a, pos_b, quat_b)
     sol = solve_ols(problem, start, max_iterations=settings.max_iterations)
     check_observability(sol.info, sol.params, quat_a)

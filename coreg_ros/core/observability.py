@@ -70,13 +70,19 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sv, vt
 
 
-def describe_motion(quat_a: np.ndarray) -> str:
+def _still_limit(sigma_rot_a: float) -> float:
+    """Rotation spread (rad) that is indistinguishable from no rotation at A's noise level."""
+    return max(STILL_RAD, 5.0 * sigma_rot_a)
+
+
+def describe_motion(quat_a: np.ndarray, sigma_rot_a: float = 0.0) -> str:
     """One phrase on what the rotation of device A's tool lacks."""
     spread, axes = rotation_spread(quat_a)
-    if spread[0] < STILL_RAD:
+    still = _still_limit(sigma_rot_a)
+    if spread[0] < still:
         return (f"device A's tool hardly rotated ({np.degrees(spread[0]):.1f}° RMS): rotate it "
                 'about at least two different axes while recording')
-    if spread[1] < max(STILL_RAD, 0.1 * spread[0]):
+    if spread[1] < max(still, 0.1 * spread[0]):
         a = axes[0]
         return (f'rotation about only one axis (tool axis [{a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}]): '
                 f'rotate about a second axis')
@@ -84,6 +90,46 @@ def describe_motion(quat_a: np.ndarray) -> str:
     return (f'the recorded rotations (RMS {deg[0]:.1f}°, {deg[1]:.1f}°, {deg[2]:.1f}° about the '
             f'principal axes) are too small or too few: rotate the tool more widely about all '
             f'three axes')
+
+
+def check_motion(quat_a: np.ndarray, spec, sigma_rot_a: float) -> None:
+    """
+    Refuse motion whose rotations leave parameters unobservable, before any fitting.
+
+    Rotation about a single tool axis hides the marker offset(s) along that axis (their
+    rotated image is constant, absorbed by p0); no rotation at all also hides the split of
+    orientation between T0 and T1. Variation at the level of A's rotation noise is no
+    rotation: under OLS it would lend spurious information to exactly those directions.
+
+    Parameters
+    ----------
+    quat_a : ndarray, shape (N, 4)
+    spec : ModelSpec
+    sigma_rot_a : float
+        Device A's rotation noise, rad.
+
+    """
+    spread, axes = rotation_spread(quat_a)
+    still = _still_limit(sigma_rot_a)
+    one = spec.n_markers == 1
+    offsets = 'tool-to-marker translation' if one else 'the marker positions in the tool frame'
+    verb = 'is' if one else 'are'
+    if spread[0] < still:
+        lost = [f'{offsets} {verb} unobservable']
+        if spec.has_q1:
+            lost.append('the rotation split between base-to-base and tool-to-marker is '
+                        'unobservable')
+        raise UnobservableError(
+            f"device A's tool hardly rotated ({np.degrees(spread[0]):.2f}° RMS, noise-level "
+            f"limit {np.degrees(still):.2f}°): {'; '.join(lost)}; rotate the tool about at "
+            f'least two different axes while recording', directions=lost)
+    if spread[1] < still:
+        a = axes[0]
+        lost = [f'{offsets} along that axis {verb} unobservable']
+        raise UnobservableError(
+            f'rotation about only one axis (tool axis [{a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}], '
+            f'{np.degrees(spread[1]):.2f}° RMS about any other): {lost[0]}; rotate about a '
+            f'second axis', directions=lost)
 
 
 def check_observability(info: np.ndarray, params: Parameters, quat_a: np.ndarray) -> None:
