@@ -85,7 +85,8 @@ def cmd_call(args) -> int:
 
     name = service_name(args.service, args.node)
     with RosSession('coreg_call') as session:
-        success, message = call_trigger(session, name, timeout=args.timeout)
+        success, message = call_trigger(session, name, timeout=args.timeout,
+                                        wait_service=min(10.0, args.timeout))
     print(f'{name}: {"success" if success else "FAILED"}: {message}')
     return 0 if success else 1
 
@@ -144,7 +145,7 @@ def register(subparsers) -> None:
     p.add_argument('service', choices=SERVICES)
     p.add_argument('--node', default='coreg_node', help='node name (default coreg_node)')
     p.add_argument('--timeout', type=_positive, default=60.0,
-                   help='seconds to wait for the answer (default 60)')
+                   help='seconds to wait for the service and its answer (default 60)')
     p.set_defaults(func=cmd_call)
 
     p = subparsers.add_parser('echo', help='print a published pose with covariance')
