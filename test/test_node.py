@@ -275,3 +275,17 @@ def test_invalid_parameters_exit_with_one_line(start_node, bad):
     assert 'coreg_node:' in node.log()
 
 
+
+
+def test_live_demo_runs_end_to_end(tmp_path):
+    from coreg_ros.ros.demo import run_live_demo
+
+    bag = tmp_path / 'bag'
+    write_pose_bag(bag, simulate_recording(6, 2.0).streams)
+    lines = []
+    code = run_live_demo(bag, rate=4.0, storage_dir=str(tmp_path / 'store'), out=lines.append)
+    text = '\n'.join(lines)
+    assert code == 0, text
+    assert '~/calibrate -> success' in text and 'std rotation' in text
+    assert 'pairing rate: 1.000' in text and 'exited with code 0' in text
+    assert list((tmp_path / 'store').glob('samples_*'))
