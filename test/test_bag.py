@@ -1,6 +1,5 @@
 """Tests of coreg_ros.bag: real rosbag2 recordings written and read back in tmp_path."""
 
-import time
 
 import numpy as np
 import pytest
@@ -248,12 +247,10 @@ def test_changing_frame_id_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize('storage', STORAGES)
-def test_hundred_thousand_messages_take_seconds(tmp_path, storage):
+def test_hundred_thousand_messages_round_trip(tmp_path, storage):
+    # Speed goals belong in bench/, not in unit tests.
     n = 50_000
     streams = {'/a': make_stream(n, 1), '/b': make_stream(n, 2, start=T0 + 4_000_000)}
-    start = time.perf_counter()
     write_pose_bag(tmp_path / 'big', streams, storage=storage)
     got = read_pose_bag(tmp_path / 'big', ['/a', '/b'])
-    elapsed = time.perf_counter() - start
     np.testing.assert_array_equal(got['/b'].stamps, streams['/b'].stamps)
-    assert elapsed < 20.0, f'100k messages took {elapsed:.1f} s to write and read'
