@@ -1,0 +1,1 @@
+"""Command-line front ends: argparse only, each ``main(argv) -> int``."""

@@ -1,0 +1,192 @@
+"""
+The ``coreg`` command: offline calibration, simulation, and the ROS stand-in tools.
+
+Every subcommand returns an exit code; a failure is one line on stderr saying what is wrong and
+what to do (exit 1), never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+import math
+from pathlib import Path
+import sys
+from typing import Optional
+
+from coreg_ros.core.errors import CoregError
+from coreg_ros.core.types import METHODS, MODELS
+
+PROG = 'coreg'
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are one line and exit code 1."""
+
+    def error(self, message: str):  # noqa: D102 - argparse API
+        self.exit(1, f'{self.prog}: error: {message}; see {self.prog} --help\n')
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not value > 0 or math.isinf(value):
+        raise argparse.ArgumentTypeError(f'must be a positive number, got {text}')
+    return value
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f'must be finite, got {text}')
+    return value
+
+
+def add_calibration_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``calibrate`` and (later) ``diagnose``: topics, model, noise."""
+    p.add_argument('bag', help='rosbag2 directory (sqlite3 or mcap)')
+    p.add_argument('--config', help='ROS parameter YAML (e.g. config/coreg.yaml); flags win')
+    p.add_argument('--topic-a', help='device A PoseStamped topic (default /device_a/pose)')
+    p.add_argument('--topic-b', nargs='+', metavar='T',
+                   help='device B PoseStamped topic(s); three for three_marker '
+                        '(default /device_b/pose)')
+    p.add_argument('--model', choices=MODELS, help='measurement model (default full_pose)')
+    p.add_argument('--method', choices=METHODS, help='estimator (default tls)')
+    p.add_argument('--sigma-a', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'),
+                   help='device A noise std: position m, rotation rad')
+    p.add_argument('--sigma-b', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'),
+                   help='device B noise std: position m, rotation rad')
+    p.add_argument('--max-gap', type=_positive, metavar='S',
+                   help='largest time from a B stamp to the A samples it is paired with, s')
+    p.add_argument('--time-offset', type=_number, metavar='S',
+                   help="B's clock minus A's clock, s (default 0)")
+    p.add_argument('--min-pairs', type=int, help='fewest pairs accepted (default 30)')
+
+
+def settings_from_args(args):
+    """Build Settings from --config (if any), overridden by the flags given."""
+    from coreg_ros.cli.files import load_parameters
+    from coreg_ros.core.settings import Settings, settings_from_mapping
+
+    settings = Settings()
+    if args.config:
+        settings = settings_from_mapping(load_parameters(args.config), settings)
+    topic_b = tuple(args.topic_b) if args.topic_b else None
+    if topic_b is None and args.model and args.model != settings.model:
+        # the default B topic(s) follow the model unless given
+        from coreg_ros.core.settings import DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
+        topic_b = DEFAULT_TOPICS_B_THREE_MARKER if args.model == 'three_marker' \
+            else DEFAULT_TOPIC_B
+    return settings.updated(
+        topic_a=args.topic_a, topic_b=topic_b, model=args.model, method=args.method,
+        sigma_a=tuple(args.sigma_a) if args.sigma_a else None,
+        sigma_b=tuple(args.sigma_b) if args.sigma_b else None,
+        max_gap=args.max_gap, time_offset=args.time_offset, min_pairs=args.min_pairs)
+
+
+def cmd_calibrate(args) -> int:
+    """Calibrate a recording offline and print (and optionally write) the result."""
+    from coreg_ros.bag.posebag import read_pose_bag
+    from coreg_ros.cli.files import write_json
+    from coreg_ros.cli.text import format_result
+    from coreg_ros.core.pipeline import calibrate_streams
+    from coreg_ros.core.result_io import result_to_dict
+
+    settings = settings_from_args(args)
+    streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
+    result, report = calibrate_streams(
+        streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings)
+    print(f'{PROG} calibrate: {args.bag}')
+    print(format_result(result, report))
+    if args.json:
+        data = result_to_dict(result)
+        data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
+                           'unpaired': dict(report.unpaired)}
+        data['settings'] = settings.as_dict()
+        write_json(args.json, data)
+        print(f'result written to {args.json}')
+    return 0 if result.success else 1
+
+
+def cmd_simulate(args) -> int:
+    """Write a simulated two-device recording and its ground truth beside it."""
+    from coreg_ros.bag.posebag import write_pose_bag
+    from coreg_ros.cli.files import write_json
+    from coreg_ros.sim import simulate_recording
+
+    kwargs = {}
+    if args.sigma_a:
+        kwargs['sigma_a'] = tuple(args.sigma_a)
+    if args.sigma_b:
+        kwargs['sigma_b'] = tuple(args.sigma_b)
+    rec = simulate_recording(args.seed, args.duration, args.model, rate_a=args.rate_a,
+                             rate_b=args.rate_b, motion=args.motion, **kwargs)
+    write_pose_bag(args.out_bag, rec.streams, storage=args.storage)
+    truth_path = truth_path_for(args.out_bag)
+    truth = rec.truth.as_dict()
+    truth.update({'seed': args.seed, 'duration': args.duration, 'motion': args.motion,
+                  'rate_a': args.rate_a, 'rate_b': args.rate_b, 'topic_a': rec.topics_a,
+                  'topic_b': list(rec.topics_b), 'storage': args.storage})
+    write_json(truth_path, truth)
+    counts = ', '.join(f'{t}: {len(s)}' for t, s in rec.streams.items())
+    print(f'{PROG} simulate: wrote {args.out_bag} ({args.storage}; {counts}) and the ground '
+          f'truth {truth_path}')
+    return 0
+
+
+def truth_path_for(bag) -> Path:
+    """Where ``coreg simulate`` puts the ground truth: ``<bag>.truth.json`` beside the bag."""
+    bag = Path(bag)
+    return bag.with_name(bag.name + '.truth.json')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the ``coreg`` argument parser with every subcommand."""
+    parser = OneLineParser(prog=PROG, description=__doc__.strip().splitlines()[0])
+    sub = parser.add_subparsers(dest='command', required=True, parser_class=OneLineParser)
+
+    p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)')
+    add_calibration_options(p)
+    p.add_argument('--json', metavar='OUT', help='also write the result as JSON (atomically)')
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser('simulate', help='write a simulated two-device recording')
+    p.add_argument('out_bag', help='rosbag2 directory to create')
+    p.add_argument('--seed', type=int, required=True)
+    p.add_argument('--duration', type=_positive, required=True, metavar='SECONDS')
+    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    p.add_argument('--model', choices=MODELS, default='full_pose')
+    p.add_argument('--motion', default='diverse',
+                   choices=('diverse', 'single_axis', 'no_rotation', 'static'))
+    p.add_argument('--rate-a', type=_positive, default=100.0, help='Hz (default 100)')
+    p.add_argument('--rate-b', type=_positive, default=50.0, help='Hz (default 50)')
+    p.add_argument('--sigma-a', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'))
+    p.add_argument('--sigma-b', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'))
+    p.set_defaults(func=cmd_simulate)
+
+    from coreg_ros.cli import ros_commands
+    ros_commands.register(sub)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Entry point of the ``coreg`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except CoregError as e:
+        print(f'{PROG} {args.command}: error: {e}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'{PROG} {args.command}: interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

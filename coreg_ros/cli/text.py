@@ -1,0 +1,66 @@
+"""Human-readable rendering of calibration results."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.types import CalibrationResult, PairingReport, UncertainPose
+
+
+def fit_verdict(p_value: float) -> str:
+    """One phrase on the chi-square p-value (Ikits B.4.1)."""
+    if not np.isfinite(p_value):
+        return 'no degrees of freedom left'
+    if p_value < 1e-3:
+        return ('the data do NOT fit the model with the stated noise: check the noise settings, '
+                'the time offset and the stream directions (coreg diagnose tells why)')
+    if p_value > 0.999:
+        return 'residuals are smaller than the stated noise: the noise is overstated'
+    return 'consistent with the stated noise'
+
+
+def format_pose(name: str, meaning: str, pose: UncertainPose, rotation_known: bool = True) -> str:
+    """Pose with 1σ uncertainties: position in m (σ in mm), orientation (σ in degrees)."""
+    lines = [f'{name}  ({meaning})']
+    p = pose.position
+    cov = pose.covariance
+    sd = None if cov is None else np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    pos = f'  position     [{p[0]: .6f}, {p[1]: .6f}, {p[2]: .6f}] m'
+    if sd is not None:
+        pos += f'   σ [{sd[0] * 1e3:.3f}, {sd[1] * 1e3:.3f}, {sd[2] * 1e3:.3f}] mm'
+    lines.append(pos)
+    if rotation_known:
+        w, x, y, z = pose.quat_wxyz
+        rv = np.degrees(quat.log(pose.quat_wxyz))
+        ori = f'  orientation  w x y z = [{w:.6f}, {x:.6f}, {y:.6f}, {z:.6f}]'
+        if sd is not None:
+            ori += f'   σ [{np.degrees(sd[3]):.4f}, {np.degrees(sd[4]):.4f}, ' \
+                   f'{np.degrees(sd[5]):.4f}] ° about x y z'
+        lines.append(ori)
+        lines.append(f'  rotation vector [{rv[0]:.3f}, {rv[1]:.3f}, {rv[2]:.3f}] °')
+    else:
+        lines.append('  orientation  not estimated by this model (covariance marked -1)')
+    return '\n'.join(lines)
+
+
+def format_result(result: CalibrationResult, report: PairingReport | None = None) -> str:
+    """Render the full report a person reads after ``coreg calibrate``."""
+    out = [f'model {result.model}, method {result.method.upper()}: '
+           f'{"success" if result.success else "FAILED"}: {result.message}']
+    if report is not None:
+        out.append(f'pairing: {report.summary()}')
+    ratio = result.chi2 / result.dof if result.dof > 0 else float('nan')
+    out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, chi2/dof = {ratio:.3f}, '
+               f'p = {result.p_value:.3g}: {fit_verdict(result.p_value)}')
+    out.append(format_pose('base_to_base', "pose of device A's base frame in device B's base "
+                           'frame', result.base_to_base))
+    out.append(format_pose('tool_to_marker', "pose of device B's marker in device A's tool "
+                           'frame', result.tool_to_marker, result.model == 'full_pose'))
+    if result.model == 'three_marker':
+        for j, m in enumerate(result.markers):
+            out.append(f'  marker {j + 1} in the tool frame [{m[0]: .6f}, {m[1]: .6f}, '
+                       f'{m[2]: .6f}] m')
+    out.append('σ are 1-sigma posterior standard deviations (Ikits B.4.2); the covariance '
+               'layout is geometry_msgs/PoseWithCovariance (x y z, rotation about x y z).')
+    return '\n'.join(out)
