@@ -24,8 +24,8 @@ from typing import Optional
 
 import numpy as np
 
+from coreg_ros.core import batched
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.batched import spd_solve
 from coreg_ros.core.models import (
     ModelSpec,
     Parameters,
@@ -307,18 +307,25 @@ def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
     return r_x, e_y @ problem.whiten_b.T, A_x, problem.whiten_out(j_x), problem.whiten_out(j_phi)
 
 
-def _tls_cost(problem: Problem, params: Parameters, x: InputState) -> float:
+def _tls_cost(problem: Problem, params: Parameters, x: InputState,
+              keep_residuals: bool = False):
+    """Cost (eq. 43) at (x, φ); with ``keep_residuals`` also the whitened residuals."""
     cost = 0.0
+    res_y = np.empty((problem.n, problem.spec.n_res)) if keep_residuals else None
+    res_x = np.empty((problem.n, 6)) if keep_residuals else None
     for sl in problem.chunks():
         pos_b, quat_b = problem.output(sl)
-        e_y = output_error(params, x.pos[sl], x.quat[sl], pos_b, quat_b)
+        r_y = output_error(params, x.pos[sl], x.quat[sl], pos_b, quat_b) @ problem.whiten_b.T
         ex_rot, _ = error_rotation_jacobian(x.quat[sl], problem.quat_a[sl])
         r_x = np.concatenate([x.pos[sl] - problem.pos_a[sl], ex_rot], axis=1) @ problem.whiten_a.T
         if problem.a_scale is not None:
             r_x = r_x / np.sqrt(problem.a_scale[sl])[:, None]
-        cost += float(np.sum(r_x ** 2) + np.sum((e_y @ problem.whiten_b.T) ** 2))
+        cost += float(np.sum(r_x ** 2) + np.sum(r_y ** 2))
+        if keep_residuals:
+            res_y[sl], res_x[sl] = r_y, r_x
     r_prior, _ = _prior_rows(problem, params)
-    return cost + float(r_prior @ r_prior)
+    cost += float(r_prior @ r_prior)
+    return (cost, res_y, res_x) if keep_residuals else cost
 
 
 def _damped(U: np.ndarray, lam: float) -> np.ndarray:
@@ -331,48 +338,61 @@ def _damped(U: np.ndarray, lam: float) -> np.ndarray:
     return U
 
 
-def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float,
-               keep_residuals: bool = False):
+def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float):
     """
-    Reduced system S δφ = b, cost, and the per-pair back-substitution terms, chunk by chunk.
+    Reduced system S δφ = b and the cost at (x, φ), chunk by chunk (Schur complement).
 
-    Returns S, b, cost, (Y, z) with ``Y_i = U_i⁻¹ W_i`` (N, 6, P) and ``z_i = U_i⁻¹ g_i``
-    (N, 6) so that ``δx_i = -(z_i + Y_i δφ)``, and the residuals if asked.
+    With ``U_i = L_i L_iᵀ`` (batched Cholesky of the damped 6×6 input blocks) and
+    ``Z_i = L_i⁻¹ [W_i | g_i]``, ``S = Σ B_iᵀB_i - Σ Z_iᵀZ_i`` (W and g parts). Only the
+    factors and Z are kept per pair, for ``back_substitute``.
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+    b : ndarray, shape (P,)
+    cost : float
+    factors : tuple
+        Per-chunk (L, Z) for the back-substitution.
+
     """
     P = problem.spec.n_params
     S = np.zeros((P, P))
     v_diag = np.zeros(P)
     b = np.zeros(P)
     cost = 0.0
-    Y_all = np.empty((problem.n, 6, P))
-    z_all = np.empty((problem.n, 6))
-    res_y = np.empty((problem.n, problem.spec.n_res)) if keep_residuals else None
-    res_x = np.empty((problem.n, 6)) if keep_residuals else None
+    factors = []
     for sl in problem.chunks():
         r_x, r_y, A_x, A_y, B = _tls_blocks(problem, params, x, sl)
         A = np.concatenate([A_x, A_y], axis=1)  # (c, 6 + m, 6)
         At = np.ascontiguousarray(A.transpose(0, 2, 1))
         U = At @ A
-        # W_i = A_yᵀ B_i and g_i = Aᵀ r_i in one product
+        # [W_i | g_i] = A_yᵀ [B_i | r_y,i] + [0 | A_xᵀ r_x,i], in one product
         Wg = At[:, :, 6:] @ np.concatenate([B, r_y[:, :, None]], axis=2)
-        W = Wg[:, :, :P]
-        g_x = Wg[:, :, P] + (At[:, :, :6] @ r_x[:, :, None])[:, :, 0]
-        # U⁻¹ [W | g] by a batched Cholesky solve over the chunk's 6×6 blocks
-        sol = spd_solve(_damped(U, lam), np.concatenate([W, g_x[:, :, None]], axis=2))
-        Y, z = sol[:, :, :P], sol[:, :, P]
-        Y_all[sl], z_all[sl] = Y, z
-        B2, W2 = B.reshape(-1, P), W.reshape(-1, P)
-        S += B2.T @ B2 - W2.T @ Y.reshape(-1, P)
+        Wg[:, :, P] += (At[:, :, :6] @ r_x[:, :, None])[:, :, 0]
+        L = batched.cholesky(_damped(U, lam))
+        Z = batched.solve_lower(L, np.ascontiguousarray(Wg.transpose(1, 2, 0)))  # (6, P+1, c)
+        factors.append((L, Z))
+        B2 = B.reshape(-1, P)
+        Zt = Z.transpose(0, 2, 1).reshape(-1, P + 1)  # rows (k, pair)
+        ZW, Zg = Zt[:, :P], Zt[:, P]
+        S += B2.T @ B2 - ZW.T @ ZW
         v_diag += np.einsum('ij,ij->j', B2, B2)
-        b += -(B2.T @ r_y.reshape(-1)) + W2.T @ z.reshape(-1)
+        b += -(B2.T @ r_y.reshape(-1)) + ZW.T @ Zg
         cost += float(np.sum(r_x ** 2) + np.sum(r_y ** 2))
-        if keep_residuals:
-            res_y[sl], res_x[sl] = r_y, r_x
     r_prior, j_prior = _prior_rows(problem, params)
     S += j_prior.T @ j_prior + lam * np.diag(v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
     b -= j_prior.T @ r_prior
     cost += float(r_prior @ r_prior)
-    return S, b, cost, (Y_all, z_all), res_y, res_x, len(r_prior)
+    return S, b, cost, factors
+
+
+def back_substitute(problem: Problem, factors: list, delta_phi: np.ndarray) -> np.ndarray:
+    """Input corrections ``δx_i = -U_i⁻¹(g_i + W_i δφ) = -L_i⁻ᵀ(Z_g,i + Z_W,i δφ)``, (N, 6)."""
+    dx = np.empty((problem.n, 6))
+    for sl, (L, Z) in zip(problem.chunks(), factors, strict=True):
+        rhs = Z[:, :-1, :].transpose(0, 2, 1) @ delta_phi + Z[:, -1, :]  # (6, c)
+        dx[sl] = -batched.solve_upper_t(L, rhs[:, None, :])[:, 0, :].T
+    return dx
 
 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
@@ -401,19 +421,19 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     x = InputState(problem.pos_a, problem.quat_a)
     lam = 1e-6
     status, it = 0, 0
-    cost = _tls_cost(problem, params, x)
+    cost = np.inf
     for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
         accepted = False
         while lam < 1e16:
-            S, b, _, (Y, z), _, _, _ = _tls_schur(problem, params, x, lam)
+            S, b, cost, factors = _tls_schur(problem, params, x, lam)
             delta = np.linalg.lstsq(S, b, rcond=None)[0]
             trial = params.stepped(delta)
             if trial.valid:
-                trial_x = x.stepped(-(z + Y @ delta))
+                trial_x = x.stepped(back_substitute(problem, factors, delta))
                 new_cost = _tls_cost(problem, trial, trial_x)
             else:
                 new_cost = np.inf
-            del Y, z
+            del factors
             if new_cost <= cost:
                 accepted = True
                 break
@@ -424,13 +444,22 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             status = 2 if new_cost - cost <= ftol * max(cost, 1.0) else -1
             break
         status = _converged(delta, S, cost, new_cost, xtol, ftol)
-        params, x, cost = trial.recharted(), trial_x, new_cost
+        params, x = trial.recharted(), trial_x
         lam = max(lam / 10.0, 1e-12)
         if status:
             break
-    S, _, cost, _, res_y, res_x, n_prior = _tls_schur(problem, params, x, 0.0, keep_residuals=True)
-    return Solution(params, _inverse_or_none(S), S, cost, problem.n * problem.spec.n_res + n_prior,
-                    res_y, res_x, it, status, _status_message(status, it))
+    if status > 0:
+        # Converged: the last linearisation (a step of at most xtol·σ, or a flat cost, away,
+        # damped by λ <= 1e-7) gives the posterior covariance; re-linearising would cost a
+        # whole pass for a relative change below 1e-6.
+        info = S
+    else:
+        info, _, _, _ = _tls_schur(problem, params, x, 0.0)
+    chi2, res_y, res_x = _tls_cost(problem, params, x, keep_residuals=True)
+    n_prior = len(_prior_rows(problem, params)[0])
+    return Solution(params, _inverse_or_none(info), info, chi2,
+                    problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
+                    _status_message(status, it))
 
 
 def _status_message(status: int, iterations: int) -> str:
