@@ -18,6 +18,7 @@ $(VENV)/.installed: setup.py package.xml
 	touch $@
 
 demo: venv
+	$(PY) -m coreg_ros.ros.demo bags/sample_full_pose
 	$(VENV)/bin/coreg calibrate bags/sample_full_pose --method tls
 
 test: venv
