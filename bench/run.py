@@ -1,0 +1,308 @@
+"""
+All benchmarks in one command (``make bench``): estimators against scipy, pairing, bags, node,
+and the full-size Monte Carlo. Prints tables and writes bench/results/estimator.json.
+
+BLAS/OpenMP are pinned to one thread before numpy is imported, so that timings are stable on a
+shared machine; every timing is the best of a few repeats.
+"""
+
+import os
+
+for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ[_var] = '1'
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+from pathlib import Path  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+import traceback  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+
+from bench import estimator_bench as eb  # noqa: E402
+from bench import montecarlo as mc  # noqa: E402
+from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag  # noqa: E402
+from coreg_ros.core import quaternion as quat  # noqa: E402
+from coreg_ros.core.pairing import pair_streams  # noqa: E402
+from coreg_ros.core.types import PoseStream  # noqa: E402
+
+RESULTS = ROOT / 'bench' / 'results'
+TARGETS = {
+    'ols_speedup_100k': 6.0, 'tls_speedup_100k': 20.0, 'tls_seconds_100k': 1.5,
+    'peak_bytes_per_pair': 1024.0,
+}
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Pairing and bags
+# ----------------------------------------------------------------------------------------------
+
+def _streams(n: int, seed: int = 3):
+    """Two 1 kHz streams of n samples each, B's stamps 0.37 ms after A's, smooth poses."""
+    rng = np.random.default_rng(seed)
+    t0 = 1_700_000_000_000_000_000
+    stamps_a = t0 + np.arange(n, dtype=np.int64) * 1_000_000
+    stamps_b = stamps_a + 370_000
+    s = np.arange(n) * 1e-3
+    pos = np.stack([0.1 * np.sin(0.3 * s), 0.1 * np.cos(0.2 * s), 0.3 + 0.05 * np.sin(s)], 1)
+    rot = np.stack([0.8 * np.sin(0.11 * s), 0.7 * np.sin(0.13 * s + 1), 0.6 * np.cos(0.07 * s)],
+                   1)
+    q = quat.exp(rot)
+    a = PoseStream(stamps_a, pos + 1e-4 * rng.standard_normal(pos.shape), q, 'a_base')
+    b = PoseStream(stamps_b, pos + 1e-4 * rng.standard_normal(pos.shape), q, 'b_base')
+    return a, b
+
+
+def bench_pairing(n: int = 1_000_000, repeats: int = 3) -> dict:
+    a, b = _streams(n)
+    t, (pairs, report) = eb.best_time(lambda: pair_streams(a, b, max_gap_ns=5_000_000),
+                                      repeats)
+    return {'n_a': n, 'n_b': n, 'n_paired': int(report.n_paired), 'seconds': t,
+            'ns_per_sample': 1e9 * t / n}
+
+
+def bench_bags(n_messages: int = 100_000, repeats: int = 2) -> dict:
+    a, b = _streams(n_messages // 2)
+    streams = {'/device_a/pose': a, '/device_b/pose': b}
+    out = {}
+    with tempfile.TemporaryDirectory(prefix='coreg_bench_bag_') as tmp:
+        for storage in ('sqlite3', 'mcap'):
+            best_w, best_r = np.inf, np.inf
+            for k in range(repeats):
+                path = Path(tmp) / f'{storage}_{k}'
+                t = time.perf_counter()
+                write_pose_bag(path, streams, storage=storage)
+                best_w = min(best_w, time.perf_counter() - t)
+                t = time.perf_counter()
+                got = read_pose_bag(path, list(streams))
+                best_r = min(best_r, time.perf_counter() - t)
+                assert sum(len(s) for s in got.values()) == n_messages
+            size = sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
+            out[storage] = {'messages': n_messages, 'write_seconds': best_w,
+                            'read_seconds': best_r, 'write_msgs_per_s': n_messages / best_w,
+                            'read_msgs_per_s': n_messages / best_r, 'bytes': size}
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Tables
+# ----------------------------------------------------------------------------------------------
+
+def _f(x, fmt='.3f', none='–'):
+    return none if x is None else format(x, fmt)
+
+
+def estimator_table(rows: list) -> str:
+    lines = ['| N | estimator | ours (s) | µs/pair | iterations | peak B/pair | scipy | '
+             'scipy (s) | speed-up | max diff (σ) |', '|' + '---|' * 10]
+    for r in rows:
+        scipy_name = 'lm (dense, analytic J)' if r['method'] == 'ols' else 'trf (sparse J, lsmr)'
+        status = r['scipy_status']
+        lines.append(
+            f'| {r["n"]:,} | {r["method"].upper()} | {r["seconds"]:.3f} '
+            f'| {r["us_per_pair"]:.1f} | {r["iterations"]} | {r["peak_bytes_per_pair"]:.0f} '
+            f'| {scipy_name} | {_f(r["scipy_seconds"]) if r["scipy_seconds"] else status} '
+            f'| {_f(r["speedup"], ".1f")}{"×" if r["speedup"] else ""} '
+            f'| {_f(r["max_diff_sigma"], ".1e")} |')
+    return '\n'.join(lines)
+
+
+def targets_table(rows: list, results: dict) -> tuple:
+    by = {(r['n'], r['method']): r for r in rows}
+    checks = []
+    ols, tls = by.get((100_000, 'ols')), by.get((100_000, 'tls'))
+    if ols and ols['speedup']:
+        checks.append(('OLS 100k: speed-up over scipy lm', f'≥ {TARGETS["ols_speedup_100k"]:g}×',
+                       f'{ols["speedup"]:.1f}×', ols['speedup'] >= TARGETS['ols_speedup_100k']))
+    if tls:
+        if tls['speedup']:
+            checks.append(('TLS 100k: speed-up over scipy trf',
+                           f'≥ {TARGETS["tls_speedup_100k"]:g}×', f'{tls["speedup"]:.1f}×',
+                           tls['speedup'] >= TARGETS['tls_speedup_100k']))
+        checks.append(('TLS 100k: solve time', f'< {TARGETS["tls_seconds_100k"]:g} s',
+                       f'{tls["seconds"]:.2f} s', tls['seconds'] < TARGETS['tls_seconds_100k']))
+    for method in ('ols', 'tls'):
+        mine = [r for r in rows if r['method'] == method]
+        if mine:
+            for r in mine:
+                if r['n'] >= 100_000:
+                    checks.append((f'{method.upper()} {r["n"]:,}: peak memory above the pairs',
+                                   '≤ 1 KB/pair', f'{r["peak_bytes_per_pair"]:.0f} B/pair',
+                                   r['peak_bytes_per_pair'] <= TARGETS['peak_bytes_per_pair']))
+            big = [r for r in mine if r['n'] >= 10_000]
+            if len(big) >= 2:
+                lo, hi = big[0], big[-1]
+                ratio = hi['us_per_pair'] / lo['us_per_pair']
+                checks.append((f'{method.upper()} time linear in N (µs/pair {lo["n"]:,} → '
+                               f'{hi["n"]:,})', 'ratio ≤ 1.5',
+                               f'{lo["us_per_pair"]:.1f} → {hi["us_per_pair"]:.1f} '
+                               f'({ratio:.2f})', ratio <= 1.5))
+    mc_reports = results.get('montecarlo')
+    if mc_reports:
+        for r in mc_reports:
+            for method, m in r['methods'].items():
+                e = m['efficiency']
+                if 'efficient' in mc.Scenario(**r['scenario']).expected(method):
+                    checks.append((f'MC {r["scenario"]["name"]} {method.upper()}: MSE/CRLB '
+                                   f'(trace)', '0.95-1.05', f'{e["trace_ratio"]:.3f} '
+                                   f'± {e["trace_ratio_se"]:.3f}',
+                                   0.95 <= e['trace_ratio'] <= 1.05))
+                checks.append((f'MC {r["scenario"]["name"]} {method.upper()}: all claims',
+                               ', '.join(dict(r['scenario']['expect']).get(method, ())),
+                               'pass' if m['passed'] else 'FAIL: ' + '; '.join(
+                                   c['check'] for c in m['checks'] if not c['passed']),
+                               m['passed']))
+    lines = ['| target | goal | measured | met |', '|---|---|---|---|']
+    lines += [f'| {a} | {b} | {c} | {"yes" if d else "**no**"} |' for a, b, c, d in checks]
+    return '\n'.join(lines), [dict(target=a, goal=b, measured=c, met=bool(d))
+                              for a, b, c, d in checks]
+
+
+def other_table(results: dict) -> str:
+    lines = ['| benchmark | size | time | rate |', '|---|---|---|---|']
+    p = results.get('pairing')
+    if p:
+        lines.append(f'| pairing (interpolate A at B) | {p["n_a"]:,} × {p["n_b"]:,} samples '
+                     f'| {p["seconds"]:.2f} s | {p["ns_per_sample"]:.0f} ns/sample |')
+    for storage, b in (results.get('bags') or {}).items():
+        lines.append(f'| bag write ({storage}) | {b["messages"]:,} PoseStamped '
+                     f'| {b["write_seconds"]:.2f} s | {b["write_msgs_per_s"]:,.0f} msg/s |')
+        lines.append(f'| bag read ({storage}) | {b["messages"]:,} PoseStamped '
+                     f'| {b["read_seconds"]:.2f} s | {b["read_msgs_per_s"]:,.0f} msg/s |')
+    node = results.get('node')
+    if isinstance(node, dict) and 'sent' in node:
+        lines.append(f'| node: 2 streams at {node["rate_hz"]:g} Hz | {node["duration_s"]:g} s, '
+                     f'{node["sent"]:,} msgs | dropped {node["dropped"]} | node CPU '
+                     f'{node["node_cpu_percent"]:.0f} % of a core |')
+        lines.append(f'| node: ~/calibrate (TLS) | {node["n_pairs"]} pairs '
+                     f'| {node["calibrate_seconds"]:.2f} s (estimator '
+                     f'{node["estimator_seconds"]} s) | success {node["success"]} |')
+    elif node:
+        lines.append(f'| node | – | {node} | – |')
+    return '\n'.join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# Main
+# ----------------------------------------------------------------------------------------------
+
+def _section(results: dict, key: str, fn, *args, **kw):
+    t = time.perf_counter()
+    try:
+        results[key] = fn(*args, **kw)
+    except Exception as e:  # one failing benchmark must not lose the others
+        traceback.print_exc()
+        results[key] = f'failed: {type(e).__name__}: {e}'
+    log(f'[{key}] {time.perf_counter() - t:.1f} s')
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--sizes', type=int, nargs='+', default=[1_000, 10_000, 100_000])
+    parser.add_argument('--ols-extra', type=int, nargs='*', default=[1_000_000],
+                        help='sizes run for OLS only')
+    parser.add_argument('--scipy-cap', type=float, default=120.0,
+                        help='abandon a scipy run after this many seconds')
+    parser.add_argument('--no-scipy', action='store_true')
+    parser.add_argument('--no-mc', action='store_true', help='skip the Monte Carlo')
+    parser.add_argument('--mc-scale', type=float, default=1.0, help='Monte Carlo trials × this')
+    parser.add_argument('--mc-workers', type=int, default=2)
+    parser.add_argument('--node-duration', type=float, default=60.0,
+                        help='node benchmark streaming time, s (0 skips it)')
+    parser.add_argument('--no-profile', action='store_true')
+    parser.add_argument('--readme', type=Path, help='also write the markdown tables here')
+    args = parser.parse_args(argv)
+    started = time.perf_counter()
+    date = datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')
+    env = {'date': date, 'python': platform.python_version(), 'numpy': np.__version__,
+           'scipy': scipy.__version__, 'machine': platform.machine(), 'cpus': os.cpu_count(),
+           'load_average_at_start': os.getloadavg(),
+           'threads': 'OPENBLAS_NUM_THREADS=OMP_NUM_THREADS=MKL_NUM_THREADS=1',
+           'command': 'python bench/run.py ' + ' '.join(argv if argv is not None
+                                                        else sys.argv[1:])}
+    log(f'coreg_ros benchmarks, {date}; BLAS/OpenMP pinned to 1 thread; '
+        f'load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs')
+    results = {'environment': env}
+
+    rows = []
+    t = time.perf_counter()
+    for n in sorted(set(args.sizes) | set(args.ols_extra)):
+        methods = ('ols', 'tls') if n in args.sizes else ('ols',)
+        try:
+            got = eb.bench_size(n, methods, scipy_cap=args.scipy_cap,
+                                with_scipy=not args.no_scipy, log=log)
+            rows.extend(got[m] for m in methods)
+        except Exception:
+            traceback.print_exc()
+    results['estimators'] = rows
+    log(f'[estimators] {time.perf_counter() - t:.1f} s')
+    if not args.no_profile and 100_000 in args.sizes:
+        _section(results, 'tls_profile_100k', eb.profile_tls, 100_000)
+    _section(results, 'pairing', bench_pairing)
+    _section(results, 'bags', bench_bags)
+    if args.node_duration > 0:
+        try:
+            from bench import bench_node
+        except Exception as e:  # the node benchmark needs rclpy and a working ROS setup
+            results['node'] = f'not available: {type(e).__name__}: {e}'
+        else:
+            _section(results, 'node', bench_node.run, args.node_duration)
+    if not args.no_mc:
+        _section(results, 'montecarlo', mc.run_all, args.mc_scale, args.mc_workers, log=log)
+    results['total_seconds'] = time.perf_counter() - started
+
+    tables = ['### Estimators (full pose, default noise; ours vs scipy.optimize.least_squares)',
+              '', estimator_table(rows), '',
+              '### Pairing, bags, node', '', other_table(results), '']
+    mc_reports = results.get('montecarlo')
+    if isinstance(mc_reports, list):
+        tables += [f'### Monte Carlo (fixed truth and motion, noise redrawn per trial; '
+                   f'scale {args.mc_scale:g})', '', mc.markdown_table(mc_reports), '']
+    target_md, target_rows = targets_table(rows, results)
+    results['targets'] = target_rows
+    tables += ['### Targets', '', target_md, '']
+    text = '\n'.join(tables)
+    print(f'coreg_ros benchmarks — {date} — `{env["command"].strip()}` — '
+          f'{env["threads"]} — {os.cpu_count()} CPUs, shared (best of repeats)\n')
+    print(text)
+    if isinstance(results.get('tls_profile_100k'), str):
+        print('### solve_tls profile at N = 100,000 (cProfile, by internal time)\n')
+        print('```\n' + results['tls_profile_100k'].strip() + '\n```')
+    print(f'\ntotal {results["total_seconds"]:.0f} s')
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    out = RESULTS / 'estimator.json'
+    out.write_text(json.dumps(results, indent=1, default=_json_default) + '\n')
+    (RESULTS / 'tables.md').write_text(text + '\n')
+    log(f'written to {out}')
+    if args.readme:
+        args.readme.write_text(
+            f'## Benchmarks\n\nMeasured {date} with `{env["command"].strip()}` (`make bench`) '
+            f'on {os.cpu_count()} shared CPUs, {env["threads"]}; timings are the best of a '
+            f'few repeats, peak memory is the tracemalloc peak during the solve above the '
+            f'loaded pairs.\n\n{text}')
+    return 0
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
