@@ -124,8 +124,10 @@ def cmd_simulate(args) -> int:
         kwargs['sigma_a'] = tuple(args.sigma_a)
     if args.sigma_b:
         kwargs['sigma_b'] = tuple(args.sigma_b)
+    from coreg_ros.sim.effect_library import parse_effect
+    effects = [parse_effect(text) for text in args.effect or ()]
     rec = simulate_recording(args.seed, args.duration, args.model, rate_a=args.rate_a,
-                             rate_b=args.rate_b, motion=args.motion, **kwargs)
+                             rate_b=args.rate_b, motion=args.motion, effects=effects, **kwargs)
     write_pose_bag(args.out_bag, rec.streams, storage=args.storage)
     truth_path = truth_path_for(args.out_bag)
     truth = rec.truth.as_dict()
@@ -167,6 +169,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--rate-b', type=_positive, default=50.0, help='Hz (default 50)')
     p.add_argument('--sigma-a', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'))
     p.add_argument('--sigma-b', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'))
+    p.add_argument('--effect', action='append', metavar='NAME=VALUE',
+                   help='inject an unmodelled effect (repeatable), e.g. time_offset=0.012 (s), '
+                        'clock_drift=100 (ppm), timestamp_jitter=0.005 (s), '
+                        'field_distortion=5 (mm), distance_noise=4 (exponent), scale=0.005, '
+                        'link_flex=1 (mm), outliers=0.02, backlash=0.3 (mm), noise_scale=2')
     p.set_defaults(func=cmd_simulate)
 
     from coreg_ros.cli import ros_commands

@@ -3,7 +3,8 @@ Seeded synthetic devices, with a place for unmodelled effects (DESIGN.md §2, §
 
 ``simulate_recording`` makes unsynchronised streams of two devices as a bag would hold them;
 ``simulate_pairs`` makes synchronised pairs for Monte Carlo checks of the estimator;
-``random_truth`` and ``make_motion`` draw the calibration and A's tool motion.
+``random_truth`` and ``make_motion`` draw the calibration and A's tool motion;
+``parse_effect`` builds the unmodelled effects of ``coreg_ros.sim.effect_library``.
 """
 
 from coreg_ros.sim.devices import (
@@ -17,13 +18,14 @@ from coreg_ros.sim.devices import (
     simulate_pairs,
     simulate_recording,
 )
+from coreg_ros.sim.effect_library import EFFECT_NAMES, EFFECT_UNITS, make_effect, parse_effect
 from coreg_ros.sim.effects import Effect, EffectContext, apply_effects
 from coreg_ros.sim.motion import MOTION_PRESETS, Motion, make_motion, random_rotation
 from coreg_ros.sim.truth import Truth, random_truth, validate_sigma
 
 __all__ = [
-    'DEFAULT_SIGMA_A', 'DEFAULT_SIGMA_B', 'DEFAULT_START_NS', 'Effect', 'EffectContext',
-    'FRAME_A', 'FRAME_B', 'MOTION_PRESETS', 'Motion', 'SimRecording', 'Truth',
-    'add_pose_noise', 'apply_effects', 'make_motion', 'random_rotation', 'random_truth',
-    'simulate_pairs', 'simulate_recording', 'validate_sigma',
+    'DEFAULT_SIGMA_A', 'DEFAULT_SIGMA_B', 'DEFAULT_START_NS', 'EFFECT_NAMES', 'EFFECT_UNITS',
+    'Effect', 'EffectContext', 'FRAME_A', 'FRAME_B', 'MOTION_PRESETS', 'Motion', 'SimRecording',
+    'Truth', 'add_pose_noise', 'apply_effects', 'make_effect', 'make_motion', 'parse_effect',
+    'random_rotation', 'random_truth', 'simulate_pairs', 'simulate_recording', 'validate_sigma',
 ]

@@ -26,7 +26,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
 from coreg_ros.core.types import MODELS, Pairs, PoseStream
-from coreg_ros.sim.effects import EffectContext, apply_effects
+from coreg_ros.sim.effects import STAGES, EffectContext, apply_effects, effect_stage
 from coreg_ros.sim.motion import Motion, make_motion
 from coreg_ros.sim.truth import Truth, random_truth, validate_sigma
 
@@ -175,6 +175,13 @@ def _streams_b(model: str, topics_b: tuple, stamps: np.ndarray, position: np.nda
             for j, topic in enumerate(topics_b)}
 
 
+def _check_same_stamps(streams: dict, reference: dict, stage: str) -> None:
+    for topic, ref in reference.items():
+        if not np.array_equal(streams[topic].stamps, ref.stamps):
+            raise ConfigError(f'effects: a {stage!r} effect changed the stamps or samples of '
+                              f"{topic}; give it stage 'measured' instead")
+
+
 def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
                        rate_a: float = 100.0, rate_b: float = 50.0,
                        sigma_a=DEFAULT_SIGMA_A, sigma_b=DEFAULT_SIGMA_B,
@@ -208,8 +215,10 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
     start_ns : int
         Origin of the motion's time and of the recording on the common clock, ns.
     effects : sequence of Effect
-        Unmodelled effects applied in order after the noise (``coreg_ros.sim.effects``);
-        empty by default: the recording follows the model exactly.
+        Unmodelled effects (``coreg_ros.sim.effect_library``), applied stage by stage
+        (``coreg_ros.sim.effects.STAGES``: before the noise, on the noise, after the noise),
+        in the given order within a stage; ``Truth.effects`` lists them in the order applied.
+        Empty by default: the recording follows the model exactly.
 
     Returns
     -------
@@ -223,6 +232,7 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
 
     """
     _check_model(model)
+    effects = tuple(effects)
     sigma_a = validate_sigma(sigma_a, 'sigma_a')
     sigma_b = validate_sigma(sigma_b, 'sigma_b')
     if not (np.isfinite(duration) and duration > 0.0):
@@ -248,6 +258,21 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
     true_streams = {topic_a: PoseStream(stamps_a.copy(), pos_a, q_a, FRAME_A)}
     true_streams.update(_streams_b(model, topics_b, stamps_b, pos_b, q_b))
 
+    staged = {stage: [e for e in effects if effect_stage(e) == stage] for stage in STAGES}
+    context = EffectContext(truth=truth, motion=motion, start_ns=int(start_ns), topic_a=topic_a,
+                            topics_b=topics_b, true_streams=true_streams, sigma_a=sigma_a,
+                            sigma_b=sigma_b)
+    clean_streams, described = true_streams, ()
+    if staged['clean']:
+        # physics before the device noise: the noise is added to the changed poses
+        clean_streams, described = apply_effects(true_streams, staged['clean'], context,
+                                                 seq_effects)
+        _check_same_stamps(clean_streams, true_streams, 'clean')
+        pos_a, q_a = clean_streams[topic_a].position, clean_streams[topic_a].quat_wxyz
+        pos_b = np.stack([clean_streams[t].position for t in topics_b], axis=1)
+        if model == 'full_pose':
+            q_b = clean_streams[topics_b[0]].quat_wxyz
+
     noisy_a = add_pose_noise(np.random.default_rng(seq_a), pos_a, q_a, sigma_a)
     noisy_b = add_pose_noise(np.random.default_rng(seq_b), pos_b,
                              q_b if model == 'full_pose' else None, sigma_b)
@@ -255,11 +280,14 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
     streams.update(_streams_b(model, topics_b, stamps_b, noisy_b[0],
                               q_b if noisy_b[1] is None else noisy_b[1]))
 
+    later = staged['noise'] + staged['measured']
+    if later:
+        context = replace(context, clean_streams=clean_streams)
+        streams, more = apply_effects(streams, staged['noise'], context, seq_effects)
+        _check_same_stamps(streams, true_streams, 'noise')
+        streams, rest = apply_effects(streams, staged['measured'], context, seq_effects)
+        described = described + more + rest
     if effects:
-        context = EffectContext(truth=truth, motion=motion, start_ns=int(start_ns),
-                                topic_a=topic_a, topics_b=topics_b, true_streams=true_streams,
-                                sigma_a=sigma_a, sigma_b=sigma_b)
-        streams, described = apply_effects(streams, effects, context, seq_effects)
         truth = replace(truth, effects=described)
     return SimRecording(streams=streams, truth=truth, topics_a=topic_a, topics_b=topics_b,
                         motion=motion, start_ns=int(start_ns), duration=float(duration),

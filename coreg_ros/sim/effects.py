@@ -10,7 +10,14 @@ noise, each with its own random generator (so adding an effect changes neither t
 recording nor the draws of the effects before it), and records ``effect.as_dict()`` in
 ``Truth.effects`` so that a diagnosis can be scored against what was really done.
 
-No effect is implemented here yet; see the table of DESIGN.md §5 for the candidates.
+Stages: an effect may carry an attribute ``stage`` (``STAGES``) saying where it acts.
+``'clean'`` effects change the noise-free poses before the device noise is added (a field
+distortion, a scale error, a bending link, backlash: physics, not measurement) and must keep
+every stamp; ``'noise'`` effects change the device noise itself (see
+``EffectContext.clean_streams``) and must keep every stamp too; ``'measured'`` effects (the
+default, e.g. a time offset, jitter, outliers) act on the noisy streams as recorded.
+``simulate_recording`` applies the effects stage by stage in that order, keeping the given
+order within a stage. The implemented effects are in ``coreg_ros.sim.effect_library``.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from typing import Optional, Protocol, runtime_checkable
 
 import numpy as np
 
+from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim.motion import Motion
 from coreg_ros.sim.truth import Truth
@@ -47,6 +55,10 @@ class EffectContext:
         Noise-free streams at the same stamps as the noisy ones.
     sigma_a, sigma_b : tuple of float
         Device noise (position m, rotation rad).
+    clean_streams : dict of str to PoseStream, optional
+        For ``'noise'`` and ``'measured'`` effects: the noise-free streams after the
+        ``'clean'`` effects, i.e. the noisy streams minus their noise (before any
+        ``'measured'`` effect); None while the ``'clean'`` stage runs.
 
     """
 
@@ -58,6 +70,19 @@ class EffectContext:
     true_streams: dict
     sigma_a: tuple
     sigma_b: tuple
+    clean_streams: Optional[dict] = None
+
+
+#: Where an effect acts, in the order ``simulate_recording`` applies them.
+STAGES = ('clean', 'noise', 'measured')
+
+
+def effect_stage(effect) -> str:
+    """``effect.stage`` (one of ``STAGES``), ``'measured'`` if it has none."""
+    stage = getattr(effect, 'stage', 'measured')
+    if stage not in STAGES:
+        raise ConfigError(f'effect stage {stage!r} is unknown; use one of {STAGES}')
+    return stage
 
 
 @runtime_checkable
