@@ -15,10 +15,11 @@ import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
+from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import Prior
-from coreg_ros.core.models import SPECS
+from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
+from coreg_ros.core.covariance import Prior, joint_pose_covariance
+from coreg_ros.core.models import SPECS, Parameters
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.result_io import result_to_dict
 from coreg_ros.core.settings import Settings
@@ -111,9 +112,6 @@ def test_calibrate_tls_recovers_random_truths_within_covariance(model):
 
 def _tls_reference_covariance(result, noisy, settings):
     """The undamped Schur complement at the solution, rebuilt from the result."""
-    from coreg_ros.core import estimator as est
-    from coreg_ros.core.calibrate import noise_covariance, whitening
-    from coreg_ros.core.models import Parameters
     spec = SPECS[result.model]
     qa = quat.validate_quaternions(noisy.quat_a)
     qb = None if noisy.quat_b is None else quat.validate_quaternions(noisy.quat_b)
@@ -129,7 +127,6 @@ def _tls_reference_covariance(result, noisy, settings):
     w = np.sqrt(1 - np.sum(e_rot ** 2, axis=1))
     xq = quat.multiply(np.concatenate([w[:, None], e_rot], axis=1), qa)
     S = est._tls_schur(problem, params, est.InputState(noisy.pos_a + e_pos, xq), 0.0)[0]
-    from coreg_ros.core.covariance import joint_pose_covariance
     return joint_pose_covariance(params, np.linalg.inv(S))[0:6, 0:6]
 
 
