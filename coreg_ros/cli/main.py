@@ -101,16 +101,28 @@ def cmd_calibrate(args) -> int:
     streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
     result, report = calibrate_streams(
         streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings)
+    from coreg_ros.cli.convert import direction_guard
+    check = direction_guard(args, streams[settings.topic_a],
+                            [streams[t] for t in settings.topic_b], settings, result)
+    wrong_way = check is not None and check.flagged
     print(f'{PROG} calibrate: {args.bag}')
-    print(format_result(result, report))
+    if wrong_way:
+        print(f'{PROG} calibrate: error: {check.message} (or --no-direction-check to fit the '
+              f'data as given)', file=sys.stderr)
+    else:
+        print(format_result(result, report))
+        if check is not None:
+            print(f'direction check: {check.message}')
     if args.json:
         data = result_to_dict(result)
         data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
                            'unpaired': dict(report.unpaired)}
         data['settings'] = settings.as_dict()
+        if check is not None:
+            data['direction_check'] = check.as_dict()
         write_json(args.json, data)
         print(f'result written to {args.json}')
-    return 0 if result.success else 1
+    return 0 if result.success and not wrong_way else 1
 
 
 def cmd_simulate(args) -> int:
@@ -155,6 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)')
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT', help='also write the result as JSON (atomically)')
+    p.add_argument('--no-direction-check', action='store_true',
+                   help='do not check, after a bad fit, whether a stream should be inverted')
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser('simulate', help='write a simulated two-device recording')
@@ -178,6 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from coreg_ros.cli import ros_commands
     ros_commands.register(sub)
+    from coreg_ros.cli import convert
+    convert.register(sub)
     return parser
 
 
