@@ -73,3 +73,22 @@ def test_report_position_only_ols_has_no_cones_for_t1(tmp_path):
     # a tool point's location in B's marker frame needs T1's orientation: not determined
     assert 'not determined by this model' in page
     assert '<title>po</title>' in page
+
+
+SAMPLE_BAG = Path(__file__).resolve().parents[1] / 'bags' / 'sample_full_pose'
+
+
+@pytest.mark.skipif(not SAMPLE_BAG.exists(), reason='sample bag not shipped')
+def test_cli_calibrate_report(tmp_path, capsys):
+    from coreg_ros.cli.main import main
+
+    out = tmp_path / 'report'
+    assert main(['calibrate', str(SAMPLE_BAG), '--report', str(out), '--points', '0', '0',
+                 '0.4', '0.3', '-0.2', '0.5']) == 0
+    assert f'report written to {out / "index.html"}' in capsys.readouterr().out
+    page = (out / 'index.html').read_text(encoding='utf-8')
+    assert "A's base frame, mapped into B's base frame by T0" in page
+    assert main(['calibrate', str(SAMPLE_BAG), '--report', str(out), '--points', '1', '2']) == 1
+    assert 'X Y Z triples' in capsys.readouterr().err
+    assert main(['calibrate', str(SAMPLE_BAG), '--points', '1', '2', '3']) == 1
+    assert '--report DIR' in capsys.readouterr().err

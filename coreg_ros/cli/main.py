@@ -98,6 +98,8 @@ def cmd_calibrate(args) -> int:
     from coreg_ros.core.result_io import result_to_dict
 
     settings = settings_from_args(args)
+    from coreg_ros.report.calibration_report import points_from_flat
+    points = points_from_flat(args.points, args.report)  # checked before the long fit
     streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
     result, report = calibrate_streams(
         streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings)
@@ -122,6 +124,12 @@ def cmd_calibrate(args) -> int:
             data['direction_check'] = check.as_dict()
         write_json(args.json, data)
         print(f'result written to {args.json}')
+    if args.report:
+        from coreg_ros.report.calibration_report import write_calibration_report
+        page = write_calibration_report(
+            result, args.report, report=report, points=points,
+            points_frame=args.points_frame, title=f'{PROG} calibrate {args.bag}')
+        print(f'report written to {page}')
     return 0 if result.success and not wrong_way else 1
 
 
@@ -169,6 +177,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--json', metavar='OUT', help='also write the result as JSON (atomically)')
     p.add_argument('--no-direction-check', action='store_true',
                    help='do not check, after a bad fit, whether a stream should be inverted')
+    p.add_argument('--report', metavar='DIR',
+                   help='also write an HTML report (ellipsoids, axis cones, residuals) to DIR')
+    p.add_argument('--points', nargs='+', type=_number, metavar='X Y Z',
+                   help="points (m) in A's base frame (or see --points-frame) at which the "
+                        'report gives the registration error to expect')
+    p.add_argument('--points-frame', choices=('a_base', 'a_tool'), default='a_base',
+                   help="frame of --points: A's base (mapped into B's base by T0; default) or "
+                        "A's tool (located in B's marker frame by T1⁻¹, e.g. a stylus tip)")
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser('simulate', help='write a simulated two-device recording')
@@ -192,6 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from coreg_ros.cli import ros_commands
     ros_commands.register(sub)
+    from coreg_ros.cli import plan
+    plan.register(sub)
     from coreg_ros.cli import convert
     convert.register(sub)
     return parser
