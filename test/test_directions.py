@@ -93,6 +93,14 @@ def test_report_arithmetic_and_failed_fits():
     assert report.flagged and 'fit 250× better with device B inverted' in report.message
     d = report.as_dict()
     assert d['fits'][1]['chi2_dof'] is None and d['fits'][1]['error'] == 'did not converge'
+    assert report.alternative is None                 # A and B inverted: only 8.3×
+    both = DirectionReport(fits[:3] + (DirectionFit(True, True, 0.5, 0.001, 100),))
+    assert both.best.label == 'A and B inverted' and both.alternative is None
+    swapped = DirectionReport((fits[0], DirectionFit(True, False, 1.0, 0.001, 100),
+                               DirectionFit(False, True, 4.0, 0.001, 100), fits[3]))
+    assert swapped.best.flags == '--invert-a' and swapped.alternative.flags == '--invert-b'
+    assert '--invert-a (or --invert-b)' in swapped.message
+    assert swapped.as_dict()['alternative_flags'] == '--invert-b'
     mild = DirectionReport((fits[0], DirectionFit(True, True, 100.0, 0.01, 100)))
     assert not mild.flagged and 'below the 10×' in mild.message
 

@@ -107,6 +107,17 @@ class DirectionFit:
                 'n_pairs': self.n_pairs, 'error': self.error}
 
 
+def _times(ratio: float) -> str:
+    if not np.isfinite(ratio):
+        return 'infinitely'
+    return f'{ratio:.0f}×' if ratio >= 100 else f'{ratio:.3g}×'
+
+
+def _device(fit: DirectionFit) -> str:
+    return {'A': 'device A', 'B': 'device B', 'A and B': 'devices A and B'}[
+        fit.label.replace(' inverted', '')]
+
+
 @dataclass(frozen=True)
 class DirectionReport:
     """
@@ -155,26 +166,56 @@ class DirectionReport:
         if best is given or not np.isfinite(best.chi2_dof):
             return (f'the data as given fit best (chi2/dof {given.chi2_dof:.4g}); no stream '
                     f'needs inverting')
-        times = 'infinitely' if not np.isfinite(self.ratio) else f'{self.ratio:.3g}×'
-        device = {'A': 'device A', 'B': 'device B', 'A and B': 'devices A and B'}[
-            best.label.replace(' inverted', '')]
+        times = _times(self.ratio)
+        device = _device(best)
         both = (' (inverting both is the same model with T0 and T1 swapped and inverted: '
                 'only the noise weighting differs)' if best.invert_a and best.invert_b else '')
         if not self.flagged:
             return (f'the data fit {times} better with {device} inverted (chi2/dof '
                     f'{best.chi2_dof:.4g} vs {given.chi2_dof:.4g} as given), below the '
                     f'{self.threshold:g}× needed to call the directions wrong{both}')
+        alt = self.alternative
+        if alt is None:
+            return (f'the data fit {times} better with {device} inverted (chi2/dof '
+                    f'{best.chi2_dof:.4g} vs {given.chi2_dof:.4g} as given){both}: re-run coreg '
+                    f'convert with {best.flags}')
+        alt_times = _times(given.chi2_dof / alt.chi2_dof)
         return (f'the data fit {times} better with {device} inverted (chi2/dof '
-                f'{best.chi2_dof:.4g} vs {given.chi2_dof:.4g} as given){both}: re-run coreg '
-                f'convert with {best.flags}')
+                f'{best.chi2_dof:.4g} vs {given.chi2_dof:.4g} as given), and {alt_times} better '
+                f'with {_device(alt)} inverted (the same model with T0 '
+                f'and T1 swapped and inverted; only the noise weighting differs): re-run coreg '
+                f'convert with {best.flags} (or {alt.flags}), toggling the flags this '
+                f'recording was converted with')
+
+    @property
+    def alternative(self) -> Optional[DirectionFit]:
+        """
+        Return the best fit's partner (both directions toggled) if it also beats the threshold.
+
+        Only when ``flagged``, else None. Toggling both streams gives the same model with T0
+        and T1 swapped and inverted, so the two fit the geometry equally and differ only
+        through the noise weighting.
+        """
+        if not self.flagged:
+            return None
+        best = self.best
+        for f in self.fits:
+            if (f.invert_a, f.invert_b) == (not best.invert_a, not best.invert_b):
+                if f is not self.as_given and np.isfinite(f.chi2_dof) and f.chi2_dof > 0 and (
+                        self.as_given.chi2_dof / f.chi2_dof > self.threshold):
+                    return f
+        return None
 
     def as_dict(self) -> dict:
         """JSON-friendly form: the fits, the best, the ratio, the flags and the message."""
         ratio = self.ratio
+        alt = self.alternative
         return {'fits': [f.as_dict() for f in self.fits], 'best': self.best.label,
                 'ratio': float(ratio) if np.isfinite(ratio) else None,
                 'threshold': self.threshold, 'flagged': self.flagged,
-                'flags': self.best.flags if self.flagged else '', 'message': self.message}
+                'flags': self.best.flags if self.flagged else '',
+                'alternative_flags': alt.flags if alt is not None else '',
+                'message': self.message}
 
 
 def subsample(pairs: Pairs, max_pairs: int) -> Pairs:
