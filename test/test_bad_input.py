@@ -127,11 +127,6 @@ def test_bad_a_var_scale(pairs):
            'a_var_scale', 'one per pair')
 
 
-BUG_ROWS = ('BUG: calibrate._validated does not check that quat_a / quat_b have one row per '
-            'pair; a numpy ValueError/LinAlgError escapes from the estimator')
-
-
-@pytest.mark.xfail(strict=True, reason=BUG_ROWS)
 @pytest.mark.parametrize('model', MODELS)
 def test_calibrate_quat_a_row_count(pairs, model):
     p = pairs[model]
@@ -139,14 +134,12 @@ def test_calibrate_quat_a_row_count(pairs, model):
            'device A orientation', 'shape')
 
 
-@pytest.mark.xfail(strict=True, reason=BUG_ROWS)
 def test_calibrate_quat_b_row_count(pairs):
     p = pairs['full_pose']
     raises(InputError, lambda: calibrate(replace(p, quat_b=p.quat_b[:-1]), Settings()),
            'device B orientation', 'shape')
 
 
-@pytest.mark.xfail(strict=True, reason=BUG_ROWS)
 def test_calibrate_single_quaternion_for_all_pairs(pairs):
     p = pairs['full_pose']
     raises(InputError, lambda: calibrate(replace(p, quat_a=p.quat_a[0]), Settings()),

@@ -130,13 +130,6 @@ def _tls_reference_covariance(result, noisy, settings):
     return joint_pose_covariance(params, np.linalg.inv(S))[0:6, 0:6]
 
 
-BUG_DAMPED_COV = (
-    'BUG: estimator.solve_tls keeps the last *damped* Schur complement S (λ raised in the inner '
-    'loop before the flat-cost break, status 2) as info and covariance; the covariance is then '
-    'orders of magnitude too small (and check_observability sees a regularised matrix)')
-
-
-@pytest.mark.xfail(strict=True, reason=BUG_DAMPED_COV)
 @pytest.mark.parametrize('model, seed', [('full_pose', 29), ('position_only', 39)])
 def test_tls_covariance_is_not_damped(model, seed):
     noisy, _, truth = simulate(model, 'tls', seed, n=100)
@@ -149,10 +142,6 @@ def test_tls_covariance_is_not_damped(model, seed):
     np.testing.assert_allclose(np.diag(r.base_to_base.covariance), np.diag(ref), rtol=1e-3)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    'BUG: solve_ols reports status -1 ("the model does not fit the data") at a converged '
-    'minimum: ftol=1e-14 is below the rounding noise of the cost, which is computed by two '
-    'code paths (linearize vs output_error)'))
 def test_converged_calibration_is_not_reported_as_a_misfit():
     noisy, _, truth = simulate_pairs(np.random.default_rng(37), 30, 'position_only')
     r = calibrate(noisy, Settings(model='position_only', method='ols'))
@@ -251,10 +240,7 @@ def _shifted_pose(pose, z):
     return pose.position + z[:3], quat.canonical(quat.multiply(quat.exp(z[3:]), pose.quat_wxyz))
 
 
-@pytest.mark.parametrize('model, method', [
-    (m, k) if (m, k) != ('position_only', 'tls') else
-    pytest.param(m, k, marks=pytest.mark.xfail(strict=True, reason=BUG_DAMPED_COV))
-    for m in MODELS for k in ('ols', 'tls')])
+@pytest.mark.parametrize('model, method', [(m, k) for m in MODELS for k in ('ols', 'tls')])
 def test_prior_fuses_like_inverse_covariance_weighting(model, method):
     base, _, _ = _with_prior(model, method, None)
     cd = base.base_to_base.covariance

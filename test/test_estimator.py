@@ -156,12 +156,7 @@ def dense_jacobian(fun, P, n, h=1e-7):
     return np.stack(cols, axis=1)
 
 
-@pytest.mark.parametrize('model', [
-    'full_pose',
-    pytest.param('position_only', marks=pytest.mark.xfail(strict=True, reason=(
-        'BUG: solve_tls returns the last damped Schur complement (λ ~ 1e3 here) as the '
-        'covariance when it stops on the flat-cost path; 1e4 times too small'))),
-    'three_marker'])
+@pytest.mark.parametrize('model', ['full_pose', 'position_only', 'three_marker'])
 def test_tls_covariance_is_the_phi_block_of_the_dense_inverse(model):
     n = 12
     problem, truth = make_problem(model, n, seed=3)
@@ -257,14 +252,7 @@ def test_solvers_reach_the_truth_from_a_perturbed_start(model, solver):
     assert sol.iterations < 100
 
 
-BUG_MISFIT = ('BUG: status -1 "the model does not fit the data" at a converged minimum: '
-              'ftol=1e-14 is below the rounding noise of the cost (two code paths compute it)')
-
-
-@pytest.mark.parametrize('model, solver', [
-    pytest.param(m, f, marks=pytest.mark.xfail(strict=True, reason=BUG_MISFIT))
-    if (m, f) in (('three_marker', solve_ols), ('position_only', solve_tls)) else (m, f)
-    for m in MODELS for f in (solve_ols, solve_tls)])
+@pytest.mark.parametrize('model, solver', [(m, f) for m in MODELS for f in (solve_ols, solve_tls)])
 def test_solvers_report_convergence_at_the_truth(model, solver):
     sol, _ = _from_perturbed_start(model, solver)
     assert sol.status > 0, sol.message

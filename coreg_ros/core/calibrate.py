@@ -69,6 +69,11 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
         if bad.any():
             raise InputError(f'{name}: {int(bad.sum())} pair(s) contain NaN or inf (first at '
                              f'pair {int(np.flatnonzero(bad)[0])}); drop those samples')
+    orientations = (('device A orientation', pairs.quat_a), ('device B orientation', pairs.quat_b))
+    for name, q in orientations:
+        if q is not None and np.shape(q) != (n, 4):
+            raise InputError(f'{name}: expected shape ({n}, 4) (one (w, x, y, z) per pair), got '
+                             f'{np.shape(q)}')
     quat_a = quat.validate_quaternions(pairs.quat_a, 'device A orientation')
     quat_b = None
     if spec.has_q1:

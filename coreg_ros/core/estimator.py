@@ -160,15 +160,73 @@ def _inverse_or_none(info: np.ndarray) -> Optional[np.ndarray]:
     return 0.5 * (cov + cov.T)
 
 
-def _converged(delta: np.ndarray, info: np.ndarray, cost_old: float, cost_new: float,
-               xtol: float, ftol: float) -> int:
-    """Status code: 1 if the step is tiny against the parameter uncertainty, 2 if cost flat."""
+@dataclass
+class _Linearization:
+    """
+    One linearisation of the problem for the LM driver.
+
+    ``info`` is the (damped) normal matrix of φ, ``rhs`` its right-hand side (the step solves
+    ``info δ = rhs``), ``cost`` the cost at the linearisation point, and ``propose(δ)`` returns
+    the trial state and its cost.
+    """
+
+    info: np.ndarray
+    rhs: np.ndarray
+    cost: float
+    propose: Callable
+
+
+def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
+                         ftol: float):
+    """
+    Levenberg-Marquardt iterations shared by OLS and TLS.
+
+    Convergence: status 1 when the step is below ``xtol`` posterior standard deviations on
+    every component (tested before a step is tried, so rounding noise at the optimum is never
+    mistaken for a misfit, and after an accepted step); status 2 when the cost stops
+    decreasing by more than ``ftol`` relative; 0 at the iteration limit; -1 when no damping
+    gives a decrease although the step is not small (the model does not fit).
+
+    Returns
+    -------
+    state, status, iterations, last : _Linearization, lam : float
+        ``last`` is the last linearisation and ``lam`` the damping it was made with.
+
+    """
+    lam = 1e-6
+    lin = None
+    for it in range(1, max_iterations + 1):
+        while True:
+            lin = linearize(state, lam)
+            delta = np.linalg.lstsq(lin.info, lin.rhs, rcond=None)[0]
+            if _step_is_small(delta, lin.info, xtol):
+                return state, 1, it, lin, lam
+            trial, new_cost = lin.propose(delta)
+            if new_cost <= lin.cost:
+                break
+            if new_cost - lin.cost <= ftol * max(lin.cost, 1.0):
+                return state, 2, it, lin, lam
+            lam *= 10.0
+            if lam > 1e16:
+                return state, -1, it, lin, lam
+        state = trial
+        if _step_is_small(delta, lin.info, xtol):
+            return state, 1, it, lin, lam
+        if lin.cost - new_cost <= ftol * max(new_cost, 1.0):
+            return state, 2, it, lin, lam
+        lam = max(lam / 10.0, 1e-12)
+    return state, 0, max_iterations, lin, lam
+
+
+def _step_is_small(delta: np.ndarray, info: np.ndarray, xtol: float) -> bool:
+    """Tell whether every |δ_j| <= xtol · σ_j, σ from the inverse of ``info``."""
     cov = _inverse_or_none(info)
-    if cov is not None and np.all(np.abs(delta) <= xtol * np.sqrt(np.diag(cov))):
-        return 1
-    if cost_old - cost_new <= ftol * max(cost_new, 1.0):
-        return 2
-    return 0
+    return cov is not None and bool(np.all(np.abs(delta) <= xtol * np.sqrt(np.diag(cov))))
+
+
+#: Damping below which a linearisation's information matrix is used as the posterior
+#: information without re-linearising (relative change of the covariance below 1e-6).
+UNDAMPED = 1e-7
 
 
 # ----------------------------------------------------------------------------------------------
@@ -212,7 +270,7 @@ def _ols_normal(problem: Problem, params: Parameters, keep_residuals: bool = Fal
 
 
 def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
-              xtol: float = 1e-8, ftol: float = 1e-14) -> Solution:
+              xtol: float = 1e-8, ftol: float = 1e-12) -> Solution:
     """
     Weighted OLS by Levenberg-Marquardt with Marquardt's diagonal scaling.
 
@@ -232,32 +290,25 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
     Solution
 
     """
-    lam = 1e-6
-    status, it = 0, 0
-    H, g, cost, _, _ = _ols_normal(problem, params)
-    for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
-        accepted = False
-        while lam < 1e16:
-            A = H + lam * np.diag(np.diag(H))
-            delta = -np.linalg.lstsq(A, g, rcond=None)[0]
-            trial = params.stepped(delta)
-            new_cost = _ols_cost(problem, trial) if trial.valid else np.inf
-            if new_cost <= cost:
-                accepted = True
-                break
-            if new_cost - cost <= ftol * max(cost, 1.0):
-                break  # at the minimum: rounding noise only
-            lam *= 10.0
-        if not accepted:
-            status = 2 if new_cost - cost <= ftol * max(cost, 1.0) else -1
-            break
-        status = _converged(delta, H, cost, new_cost, xtol, ftol)
-        params = trial.recharted()
-        lam = max(lam / 10.0, 1e-12)
-        H, g, cost, _, _ = _ols_normal(problem, params)
-        if status:
-            break
-    H, g, cost, res, n_prior = _ols_normal(problem, params, keep_residuals=True)
+    cache = {}
+
+    def linearize(state: Parameters, lam: float) -> _Linearization:
+        if cache.get('state') is not state:  # re-damping needs no new pass over the pairs
+            cache['state'] = state
+            cache['normal'] = _ols_normal(problem, state)
+        H, g, cost, _, _ = cache['normal']
+
+        def propose(delta):
+            trial = state.stepped(delta)
+            if not trial.valid:
+                return trial, np.inf
+            return trial.recharted(), _ols_cost(problem, trial)
+
+        return _Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose)
+
+    params, status, it, _, _ = _levenberg_marquardt(params, linearize, max_iterations, xtol,
+                                                    ftol)
+    H, _, cost, res, n_prior = _ols_normal(problem, params, keep_residuals=True)
     return Solution(params, _inverse_or_none(H), H, cost, problem.n * problem.spec.n_res + n_prior,
                     res, None, it, status, _status_message(status, it))
 
@@ -396,7 +447,7 @@ def back_substitute(problem: Problem, factors: list, delta_phi: np.ndarray) -> n
 
 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
-              xtol: float = 1e-8, ftol: float = 1e-14) -> Solution:
+              xtol: float = 1e-8, ftol: float = 1e-12) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -418,41 +469,27 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     Solution
 
     """
-    x = InputState(problem.pos_a, problem.quat_a)
-    lam = 1e-6
-    status, it = 0, 0
-    cost = np.inf
-    for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
-        accepted = False
-        while lam < 1e16:
-            S, b, cost, factors = _tls_schur(problem, params, x, lam)
-            delta = np.linalg.lstsq(S, b, rcond=None)[0]
-            trial = params.stepped(delta)
-            if trial.valid:
-                trial_x = x.stepped(back_substitute(problem, factors, delta))
-                new_cost = _tls_cost(problem, trial, trial_x)
-            else:
-                new_cost = np.inf
-            del factors
-            if new_cost <= cost:
-                accepted = True
-                break
-            if new_cost - cost <= ftol * max(cost, 1.0):
-                break  # at the minimum: rounding noise only
-            lam *= 10.0
-        if not accepted:
-            status = 2 if new_cost - cost <= ftol * max(cost, 1.0) else -1
-            break
-        status = _converged(delta, S, cost, new_cost, xtol, ftol)
-        params, x = trial.recharted(), trial_x
-        lam = max(lam / 10.0, 1e-12)
-        if status:
-            break
-    if status > 0:
-        # Converged: the last linearisation (a step of at most xtol·σ, or a flat cost, away,
-        # damped by λ <= 1e-7) gives the posterior covariance; re-linearising would cost a
-        # whole pass for a relative change below 1e-6.
-        info = S
+    def linearize(state, lam: float) -> _Linearization:
+        phi, x = state
+        S, b, cost, factors = _tls_schur(problem, phi, x, lam)
+
+        def propose(delta):
+            trial = phi.stepped(delta)
+            if not trial.valid:
+                return state, np.inf
+            trial_x = x.stepped(back_substitute(problem, factors, delta))
+            return (trial.recharted(), trial_x), _tls_cost(problem, trial, trial_x)
+
+        return _Linearization(S, b, cost, propose)
+
+    state = (params, InputState(problem.pos_a, problem.quat_a))
+    (params, x), status, it, last, lam = _levenberg_marquardt(
+        state, linearize, max_iterations, xtol, ftol)
+    if status > 0 and lam <= UNDAMPED:
+        # Converged within xtol·σ (or on a flat cost) of the last, almost undamped
+        # linearisation: its Schur complement is the posterior information (relative change
+        # of the covariance ~1e-5), which saves a whole pass over the pairs.
+        info = last.info
     else:
         info, _, _, _ = _tls_schur(problem, params, x, 0.0)
     chi2, res_y, res_x = _tls_cost(problem, params, x, keep_residuals=True)
