@@ -109,6 +109,41 @@ def markdown(res: dict) -> str:
     return '\n'.join([head, *rows, '', note])
 
 
+def plot(res: dict, path: str) -> None:
+    """Grouped bars of the per-axis RMS error of the three streams (predicted σ as ticks)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.8), dpi=110)
+    FigureCanvasAgg(fig)
+    colours = {'a_through_calibration': '#1f77b4', 'b_alone': '#ff7f0e', 'fused': '#2ca02c'}
+    for k, (axes, unit) in enumerate(((AXES[:3], 'position error, mm'),
+                                      (AXES[3:], 'rotation error, mrad'))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        x = np.arange(3)
+        for j, (name, colour) in enumerate(colours.items()):
+            s = res['streams'][name]
+            vals = [s['rms'][a] for a in axes]
+            pred = [s['predicted_sigma'][a] for a in axes]
+            ax.bar(x + (j - 1) * 0.27, vals, 0.27, color=colour, label=LABELS[name])
+            ax.plot(x + (j - 1) * 0.27, pred, '_', color='k', ms=14, mew=2)
+        ax.set_xticks(x, [f'about {a[1]}' if a.startswith('r') else a for a in axes])
+        ax.set_ylabel(f'RMS {unit}')
+        for j, name in enumerate(colours):
+            for i, a in enumerate(axes):
+                v = res['streams'][name]['rms'][a]
+                ax.text(i + (j - 1) * 0.27, v, f'{v:.2f}', ha='center', va='bottom', fontsize=7)
+        ax.set_title(unit.split(',')[0].capitalize() + ' (black ticks: predicted σ)',
+                     fontsize=10)
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc='lower center', ncol=3, fontsize=9, frameon=False)
+    fig.suptitle(f"Hoff & Vincent's experiment with our simulator: A {res['sigma_a'][0] * 1e3:g} "
+                 f"mm / {res['sigma_a'][1] * 1e3:g} mrad, B {res['sigma_b'][0] * 1e3:g} mm / "
+                 f"{res['sigma_b'][1] * 1e3:g} mrad", fontsize=11)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.savefig(path)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--calibrations', type=int, default=100)
@@ -117,6 +152,7 @@ def main(argv=None) -> int:
     parser.add_argument('--seed', type=int, default=2000)
     parser.add_argument('--json', help='write the numbers as JSON')
     parser.add_argument('--markdown', help='write the table as markdown')
+    parser.add_argument('--plot', help='write a bar chart of the per-axis errors (PNG)')
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     res = run(args.calibrations, args.calibration_pairs, args.test_pairs, args.seed)
@@ -129,6 +165,8 @@ def main(argv=None) -> int:
     if args.markdown:
         with open(args.markdown, 'w') as f:
             f.write(table + '\n')
+    if args.plot:
+        plot(res, args.plot)
     fused, a, b = (res['streams'][k]['rms'] for k in ('fused', 'a_through_calibration',
                                                       'b_alone'))
     better = all(fused[x] < min(a[x], b[x]) for x in AXES)

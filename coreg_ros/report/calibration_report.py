@@ -129,37 +129,35 @@ def pose_uncertainty_figure(result: CalibrationResult, n_sigma: float = 3.0):
     """Figure with T0 and T1 drawn as in Hoff Fig. 1; returns (figure, captions)."""
     fig = _figure(11.0, 5.6)
     captions = []
-    for k, (pose, title, parent) in enumerate((
-            (result.base_to_base, "T0 base_to_base: A's base in B's base", "B's base"),
-            (result.tool_to_marker, "T1 tool_to_marker: B's marker in A's tool", "A's tool"))):
+    for k, (pose, title) in enumerate((
+            (result.base_to_base, "T0 base_to_base: A's base in B's base"),
+            (result.tool_to_marker, "T1 tool_to_marker: B's marker in A's tool"))):
         ax = fig.add_subplot(1, 2, k + 1, projection='3d')
         g = draw_pose_uncertainty(ax, pose, title, n_sigma)
         ax.view_init(elev=22, azim=-55)
-        lines = []
+        lines, shown = [], []
         if _position_known(pose):
             ell = unc.ellipsoid_axes(pose.covariance[0:3, 0:3], n_sigma)
             lines.append(f'ellipsoid {n_sigma:g}σ semi-axes '
                          f'{", ".join(f"{v * 1e3:.3f}" for v in ell.semi_axes)} mm')
+            shown.append(f'1 mm as {g["ellipsoid_gain"] * 1e-3:.3g} axis lengths')
         if _rotation_known(pose):
             cones = unc.axis_cones(pose, n_sigma)
             lines.append(f'cone {n_sigma:g}σ half-angles (largest) ' + ', '.join(
                 f'{"xyz"[c.index]} {np.degrees(c.half_angles[0]):.4f}°' for c in cones))
-            lines.append(f'magnified: ellipsoid ×{g["ellipsoid_gain"] * 1e-3:.3g}/mm, '
-                         f'cones ×{g["cone_gain"]:.3g}')
+            shown.append(f'cone widths ×{g["cone_gain"]:.0f}')
         else:
             lines.append('orientation not estimated: no cones')
+        if shown:
+            lines.append('shown magnified: ' + ', '.join(shown))
         ax.text2D(0.5, -0.02, '\n'.join(lines), transform=ax.transAxes, ha='center',
                   va='top', fontsize=9)
-        parts = [f'axes of the frame in {parent} axes (unit length)']
-        if g['ellipsoid_gain'] is not None:
-            parts.append(f'{n_sigma:g}σ position ellipsoid magnified so 1 mm shows as '
-                         f'{g["ellipsoid_gain"] * 1e-3:.3g} axis lengths')
-        if g['cone_gain'] is not None:
-            parts.append(f'{n_sigma:g}σ axis cones with tan(half-angle) magnified '
-                         f'×{g["cone_gain"]:.3g}')
-        else:
-            parts.append('orientation not estimated by this model: no cones')
-        captions.append(f'{title}: ' + '; '.join(parts) + '.')
+        if k == 0:
+            captions.append(
+                'Each panel shows the frame with unit-length axes, oriented as in its parent '
+                "frame (T0 in B's base axes, T1 in A's tool axes). The ellipsoid and the cones "
+                'are magnified to be visible (factors under each panel); the numbers give '
+                'their true sizes.')
     fig.suptitle(f'Calibration uncertainty (Hoff & Vincent Fig. 1 style, {n_sigma:g}σ)',
                  fontsize=13)
     return fig, captions
@@ -383,9 +381,10 @@ def render_html(result: CalibrationResult, figures: dict, captions: Sequence[str
         parts.append('</table>')
     parts += [
         '<h2>Residuals</h2>',
-        '<p>Whitened residuals should look like white N(0, 1) noise: no trend over the '
-        'recording, no structure between channels, and a histogram on the red curve. '
-        '<code>coreg diagnose</code> locates a gap when they do not.</p>',
+        '<p>If the model and the stated noise hold, the whitened residuals show no trend over '
+        'the recording, the per-pair χ² histogram follows the red curve, and the '
+        'autocorrelations stay inside the green band (white noise). '
+        '<code>coreg diagnose</code> locates the gap when they do not.</p>',
         f'<figure><img src="data:image/png;base64,{_b64(figures["residuals"])}" '
         'alt="residuals"></figure>',
         '</body></html>']
