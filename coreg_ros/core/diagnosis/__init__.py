@@ -1,0 +1,11 @@
+"""
+Sim-to-real gap diagnosis (DESIGN.md §5): detect, locate, explain with ten effects, quantify.
+
+Pure: numpy and scipy only. ``diagnose(pairs, settings)`` returns a ``Diagnosis`` whose
+``report`` is the JSON document of ``coreg diagnose``.
+"""
+
+from coreg_ros.core.diagnosis.effects import EFFECT_NAMES
+from coreg_ros.core.diagnosis.engine import Diagnosis, Options, diagnose, diagnose_streams
+
+__all__ = ['EFFECT_NAMES', 'Diagnosis', 'Options', 'diagnose', 'diagnose_streams']

@@ -1,0 +1,463 @@
+"""
+The sim-to-real gap diagnosis: detect, locate, explain, quantify (DESIGN.md §5).
+
+``diagnose(pairs, settings)`` calibrates, fits the base model with the stated noise, measures
+the gap (chi-square, whiteness, tails) and where it lies, then explains it with the ten
+candidate effects of ``effects.py``:
+
+1. every candidate is fitted as an extension of the model (joint Gauss-Newton with the
+   calibration, or maximum likelihood for the noise effects) and scored by its gain in
+   held-out log-likelihood on contiguous time blocks (and on cells of the workspace for
+   spatial effects), each block predicted by the fit on the others;
+2. a candidate is accepted only if it gains in (almost) every block, by a practical size (a
+   share of a nat per residual, not merely a tiny p-value) and, for spatial effects, also on
+   unseen parts of the workspace; the simpler of nested candidates is preferred;
+3. when another candidate gains nearly as much and the two explain the same thing (neither
+   adds to the other), the pair is reported as not separable with the recorded motion;
+4. up to three effects are accepted in turn, each on top of the previous ones;
+5. the gap before and after is measured on held-out blocks of all pairs, and each accepted
+   effect's size is reported with its uncertainty.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Optional, Union
+
+import numpy as np
+
+from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.diagnosis import detect as dt
+from coreg_ros.core.diagnosis import effects as fx
+from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
+from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model, start_state
+from coreg_ros.core.diagnosis.summary import effect_estimate, gap_measures, transforms
+from coreg_ros.core.diagnosis.threads import single_blas_thread
+from coreg_ros.core.models import Parameters
+from coreg_ros.core.pipeline import pair_for
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import Pairs, PoseStream
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class Options:
+    """
+    Tuning of the diagnosis.
+
+    Attributes
+    ----------
+    n_folds : int
+        Blocks of the held-out validation.
+    max_effects : int
+        Effects accepted at most.
+    max_select_pairs : int
+        Pairs used to select effects (an even subsample beyond); the final fit uses all.
+    practical : float
+        Smallest held-out gain that counts, in nats per residual (0.01 ≈ a change of 0.02 in
+        chi-square per degree of freedom, or a noise factor off by 10 %).
+    practical_next : float
+        The same for the second and third effect.
+    min_gain : float
+        Smallest held-out gain in nats, whatever the size of the recording.
+    not_separable_ratio : float
+        A runner-up gaining at least this share of the best candidate's gain is tested for
+        separability.
+    candidates : tuple of str
+    seed : int
+        Seed of the spatial blocks.
+
+    """
+
+    n_folds: int = 5
+    max_effects: int = 3
+    max_select_pairs: int = 15000
+    practical: float = 0.01
+    practical_next: float = 0.02
+    min_gain: float = 10.0
+    not_separable_ratio: float = 0.6
+    candidates: tuple = fx.EFFECT_NAMES
+    seed: int = 0
+
+
+@dataclass
+class Candidate:
+    """One candidate effect scored on top of the accepted ones."""
+
+    name: str
+    names: tuple
+    fit: Fit
+    heldout: Heldout
+    gain: float
+    fold_gains: np.ndarray
+    spatial_gain: Optional[float] = None
+    passes: bool = False
+    reason: str = ''
+
+    def row(self, n_res: int) -> dict:
+        """JSON row of the candidate ranking."""
+        row = {'name': self.name, 'held_out_gain': float(self.gain),
+               'held_out_gain_per_residual': float(self.gain / max(n_res, 1)),
+               'blocks_improved': int(np.sum(self.fold_gains > 0)),
+               'blocks': int(len(self.fold_gains)), 'accepted_test': bool(self.passes),
+               'reason': self.reason}
+        if self.spatial_gain is not None:
+            row['spatial_held_out_gain'] = float(self.spatial_gain)
+        return row
+
+
+@dataclass
+class Diagnosis:
+    """
+    The outcome of ``diagnose``.
+
+    Attributes
+    ----------
+    report : dict
+        The JSON document (keys ``gap_detected``, ``effects``, ``not_separable``,
+        ``gap_before``, ``gap_after``, ``location``, ``verdict``, and more).
+    data : DiagData
+    base : Fit
+        The model with the stated noise and no effect, on all pairs.
+    final : Fit
+        The model with the accepted effects, on all pairs.
+    before, after : Heldout
+        Held-out predictions of every pair by the base and the final model.
+    rounds : list of list of Candidate
+        The candidates scored in each round of the selection.
+
+    """
+
+    report: dict
+    data: DiagData
+    base: Fit
+    final: Fit
+    before: Heldout
+    after: Heldout
+    rounds: list = field(default_factory=list)
+
+
+def _params_of(result, spec) -> Parameters:
+    return Parameters.from_transforms(spec, result.base_to_base.position,
+                                      result.base_to_base.quat_wxyz, result.markers,
+                                      result.tool_to_marker.quat_wxyz)
+
+
+def _has_motion(data: DiagData) -> bool:
+    moving = (data.speed > dt.STATIC_SPEED) | (data.angular_speed > dt.STATIC_ANGULAR_SPEED)
+    return bool(np.mean(moving) > 0.1)
+
+
+class _Selector:
+    """Scoring of candidate models on the selection pairs."""
+
+    def __init__(self, data: DiagData, idx: np.ndarray, opts: Options, progress: Progress):
+        self.data = data
+        self.idx = idx
+        self.opts = opts
+        self.progress = progress
+        self.K = opts.n_folds
+        self.tf = time_folds(data.t[idx], self.K)
+        self.sf = spatial_folds(data.b_points[idx, 0, :], self.K, seed=opts.seed)
+        self.n_res = len(idx) * data.m
+        self.cache = {}
+
+    def score(self, names: tuple, start) -> tuple:
+        """Fit the model ``names`` on the selection pairs; its time and spatial held-out."""
+        key = tuple(sorted(names))
+        if key not in self.cache:
+            fit = Model(self.data, names).fit(start, self.idx, self.tf, self.K)
+            h = fit.heldout(self.tf, self.K)
+            hs = None
+            if any(n in fx.SPATIAL_EFFECTS for n in names):
+                hs = fit.heldout(self.sf, self.K)
+            self.cache[key] = (fit, h, hs)
+        return self.cache[key]
+
+    def spatial_ll(self, ref: tuple) -> float:
+        """Held-out log-likelihood of the reference model on the spatial blocks."""
+        fit, _, hs = ref
+        if hs is None:
+            hs = fit.heldout(self.sf, self.K)
+            self.cache[tuple(sorted(fit.model.names))] = (fit, ref[1], hs)
+        return float(hs.ll.sum())
+
+    def threshold(self, round_no: int) -> float:
+        """Smallest held-out gain that counts in this round, nats."""
+        per = self.opts.practical if round_no == 0 else self.opts.practical_next
+        return max(self.opts.min_gain, per * self.n_res)
+
+
+def _candidate(sel: _Selector, accepted: tuple, name: str, ref: tuple, round_no: int
+               ) -> Candidate:
+    names = accepted + (name,)
+    fit, h, hs = sel.score(names, ref[0].state)
+    ref_h = ref[1]
+    fold_gains = h.fold_sums(h.ll) - ref_h.fold_sums(ref_h.ll)
+    gain = float(fold_gains.sum())
+    cand = Candidate(name, names, fit, h, gain, fold_gains)
+    thr = sel.threshold(round_no)
+    if hs is not None:
+        cand.spatial_gain = float(hs.ll.sum()) - sel.spatial_ll(ref)
+    reasons = []
+    if gain < thr:
+        reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
+    if np.sum(fold_gains > 0) < sel.K - 1:
+        reasons.append(f'improves only {int(np.sum(fold_gains > 0))} of {sel.K} time blocks')
+    if cand.spatial_gain is not None and cand.spatial_gain < 0.5 * thr:
+        reasons.append(f'spatial held-out gain {cand.spatial_gain:.1f} too small')
+    cand.passes = not reasons
+    cand.reason = '; '.join(reasons) if reasons else 'passes'
+    return cand
+
+
+def _compatible(accepted: tuple, name: str) -> bool:
+    if name in accepted:
+        return False
+    if name in fx.TIME_EFFECTS and any(a in fx.TIME_EFFECTS for a in accepted):
+        return False
+    if {name, *accepted} >= {'noise_scale', 'distance_noise'}:
+        return False
+    return True
+
+
+def _nested(a: str, b: str) -> bool:
+    return (a, b) in fx.NESTED or (b, a) in fx.NESTED
+
+
+def _select_round(sel: _Selector, accepted: tuple, ref: tuple, names: Sequence[str],
+                  round_no: int, progress_span: tuple) -> tuple:
+    """One round: score the candidates, pick one, test separability. Returns (pick, ...)."""
+    cands = []
+    lo, hi = progress_span
+    todo = [n for n in names if _compatible(accepted, n)]
+    for i, name in enumerate(todo):
+        sel.progress(lo + (hi - lo) * i / max(len(todo), 1), f'round {round_no + 1}: {name}')
+        cands.append(_candidate(sel, accepted, name, ref, round_no))
+    passing = sorted([c for c in cands if c.passes], key=lambda c: -c.gain)
+    if not passing:
+        return None, cands, []
+    best = passing[0]
+    thr = sel.threshold(round_no)
+    # nested: prefer the simpler unless the richer gains a practical amount more
+    for simple, rich in fx.NESTED:
+        if best.name == rich:
+            alt = next((c for c in passing if c.name == simple), None)
+            if alt is not None and best.gain - alt.gain < thr:
+                best = alt
+    not_sep = []
+    for other in passing:
+        if other is best or _nested(other.name, best.name):
+            continue
+        if other.gain < sel.opts.not_separable_ratio * best.gain:
+            continue
+        if not _compatible(accepted + (best.name,), other.name):
+            # two time effects, or two noise levels, cannot be fitted together: compare as is
+            if other.gain > best.gain - thr:
+                not_sep.append(other.name)
+            continue
+        both, h_both, _ = sel.score(accepted + (best.name, other.name), best.fit.state)
+        ll_both = float(h_both.ll.sum())
+        gain_best_over_other = ll_both - float(other.heldout.ll.sum())
+        gain_other_over_best = ll_both - float(best.heldout.ll.sum())
+        if gain_best_over_other < thr and gain_other_over_best < thr:
+            not_sep.append(other.name)
+    return best, cands, not_sep
+
+
+def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = None,
+             options: Optional[Options] = None, progress: Optional[Progress] = None,
+             cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None
+             ) -> Diagnosis:
+    """
+    Diagnose the gap between a recording and the model with its stated noise.
+
+    Parameters
+    ----------
+    pairs : Pairs
+        Paired samples (``pipeline.pair_for``).
+    settings : Settings
+        Model, method and stated noise (``sigma_a``, ``sigma_b``).
+    stream_a : PoseStream, optional
+        Device A's whole stream (better velocities and time shifts than the pairs alone).
+    options : Options, optional
+    progress : callable, optional
+        ``progress(fraction, text)`` called as the work advances.
+    cov_a, cov_b : ndarray, shape (6, 6), optional
+        Full noise covariances (ROS layout) overriding the sigmas.
+
+    Returns
+    -------
+    Diagnosis
+
+    Raises
+    ------
+    TooFewPairsError, InputError, UnobservableError
+        As ``calibrate`` does.
+
+    """
+    with single_blas_thread():
+        return _diagnose(pairs, settings, stream_a, options or Options(),
+                         progress or (lambda f, s: None), cov_a, cov_b)
+
+
+def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagnosis:
+    progress(0.0, 'calibrating')
+    result = calibrate(pairs, settings, cov_a=cov_a, cov_b=cov_b)
+    data = prepare(pairs, settings, stream_a, cov_a, cov_b)
+    spec = data.spec
+    K = opts.n_folds
+    folds = time_folds(data.t, K)
+    base_model = Model(data, ())
+    base = base_model.fit(start_state(_params_of(result, spec)), None, folds, K)
+    progress(0.05, 'detecting')
+    detection, location = _detect_locate(data, base)
+
+    n = data.n
+    stride = int(np.ceil(n / opts.max_select_pairs))
+    idx = np.arange(0, n, stride)
+    sel = _Selector(data, idx, opts, progress)
+    names = [c for c in opts.candidates if c in fx.EFFECT_NAMES]
+    if not _has_motion(data):
+        names = [c for c in names if c not in fx.MOTION_EFFECTS]
+    ref = sel.score((), base.state)
+    accepted: tuple = ()
+    not_separable = []
+    rounds = []
+    chosen = []
+    for r in range(opts.max_effects):
+        span = (0.1 + 0.25 * r, 0.1 + 0.25 * (r + 1))
+        best, cands, not_sep = _select_round(sel, accepted, ref, names, r, span)
+        rounds.append(cands)
+        if best is None:
+            break
+        accepted = accepted + (best.name,)
+        chosen.append((best, not_sep))
+        for other in not_sep:
+            not_separable.append([best.name, other])
+        ref = sel.score(accepted, best.fit.state)
+
+    progress(0.85, 'final fit on all pairs')
+    if stride == 1:
+        final = ref[0]
+    else:
+        final = Model(data, accepted).fit(ref[0].state, None, folds, K)
+    before = base.heldout(folds, K)
+    after = final.heldout(folds, K) if accepted else before
+    gap_before = gap_measures(data, base, before)
+    gap_after = gap_measures(data, final, after)
+    excess_before = gap_before['chi2_per_dof'] - 1.0
+    excess_after = gap_after['chi2_per_dof'] - 1.0
+    share = (1.0 - abs(excess_after) / abs(excess_before)) if abs(excess_before) > 1e-9 else 0.0
+    gap_after['share_of_excess_explained'] = float(share)
+    gap_before['share_of_excess_explained'] = 0.0
+    n_res = len(idx) * data.m
+    effect_rows = []
+    final_cov = final.mean_cov()
+    var_cov = final.var_cov() if final.model.var_names else None
+    for cand, not_sep in chosen:
+        est = effect_estimate(cand.name, final, final_cov, var_cov)
+        row = {'name': cand.name, 'estimate': est, 'held_out_gain': float(cand.gain),
+               'held_out_gain_per_residual': float(cand.gain / n_res),
+               'blocks_improved': int(np.sum(cand.fold_gains > 0)),
+               'blocks': int(len(cand.fold_gains))}
+        if cand.spatial_gain is not None:
+            row['spatial_held_out_gain'] = float(cand.spatial_gain)
+        if not_sep:
+            row['not_separable_with'] = list(not_sep)
+        effect_rows.append(row)
+    gap_detected = bool(detection['gap'] or effect_rows)
+    report = {
+        'gap_detected': gap_detected,
+        'effects': effect_rows,
+        'not_separable': not_separable,
+        'gap_before': gap_before,
+        'gap_after': gap_after,
+        'location': location,
+        'verdict': _verdict(gap_detected, effect_rows, not_separable, gap_before, gap_after,
+                            detection, location),
+        'detection': detection,
+        'candidates': [[c.row(n_res) for c in sorted(cs, key=lambda c: -c.gain)]
+                       for cs in rounds],
+        'calibration': {'before': transforms(base), 'after': transforms(final)},
+        'model': spec.name, 'n_pairs': int(n), 'n_pairs_selection': int(len(idx)),
+        'duration_s': float(data.t[-1] - data.t[0]) if n > 1 else 0.0,
+        'stated_noise': {'sigma_a': list(data.sigma_a), 'sigma_b': list(data.sigma_b)},
+    }
+    progress(1.0, 'done')
+    return Diagnosis(report=report, data=data, base=base, final=final, before=before,
+                     after=after, rounds=rounds)
+
+
+def diagnose_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
+                     settings: Settings, options: Optional[Options] = None,
+                     progress: Optional[Progress] = None) -> Diagnosis:
+    """Pair the streams as ``coreg calibrate`` does, then ``diagnose``."""
+    pairs, report = pair_for(stream_a, streams_b, settings)
+    diag = diagnose(pairs, settings, stream_a, options, progress)
+    diag.report['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b,
+                              'n_paired': report.n_paired, 'unpaired': dict(report.unpaired)}
+    return diag
+
+
+def base_errors(data: DiagData, fit: Fit):
+    """Raw errors, standardized errors, quad, decorrelated standardized errors, rates."""
+    model = fit.model
+    idx = np.arange(data.n)
+    parts = [model.evaluate(fit.state, ch, jac=False) for ch in model.chunks(idx)]
+    e = np.concatenate([p.e for p in parts])
+    sd = np.concatenate([p.sd for p in parts])
+    z = np.concatenate([p.st.z for p in parts])
+    lam = np.concatenate([p.st.lam for p in parts])
+    fdot = np.concatenate([p.fdot for p in parts])
+    return e, sd, z, lam, fdot
+
+
+def _detect_locate(data: DiagData, base: Fit):
+    e, sd, z, lam, fdot = base_errors(data, base)
+    zstd = z / np.sqrt(1.0 + lam)
+    quad = np.sum(zstd ** 2, axis=1)
+    detection = dt.detect(quad, zstd, data.m, data.spec.n_params)
+    # split ḟ into the parts of linear and angular velocity
+    model = base.model
+    idx = np.arange(data.n)
+    fv, fw = [], []
+    for ch in model.chunks(idx):
+        from coreg_ros.core.models import linearize
+        _, _, jx = linearize(base.state.params, data.pos_a[ch], data.quat_a[ch],
+                             data.pos_b[ch], None if data.quat_b is None else data.quat_b[ch],
+                             with_input=True)
+        fv.append(np.einsum('nij,nj->ni', jx[:, :, 0:3], data.vel[ch]))
+        fw.append(np.einsum('nij,nj->ni', jx[:, :, 3:6], data.omega[ch]))
+    fv = np.concatenate(fv) / sd
+    fw = np.concatenate(fw) / sd
+    step = float(np.median(np.diff(data.t))) if data.n > 1 else 0.0
+    location = dt.locate(t=data.t, quad=quad, e_std=e / sd, m=data.m,
+                         has_rotation=data.spec.has_q1, points=data.b_points[:, 0, :],
+                         speed=data.speed, angular_speed=data.angular_speed, fdot_v=fv,
+                         fdot_w=fw, dt=step)
+    return detection, location
+
+
+def _verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
+             detection: dict, location: dict) -> str:
+    if not gap:
+        return (f'no gap: the recording fits the model with the stated noise '
+                f'(chi2/dof {detection["chi2_per_dof"]:.3f}, p = {detection["p_value"]:.2g})')
+    if not effects:
+        return (f'gap detected (chi2/dof {detection["chi2_per_dof"]:.2f}) but none of the ten '
+                f'candidate effects explains it; largest in {location["largest"]}')
+    parts = []
+    for row in effects:
+        text = row['name']
+        if row['estimate'].get('text'):
+            text += f' {row["estimate"]["text"]}'
+        if row.get('not_separable_with'):
+            text += f' (not separable from {", ".join(row["not_separable_with"])})'
+        parts.append(text)
+    return (f'gap explained by {"; ".join(parts)}: held-out chi2/dof '
+            f'{before["chi2_per_dof"]:.2f} -> {after["chi2_per_dof"]:.2f}, position RMS '
+            f'{before["position_rms_m"] * 1e3:.2f} -> {after["position_rms_m"] * 1e3:.2f} mm '
+            f'(noise floor {after["noise_floor_position_m"] * 1e3:.2f} mm)')

@@ -1,0 +1,313 @@
+"""
+Variance effects: the per-pair covariance of the output error and its likelihood.
+
+The output error e_i = f(x_i, φ) - y_i of pair i has, under the stated noise, the covariance
+``C_i = C_B + a_i J_x C_A J_xᵀ`` (B's output noise plus A's input noise carried through the
+model; the TLS cost after eliminating the inputs, to first order). With ``W`` the inverse
+Cholesky factor of C_B and ``W J_x C_A J_xᵀ Wᵀ = V Λ Vᵀ`` (per pair), the coordinates
+``z = Vᵀ W e`` are independent with variances ``1 + λ_j``. The variance effects change them:
+
+- noise scale: everything × s²;
+- distance noise: B's part × c (r / r0)^2k (r the marker's distance from B's base);
+- timestamp jitter: + σ_t² ḟ ḟᵀ (a stamp error moves the output along its rate ḟ);
+- outliers: a mixture, a share ε of the pairs with covariance × λ².
+
+so ``Cov(z) = s² diag(a_i + λ) + β ũ ũᵀ`` and the likelihood is evaluated per pair in O(m)
+with the matrix determinant lemma and Sherman-Morrison.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import optimize
+
+_LOG2PI = float(np.log(2.0 * np.pi))
+
+#: Free parameters of each variance effect (in VarState).
+VAR_PARAMS = {
+    'noise_scale': ('log_s2',),
+    'distance_noise': ('log_c', 'k'),
+    'timestamp_jitter': ('log_beta',),
+    'outliers': ('logit_eps', 'log_lam'),
+}
+_BOUNDS = {
+    'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0), 'k': (-8.0, 8.0),
+    'log_beta': (np.log(1e-5 ** 2), np.log(0.5 ** 2)),
+    'logit_eps': (-12.0, 0.0), 'log_lam': (np.log(3.0), np.log(1e5)),
+}
+
+
+@dataclass(frozen=True)
+class VarState:
+    """
+    Values of the variance parameters (defaults: the stated noise, nothing added).
+
+    Attributes
+    ----------
+    log_s2 : float
+        log of the noise scale's variance factor s².
+    log_c, k : float
+        Distance noise: B's variance × c (r / r0)^(2k).
+    log_beta : float
+        log σ_t² of the timestamp jitter (s²); -inf for none.
+    logit_eps, log_lam : float
+        Outliers: share ε = 1 / (1 + exp(-logit)) (-inf for none) and the scale λ of their
+        standard deviation.
+
+    """
+
+    log_s2: float = 0.0
+    log_c: float = 0.0
+    k: float = 0.0
+    log_beta: float = -np.inf
+    logit_eps: float = -np.inf
+    log_lam: float = float(np.log(30.0))
+    free: tuple = field(default=())
+
+    def with_values(self, names, values) -> VarState:
+        """Return a copy with the named parameters set."""
+        return replace(self, **{n: float(v) for n, v in zip(names, values, strict=True)})
+
+    @property
+    def eps(self) -> float:
+        """Share of outliers."""
+        return 0.0 if self.logit_eps == -np.inf else float(1.0 / (1.0 + np.exp(-self.logit_eps)))
+
+    @property
+    def beta(self) -> float:
+        """Jitter variance σ_t², s²."""
+        return 0.0 if self.log_beta == -np.inf else float(np.exp(self.log_beta))
+
+
+@dataclass
+class PairStats:
+    """
+    Per-pair quantities that the variance likelihood needs.
+
+    Attributes
+    ----------
+    z : ndarray, shape (n, m)
+        Output error in the decorrelated coordinates.
+    lam : ndarray, shape (n, m)
+        Variance of A's carried noise in those coordinates (B's is 1).
+    u : ndarray, shape (n, m)
+        Output rate ḟ in those coordinates (for jitter), 1/s.
+    log_g : ndarray, shape (n,)
+        log(r / r0), the marker's distance from B's base relative to the median.
+
+    """
+
+    z: np.ndarray
+    lam: np.ndarray
+    u: np.ndarray
+    log_g: np.ndarray
+
+    def take(self, idx) -> PairStats:
+        """Stats of the pairs idx."""
+        return PairStats(self.z[idx], self.lam[idx], self.u[idx], self.log_g[idx])
+
+
+def components(var: VarState, st: PairStats):
+    """
+    Inlier quadratic form, log-determinant and Sherman-Morrison pieces per pair.
+
+    Returns
+    -------
+    quad, logdet : ndarray, shape (n,)
+    D : ndarray, shape (n, m)
+        Diagonal variances before the jitter term.
+    c_rank1 : ndarray, shape (n,)
+        β / (1 + β Σ u²/D).
+
+    """
+    a = np.exp(var.log_c + 2.0 * var.k * st.log_g)[:, None]
+    D = np.exp(var.log_s2) * (a + st.lam)
+    quad = np.sum(st.z ** 2 / D, axis=1)
+    logdet = np.sum(np.log(D), axis=1)
+    beta = var.beta
+    if beta > 0.0:
+        uu = np.sum(st.u ** 2 / D, axis=1)
+        zu = np.sum(st.z * st.u / D, axis=1)
+        quad = quad - beta * zu ** 2 / (1.0 + beta * uu)
+        logdet = logdet + np.log1p(beta * uu)
+        c = beta / (1.0 + beta * uu)
+    else:
+        c = np.zeros(len(quad))
+    return quad, logdet, D, c
+
+
+def loglik(var: VarState, st: PairStats, with_parts: bool = False):
+    """
+    Log-likelihood of each pair's output error (n,), optionally with inlier probabilities.
+
+    Returns
+    -------
+    ll : ndarray, shape (n,)
+    p_in : ndarray, shape (n,), only with ``with_parts``
+        Posterior probability that the pair is not an outlier.
+    quad : ndarray, shape (n,), only with ``with_parts``
+        Inlier quadratic form (chi-square with m dof if the model holds).
+
+    """
+    m = st.z.shape[1]
+    quad, logdet, _, _ = components(var, st)
+    ll_in = -0.5 * (quad + logdet + m * _LOG2PI)
+    eps = var.eps
+    if eps > 0.0:
+        lam2 = np.exp(2.0 * var.log_lam)
+        ll_out = -0.5 * (quad / lam2 + logdet + m * np.log(lam2) + m * _LOG2PI)
+        a = np.log1p(-eps) + ll_in
+        b = np.log(eps) + ll_out
+        ll = np.logaddexp(a, b)
+        p_in = np.exp(a - ll)
+    else:
+        ll = ll_in
+        p_in = np.ones(len(quad))
+    if with_parts:
+        return ll, p_in, quad
+    return ll
+
+
+def _initial(name: str, st: PairStats, var: VarState) -> float:
+    m = st.z.shape[1]
+    quad, _, _, _ = components(var, st)
+    if name == 'log_s2':
+        return float(np.log(max(np.median(quad) / max(m - 0.7, 0.3), 1e-6)))
+    if name == 'logit_eps':
+        from scipy import stats
+        big = np.mean(quad > stats.chi2.ppf(1.0 - 1e-4, m))
+        eps = min(max(big, 1e-4), 0.4)
+        return float(np.log(eps / (1.0 - eps)))
+    if name == 'log_lam':
+        from scipy import stats
+        big = quad[quad > stats.chi2.ppf(1.0 - 1e-4, m)]
+        lam2 = np.median(big) / m if big.size else 100.0
+        return float(np.clip(0.5 * np.log(max(lam2, 9.0)), *_BOUNDS['log_lam']))
+    if name == 'log_beta':
+        return float(np.log(0.003 ** 2))
+    return float(getattr(var, name))
+
+
+def fit_variance(st: PairStats, var: VarState, names: tuple) -> VarState:
+    """
+    Maximum-likelihood values of the variance parameters ``names`` given the pair stats.
+
+    Parameters
+    ----------
+    st : PairStats
+    var : VarState
+        Start and fixed values of the other parameters.
+    names : tuple of str
+        Parameters to fit (keys of ``VAR_PARAMS`` values).
+
+    Returns
+    -------
+    VarState
+
+    """
+    if not names:
+        return var
+    start = var
+    for name in names:
+        if not np.isfinite(getattr(start, name)):
+            start = start.with_values([name], [_initial(name, st, start)])
+    if names == ('log_s2',) and start.beta == 0.0:
+        # closed form: the inlier quadratic form scales as 1/s²
+        _, p_in, _ = loglik(start, st, with_parts=True)
+        quad1, _, _, _ = components(start.with_values(['log_s2'], [0.0]), st)
+        s2 = float(np.sum(p_in * quad1) / max(np.sum(p_in) * st.z.shape[1], 1e-300))
+        return start.with_values(['log_s2'], [np.clip(np.log(max(s2, 1e-300)),
+                                                      *_BOUNDS['log_s2'])])
+    if names == ('logit_eps', 'log_lam'):
+        return _outliers_em(st, start)
+
+    def objective(x):
+        x = np.clip(x, lo, hi)
+        return -float(np.sum(loglik(start.with_values(names, x), st)))
+
+    bounds = [_BOUNDS[n] for n in names]
+    lo = np.array([b[0] for b in bounds])
+    hi = np.array([b[1] for b in bounds])
+    x0 = np.array([getattr(start, n) for n in names], dtype=float)
+    if 'log_beta' in names:
+        # the jitter likelihood is flat near σ_t = 0: start from the best of a few sizes
+        j = names.index('log_beta')
+        best = None
+        for sig in (0.0005, 0.002, 0.006, 0.02, 0.06):
+            x = x0.copy()
+            x[j] = np.log(sig ** 2)
+            val = objective(x)
+            if best is None or val < best[0]:
+                best = (val, x)
+        x0 = best[1]
+    x0 = np.clip(x0, lo, hi)
+    if len(names) == 1:
+        res = optimize.minimize_scalar(lambda v: objective(np.array([v])),
+                                       bracket=(x0[0] - 0.5, x0[0] + 0.5),
+                                       bounds=None, method='brent', options={'xtol': 1e-5})
+        x = np.array([res.x])
+    else:
+        simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(len(x0))[i] for i in range(len(x0))])
+        res = optimize.minimize(objective, x0, method='Nelder-Mead',
+                                options={'initial_simplex': simplex, 'xatol': 1e-4,
+                                         'fatol': 1e-3, 'maxfev': 400})
+        x = res.x
+    return start.with_values(names, np.clip(x, lo, hi))
+
+
+def _outliers_em(st: PairStats, var: VarState, iterations: int = 60) -> VarState:
+    """Share and scale of the outliers by expectation-maximisation (inlier noise fixed)."""
+    m = st.z.shape[1]
+    quad, _, _, _ = components(var, st)
+    lo, hi = _BOUNDS['log_lam']
+    for _ in range(iterations):
+        _, p_in, _ = loglik(var, st, with_parts=True)
+        w = 1.0 - p_in
+        eps = float(np.clip(np.mean(w), 1e-6, 0.5))
+        lam2 = float(np.sum(w * quad) / max(m * np.sum(w), 1e-300))
+        log_lam = float(np.clip(0.5 * np.log(max(lam2, 1e-300)), lo, hi))
+        new = var.with_values(['logit_eps', 'log_lam'], [np.log(eps / (1.0 - eps)), log_lam])
+        done = (abs(new.logit_eps - var.logit_eps) < 1e-4
+                and abs(new.log_lam - var.log_lam) < 1e-4)
+        var = new
+        if done:
+            break
+    return var
+
+
+def variance_covariance(st: PairStats, var: VarState, names: tuple) -> np.ndarray:
+    """Covariance of the fitted variance parameters: inverse Hessian of -log L (numerical)."""
+    k = len(names)
+    x0 = np.array([getattr(var, n) for n in names], dtype=float)
+
+    def f(x):
+        return -float(np.sum(loglik(var.with_values(names, x), st)))
+
+    H = np.zeros((k, k))
+    h = 1e-3 * np.maximum(1.0, np.abs(x0))
+    for i in range(k):
+        for j in range(i, k):
+            ei, ej = np.eye(k)[i] * h[i], np.eye(k)[j] * h[j]
+            H[i, j] = H[j, i] = (f(x0 + ei + ej) - f(x0 + ei - ej) - f(x0 - ei + ej)
+                                 + f(x0 - ei - ej)) / (4.0 * h[i] * h[j])
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov = np.full((k, k), np.nan)
+    return cov
+
+
+def weights(var: VarState, st: PairStats):
+    """
+    Per-pair whitening of the decorrelated error for the mean fit (IRLS for outliers).
+
+    Returns D (n, m), the rank-one coefficient c (n,) and the outlier weight w (n,), such that
+    the weighted residual is ``sqrt(w) · (I - γ ũ'ũ'ᵀ) D^(-1/2) z`` with ``ũ' = D^(-1/2) u``.
+    """
+    _, p_in, _ = loglik(var, st, with_parts=True)
+    _, _, D, c = components(var, st)
+    lam2 = np.exp(2.0 * var.log_lam)
+    w = p_in + (1.0 - p_in) / lam2
+    return D, c, w
