@@ -343,3 +343,49 @@ def test_fusion_matches_monte_carlo(mc_rng, case):
         assert np.all(np.diag(cf[0]) <= np.diag(c) + 1e-18)
     emp = np.cov(err.T)
     np.testing.assert_allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(cf[0])), rtol=0.03)
+
+
+def test_display_geometry():
+    rng = np.random.default_rng(9)
+    C = random_cov(rng, 1e-3, 1e-2)[0:3, 0:3]
+    e = unc.ellipsoid_axes(C)
+    R = quat.to_matrix(unc.ellipsoid_orientation(e))
+    np.testing.assert_allclose(R, e.axes, atol=1e-12)
+    np.testing.assert_allclose(R @ np.diag(e.semi_axes ** 2) @ R.T, 9 * C, rtol=1e-9)
+    pose = UncertainPose(np.zeros(3), random_quat(rng), random_cov(rng, 1e-3, 1e-2))
+    cone = unc.axis_cones(pose)[0]
+    tri = unc.cone_mesh(cone, length=0.2, gain=5.0, n=16, origin=[1.0, 0, 0])
+    assert tri.shape == (16, 3, 3)
+    np.testing.assert_allclose(tri[:, 0], [[1.0, 0, 0]] * 16)
+    rim = tri[:, 1] - [1.0, 0, 0]
+    # rim points lie at axis length along the axis, inside the magnified cone
+    np.testing.assert_allclose(rim @ cone.direction, 0.2, atol=1e-12)
+    off = np.linalg.norm(rim - 0.2 * cone.direction, axis=1) / 0.2
+    assert np.all(off <= 5.0 * np.tan(cone.half_angles[0]) + 1e-12)
+    assert off.max() == pytest.approx(5.0 * np.tan(cone.half_angles[0]), rel=1e-3)
+
+
+def test_fusing_a_through_a_real_calibration_with_b_beats_both():
+    """Hoff's experiment in small (bench/hoff_experiment.py runs it at full size)."""
+    from coreg_ros.core.calibrate import calibrate, noise_covariance
+    from coreg_ros.core.settings import Settings
+    from coreg_ros.sim import simulate_pairs
+
+    sa, sb = (1e-4, 2e-3), (2e-3, 8e-4)
+    rng = np.random.default_rng(12)
+    cal, _, truth = simulate_pairs(rng, 800, sigma_a=sa, sigma_b=sb)
+    result = calibrate(cal, Settings(sigma_a=sa, sigma_b=sb))
+    test, clean, _ = simulate_pairs(rng, 3000, sigma_a=sa, sigma_b=sb, truth=truth)
+    pa, qa, ca = unc.through_calibration_arrays(result, test.pos_a, test.quat_a,
+                                                noise_covariance(sa))
+    cb = np.broadcast_to(noise_covariance(sb), ca.shape)
+    pf, qf, cf, _ = unc.fuse_arrays(pa, qa, ca, test.pos_b, test.quat_b, cb)
+    rms = {name: np.sqrt(np.mean(unc.pose_error(clean.pos_b, clean.quat_b, p, q) ** 2, axis=0))
+           for name, (p, q) in {'a': (pa, qa), 'b': (test.pos_b, test.quat_b),
+                                'f': (pf, qf)}.items()}
+    assert np.all(rms['f'] < np.minimum(rms['a'], rms['b']))
+    # B's orientation removes the lever-arm part of A's position error (not the calibration's)
+    assert np.all(rms['f'][0:3] < 0.9 * rms['a'][0:3])
+    # predicted σ of the fused stream within 15 % (one calibration's error is shared)
+    np.testing.assert_allclose(rms['f'], np.sqrt(np.mean(np.diagonal(cf, 0, 1, 2), axis=0)),
+                               rtol=0.15)

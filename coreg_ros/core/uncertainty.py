@@ -826,3 +826,47 @@ def axis_cones(pose: UncertainPose, n_sigma: float = 3.0) -> list[AxisCone]:
                               ellipse_axes=vec[:, order], n_sigma=float(n_sigma),
                               probability=coverage_probability(n_sigma, 2)))
     return cones
+
+
+# --------------------------------------------------------------------------- display geometry
+
+def ellipsoid_orientation(ell: Ellipsoid) -> np.ndarray:
+    """
+    Orientation (w, x, y, z) whose rotation matrix has the ellipsoid's axes as columns.
+
+    With it, a unit sphere scaled by ``2 · semi_axes`` (diameters, e.g. an RViz SPHERE
+    marker's ``scale``) and rotated is the ellipsoid. Shape (4,).
+    """
+    return quat.from_matrix(ell.axes)
+
+
+def cone_mesh(cone: AxisCone, length: float = 1.0, gain: float = 1.0, n: int = 24,
+              origin=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """
+    Triangles of an axis cone (Hoff Fig. 1): apex at the frame origin, elliptical rim at the tip.
+
+    Parameters
+    ----------
+    cone : AxisCone
+    length : float
+        Drawn axis length, m.
+    gain : float
+        Magnification of tan(half-angle), so that milliradian cones can be seen.
+    n : int
+        Segments of the rim.
+    origin : array_like, shape (3,)
+        Frame origin in the parent frame, m.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3)
+        Triangle k is (apex, rim_k, rim_k+1), e.g. for an RViz TRIANGLE_LIST marker.
+
+    """
+    t = np.linspace(0.0, 2.0 * np.pi, int(n) + 1)
+    ext = float(gain) * np.tan(cone.half_angles)
+    rim = (cone.direction[None, :] + np.cos(t)[:, None] * ext[0] * cone.ellipse_axes[:, 0]
+           + np.sin(t)[:, None] * ext[1] * cone.ellipse_axes[:, 1]) * float(length)
+    rim = rim + np.asarray(origin, dtype=float)
+    apex = np.broadcast_to(np.asarray(origin, dtype=float), (int(n), 3))
+    return np.stack([apex, rim[:-1], rim[1:]], axis=1)
