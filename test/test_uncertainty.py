@@ -386,6 +386,7 @@ def test_fusing_a_through_a_real_calibration_with_b_beats_both():
     assert np.all(rms['f'] < np.minimum(rms['a'], rms['b']))
     # B's orientation removes the lever-arm part of A's position error (not the calibration's)
     assert np.all(rms['f'][0:3] < 0.9 * rms['a'][0:3])
-    # predicted σ of the fused stream within 15 % (one calibration's error is shared)
-    np.testing.assert_allclose(rms['f'], np.sqrt(np.mean(np.diagonal(cf, 0, 1, 2), axis=0)),
-                               rtol=0.15)
+    # one calibration's error is shared by every sample, so one rig only checks the scale;
+    # bench/hoff_experiment.py checks NEES and coverage over 100 calibrations
+    ratio = rms['f'] / np.sqrt(np.mean(np.diagonal(cf, 0, 1, 2), axis=0))
+    assert np.all((ratio > 0.5) & (ratio < 2.0))
