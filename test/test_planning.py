@@ -140,3 +140,11 @@ def test_cli_plan_rejects_both_sources():
     with pytest.raises(SystemExit):
         run_plan(['--sigma-a', '1', '1', '--sigma-b', '1', '1', '--duration', '1', '--bag',
                   'x'])
+
+
+def test_plan_is_registered_in_coreg(capsys):
+    from coreg_ros.cli.main import main
+
+    assert main(['plan', '--sigma-a', '2e-4', '5e-4', '--sigma-b', '5e-4', '2e-3',
+                 '--duration', '10', '--motion', 'single_axis']) == 0
+    assert 'UNOBSERVABLE' in capsys.readouterr().out
