@@ -212,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan.register(sub)
     from coreg_ros.cli import convert
     convert.register(sub)
+    from coreg_ros.cli import diagnose; diagnose.register(sub)  # noqa: E702, I001
     return parser
 
 

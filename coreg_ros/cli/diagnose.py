@@ -1,0 +1,427 @@
+"""
+``coreg diagnose`` and ``coreg validate-diagnosis``: the sim-to-real gap diagnosis (issue 4).
+
+``coreg diagnose BAG`` pairs and calibrates a recording as ``coreg calibrate`` does, then
+detects, locates and explains the gap between it and the model with the stated noise
+(``coreg_ros.core.diagnosis``), prints a summary, and optionally writes the JSON document and
+an HTML report.
+
+``coreg validate-diagnosis`` checks the diagnosis the way a user would trust it: it simulates
+recordings with one random effect (or none) of a random size drawn from the realistic ranges
+of DESIGN.md §5, hides the truth, diagnoses them and scores the answers (confusion matrix,
+false alarms on clean recordings, the size from which each effect is found).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Optional
+
+import numpy as np
+
+PROG = 'coreg'
+
+#: Realistic sizes per effect (DESIGN.md §5) split into small / medium / large ranges, in the
+#: unit of the simulator's ``NAME=VALUE`` (coreg_ros.sim.effect_library).
+SIZE_RANGES = {
+    'time_offset': ((0.001, 0.003), (0.003, 0.015), (0.015, 0.050)),
+    'clock_drift': ((1.0, 10.0), (10.0, 100.0), (100.0, 500.0)),
+    'timestamp_jitter': ((0.001, 0.003), (0.003, 0.010), (0.010, 0.025)),
+    'field_distortion': ((1.0, 2.0), (2.0, 5.0), (5.0, 10.0)),
+    'distance_noise': ((1.0, 2.0), (2.0, 4.0), (4.0, 8.0)),
+    'scale': ((0.0005, 0.002), (0.002, 0.007), (0.007, 0.02)),
+    'link_flex': ((0.1, 0.5), (0.5, 1.5), (1.5, 3.0)),
+    'outliers': ((0.005, 0.01), (0.01, 0.025), (0.025, 0.05)),
+    'backlash': ((0.05, 0.2), (0.2, 0.5), (0.5, 1.0)),
+    'noise_scale': ((1.1, 1.3), (1.3, 2.0), (2.0, 3.0)),
+}
+SIZES = ('small', 'medium', 'large')
+#: Share of clean recordings among the validation cases.
+CLEAN_SHARE = 0.25
+
+
+class Progress:
+    """A simple progress bar on stderr (only when stderr is a terminal, or forced)."""
+
+    def __init__(self, label: str, enabled: Optional[bool] = None, width: int = 30):
+        self.label = label
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self.width = width
+        self.last = -1.0
+
+    def __call__(self, fraction: float, text: str = '') -> None:
+        """Draw the bar at ``fraction`` (0..1) with a short text."""
+        if not self.enabled:
+            return
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        filled = int(round(fraction * self.width))
+        bar = '#' * filled + '.' * (self.width - filled)
+        sys.stderr.write(f'\r{self.label} [{bar}] {fraction * 100:3.0f}% {text[:40]:<40}')
+        if fraction >= 1.0:
+            sys.stderr.write('\n')
+        sys.stderr.flush()
+
+
+# ----------------------------------------------------------------------------------- diagnose
+
+def format_diagnosis(report: dict) -> str:
+    """Human-readable summary of a diagnosis report."""
+    lines = [f'verdict: {report["verdict"]}']
+    det = report['detection']
+    flags = ', '.join(k for k, v in det['flags'].items() if v) or 'none'
+    lines.append(f'detect: chi2/dof {det["chi2_per_dof"]:.3f} (p = {det["p_value"]:.3g}), '
+                 f'Ljung-Box p = {det["ljung_box"]["p_value"]:.3g}, gross pairs '
+                 f'{det["tails"]["gross_pairs"]} (expected '
+                 f'{det["tails"]["expected_gross_pairs"]:.2g}); flags: {flags}')
+    loc = report['location']
+    ch = ', '.join(f'{k} {v:+.2f}' for k, v in loc['by_channel'].items())
+    lines.append(f'locate: excess by channel {ch}; largest in {loc["largest"]}')
+    svm = loc['static_vs_moving']
+    if svm['static']['n']:
+        lines.append(f'        static {svm["static"]["excess"]:+.2f} vs moving '
+                     f'{svm["moving"]["excess"]:+.2f}')
+    xc = loc['velocity_xcorr']
+    lines.append(f'        residual-velocity correlation {xc["linear_at_zero"]:+.3f} (linear), '
+                 f'{xc["angular_at_zero"]:+.3f} (angular)')
+    if report['effects']:
+        lines.append('effects:')
+        for e in report['effects']:
+            lines.append(f'  {e["name"]}: {e["estimate"].get("text", "")} (held-out gain '
+                         f'{e["held_out_gain"]:.1f} nats, {e["blocks_improved"]}/{e["blocks"]} '
+                         f'blocks)')
+    else:
+        lines.append('effects: none')
+    if report['not_separable']:
+        lines.append('not separable with this motion: '
+                     + '; '.join(' vs '.join(p) for p in report['not_separable']))
+    b, a = report['gap_before'], report['gap_after']
+    lines.append(f'gap (held out): chi2/dof {b["chi2_per_dof"]:.3f} -> {a["chi2_per_dof"]:.3f}; '
+                 f'position RMS {b["position_rms_m"] * 1e3:.3f} -> '
+                 f'{a["position_rms_m"] * 1e3:.3f} mm '
+                 f'(floor {a["noise_floor_position_m"] * 1e3:.3f} mm)'
+                 + (f'; rotation RMS {b["rotation_rms_rad"] * 1e3:.2f} -> '
+                    f'{a["rotation_rms_rad"] * 1e3:.2f} mrad (floor '
+                    f'{a["noise_floor_rotation_rad"] * 1e3:.2f} mrad)'
+                    if 'rotation_rms_rad' in a else '')
+                 + f'; share of the excess explained {a["share_of_excess_explained"] * 100:.0f} %')
+    return '\n'.join(lines)
+
+
+def cmd_diagnose(args) -> int:
+    """Diagnose the gap between a recording and the model with the stated noise."""
+    from coreg_ros.bag.posebag import read_pose_bag
+    from coreg_ros.cli.files import write_json
+    from coreg_ros.cli.main import settings_from_args
+    from coreg_ros.core.diagnosis import diagnose_streams
+
+    settings = settings_from_args(args)
+    streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
+    progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
+    diag = diagnose_streams(streams[settings.topic_a], [streams[t] for t in settings.topic_b],
+                            settings, progress=progress)
+    report = diag.report
+    report['settings'] = settings.as_dict()
+    report['bag'] = str(args.bag)
+    print(f'{PROG} diagnose: {args.bag} ({report["n_pairs"]} pairs, '
+          f'{report["duration_s"]:.1f} s, model {report["model"]})')
+    print(format_diagnosis(report))
+    if args.json:
+        write_json(args.json, report)
+        print(f'diagnosis written to {args.json}')
+    if args.report:
+        from coreg_ros.report.html import write_report
+        path = write_report(diag, args.report, title=f'coreg diagnose: {args.bag}')
+        print(f'report written to {path}')
+    return 0
+
+
+# -------------------------------------------------------------------------------- validation
+
+def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE) -> dict:
+    """
+    Draw one validation case: effect (or none), size class, value, recording settings.
+
+    Returns
+    -------
+    dict
+        ``effect`` (name or None), ``size`` ('small', 'medium', 'large' or None), ``value``
+        (float or list), ``spec`` (the ``NAME=VALUE`` text), ``model``, ``duration``,
+        ``sigma_a``, ``sigma_b``, ``seed``.
+
+    """
+    from coreg_ros.core.diagnosis import EFFECT_NAMES
+
+    case = {'seed': int(rng.integers(0, 2 ** 31 - 1)),
+            'model': 'full_pose' if rng.random() < 0.75 else 'position_only',
+            'duration': float(rng.uniform(40.0, 120.0)),
+            'sigma_a': [float(rng.uniform(0.05, 0.3) * 1e-3), float(rng.uniform(0.2, 1.0) * 1e-3)],
+            'sigma_b': [float(rng.uniform(0.2, 1.0) * 1e-3), float(rng.uniform(1.0, 4.0) * 1e-3)]}
+    if rng.random() < clean_share:
+        case.update(effect=None, size=None, value=None, spec=None)
+        return case
+    name = EFFECT_NAMES[int(rng.integers(len(EFFECT_NAMES)))]
+    size = SIZES[int(rng.integers(3))]
+    lo, hi = SIZE_RANGES[name][SIZES.index(size)]
+    value = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    if name == 'noise_scale' and rng.random() < 0.4:
+        value = 1.0 / value if value < 2.0 else 0.5 + 0.1 * rng.random()
+    if name == 'time_offset' and rng.random() < 0.3:
+        value = -value
+    if name == 'clock_drift' and rng.random() < 0.3:
+        value = -value
+    if name == 'scale':
+        signs = rng.choice([-1.0, 1.0], size=3)
+        mags = value * rng.uniform(0.5, 1.0, size=3)
+        mags[int(rng.integers(3))] = value
+        value = (signs * mags).tolist()
+        spec = f'scale={",".join(f"{v:.6g}" for v in value)}'
+    else:
+        spec = f'{name}={value:.6g}'
+    case.update(effect=name, size=size, value=value, spec=spec)
+    return case
+
+
+def run_case(case: dict, options=None) -> dict:
+    """Simulate the case's recording, diagnose it blind, and return the outcome."""
+    from coreg_ros.core.diagnosis import diagnose_streams
+    from coreg_ros.core.settings import Settings
+    from coreg_ros.sim import simulate_recording
+    from coreg_ros.sim.effect_library import parse_effect
+
+    effects = [parse_effect(case['spec'])] if case['spec'] else []
+    rec = simulate_recording(case['seed'], case['duration'], case['model'],
+                             sigma_a=tuple(case['sigma_a']), sigma_b=tuple(case['sigma_b']),
+                             effects=effects)
+    # the diagnosis sees the recording and the stated noise only, never the truth
+    settings = Settings(model=case['model'], sigma_a=tuple(case['sigma_a']),
+                        sigma_b=tuple(case['sigma_b']))
+    t0 = time.perf_counter()
+    diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings, options=options)
+    elapsed = time.perf_counter() - t0
+    r = diag.report
+    named = [e['name'] for e in r['effects']]
+    truth = case['effect']
+    in_not_sep = truth is not None and any(truth in p for p in r['not_separable'])
+    first = named[0] if named else 'none'
+    if in_not_sep:
+        outcome = 'not_separable'
+    else:
+        outcome = first
+    out = dict(case)
+    out.update(named=named, first=first, outcome=outcome, not_separable=r['not_separable'],
+               gap_detected=r['gap_detected'], seconds=elapsed, n_pairs=r['n_pairs'],
+               gap_before=r['gap_before'], gap_after=r['gap_after'],
+               estimate=r['effects'][0]['estimate'] if r['effects'] else None,
+               truth_description=[dict(e) for e in rec.truth.effects])
+    return out
+
+
+def _logistic_sizes(sizes: np.ndarray, hits: np.ndarray) -> dict:
+    """Sizes at which the detection probability is 1/2 and 9/10 (logistic in log size)."""
+    from scipy import optimize
+
+    sizes = np.abs(np.asarray(sizes, dtype=float))
+    hits = np.asarray(hits, dtype=float)
+    out = {'n': int(len(sizes)), 'detected': int(hits.sum())}
+    if len(sizes) < 4 or hits.all() or not hits.any():
+        out.update(size_50=None, size_90=None,
+                   note='all detected' if len(sizes) and hits.all() else
+                   ('none detected' if len(sizes) else 'no cases'))
+        if len(sizes) and hits.all():
+            out['smallest_detected'] = float(sizes.min())
+        return out
+    x = np.log(sizes)
+
+    def nll(p):
+        z = p[0] + p[1] * x
+        return float(np.sum(np.logaddexp(0, -z) * hits + np.logaddexp(0, z) * (1 - hits))
+                     + 1e-3 * p[1] ** 2)
+
+    res = optimize.minimize(nll, np.array([0.0, 1.0]), method='Nelder-Mead')
+    a, b = res.x
+    if b <= 1e-6:
+        out.update(size_50=None, size_90=None, note='no increase with size')
+        return out
+    out.update(size_50=float(np.exp(-a / b)), size_90=float(np.exp((np.log(9.0) - a) / b)))
+    return out
+
+
+def summarize_validation(results: list) -> dict:
+    """Confusion matrix, rates and detection sizes from the case outcomes."""
+    from coreg_ros.core.diagnosis import EFFECT_NAMES
+
+    rows = ['none', *EFFECT_NAMES]
+    cols = ['none', *EFFECT_NAMES, 'not_separable']
+    matrix = {r: {c: 0 for c in cols} for r in rows}
+    for res in results:
+        truth = res['effect'] or 'none'
+        outcome = res['outcome'] if res['outcome'] in cols else 'none'
+        matrix[truth][outcome] += 1
+    clean = [r for r in results if r['effect'] is None]
+    false_alarm = (float(np.mean([bool(r['named']) for r in clean])) if clean else None)
+    gap_flag = (float(np.mean([bool(r['gap_detected']) for r in clean])) if clean else None)
+    by_size = {}
+    for size in SIZES:
+        sel = [r for r in results if r['size'] == size]
+        ns = [r for r in sel if r['outcome'] == 'not_separable']
+        decided = [r for r in sel if r['outcome'] != 'not_separable']
+        correct = [r for r in decided if r['outcome'] == r['effect']]
+        by_size[size] = {
+            'cases': len(sel), 'not_separable': len(ns), 'named_correctly': len(correct),
+            'named_correctly_share': (len(correct) / len(decided)) if decided else None,
+            'named_correctly_share_of_all': (len(correct) / len(sel)) if sel else None}
+    medium_large = [r for r in results if r['size'] in ('medium', 'large')]
+    ml_decided = [r for r in medium_large if r['outcome'] != 'not_separable']
+    ml_correct = [r for r in ml_decided if r['outcome'] == r['effect']]
+    gap_ok = [r for r in ml_correct if r['gap_after'].get('position_rms_to_floor', 9) <= 1.2]
+    extra = [r for r in results if r['effect'] and r['outcome'] == r['effect']
+             and len(r['named']) > 1]
+    detection = {}
+    for name in EFFECT_NAMES:
+        sel = [r for r in results if r['effect'] == name]
+        sizes = [np.max(np.abs(r['value'])) if isinstance(r['value'], list)
+                 else (abs(np.log(r['value'])) if name == 'noise_scale' else abs(r['value']))
+                 for r in sel]
+        hits = [r['outcome'] in (name, 'not_separable') for r in sel]
+        d = _logistic_sizes(np.array(sizes), np.array(hits))
+        if name == 'noise_scale':
+            d['size_unit'] = '|log factor|'
+            for key in ('size_50', 'size_90'):
+                if d.get(key) is not None:
+                    d[key + '_factor_up'] = float(np.exp(d[key]))
+        detection[name] = d
+    return {
+        'cases': len(results),
+        'confusion_matrix': {'rows_truth': rows, 'columns_answer': cols,
+                             'counts': [[matrix[r][c] for c in cols] for r in rows]},
+        'false_alarm_rate_clean': false_alarm,
+        'gap_flag_rate_clean': gap_flag,
+        'clean_cases': len(clean),
+        'by_size': by_size,
+        'medium_large_named_correctly_share': (len(ml_correct) / len(ml_decided)
+                                               if ml_decided else None),
+        'medium_large_not_separable': len(medium_large) - len(ml_decided),
+        'medium_large_gap_after_within_20pct_share': (len(gap_ok) / len(ml_correct)
+                                                      if ml_correct else None),
+        'correct_with_extra_effects': len(extra),
+        'detection_size': detection,
+        'median_seconds_per_case': float(np.median([r['seconds'] for r in results]))
+        if results else None,
+    }
+
+
+def format_validation(summary: dict) -> str:
+    """Text tables of a validation summary."""
+    cm = summary['confusion_matrix']
+    short = {'none': 'none', 'time_offset': 'toff', 'clock_drift': 'drift',
+             'timestamp_jitter': 'jitt', 'field_distortion': 'field', 'distance_noise': 'dist',
+             'scale': 'scale', 'link_flex': 'flex', 'outliers': 'outl', 'backlash': 'blash',
+             'noise_scale': 'nscl', 'not_separable': 'n.sep'}
+    head = 'truth \\ answer'.ljust(18) + ''.join(short[c].rjust(6) for c in cm['columns_answer'])
+    lines = [head]
+    for r, counts in zip(cm['rows_truth'], cm['counts'], strict=True):
+        lines.append(r.ljust(18) + ''.join(str(v).rjust(6) for v in counts))
+
+    def pct(v):
+        return 'n/a' if v is None else f'{v * 100:.1f} %'
+
+    lines.append('')
+    lines.append(f'false alarms on clean recordings: {pct(summary["false_alarm_rate_clean"])} '
+                 f'of {summary["clean_cases"]} (gap flag raised: '
+                 f'{pct(summary["gap_flag_rate_clean"])})')
+    for size, s in summary['by_size'].items():
+        lines.append(f'{size:>6}: {s["named_correctly"]}/{s["cases"] - s["not_separable"]} named '
+                     f'correctly ({pct(s["named_correctly_share"])}), {s["not_separable"]} not '
+                     f'separable')
+    lines.append(f'medium+large named correctly: '
+                 f'{pct(summary["medium_large_named_correctly_share"])}; gap after within 20 % '
+                 f'of the noise floor: {pct(summary["medium_large_gap_after_within_20pct_share"])}'
+                 f'; correct but with extra effects: {summary["correct_with_extra_effects"]}')
+    lines.append('detection size (50 % / 90 %):')
+    for name, d in summary['detection_size'].items():
+        if d.get('size_50') is not None:
+            lines.append(f'  {name:18s} {d["size_50"]:.4g} / {d["size_90"]:.4g} '
+                         f'({d["detected"]}/{d["n"]} found)')
+        else:
+            lines.append(f'  {name:18s} {d.get("note", "")} ({d["detected"]}/{d["n"]} found)')
+    return '\n'.join(lines)
+
+
+def validate(cases: int, seed: int, progress=None, options=None, jobs: int = 1) -> dict:
+    """Run ``cases`` blind validation cases from ``seed``; returns results and summary."""
+    rng = np.random.default_rng(seed)
+    drawn = [draw_case(rng) for _ in range(cases)]
+    results = []
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(max_workers=jobs) as ex:
+            for i, res in enumerate(ex.map(run_case, drawn, [options] * len(drawn))):
+                results.append(res)
+                if progress:
+                    progress((i + 1) / cases, f'case {i + 1}/{cases}')
+    else:
+        for i, case in enumerate(drawn):
+            if progress:
+                progress(i / cases, f'case {i + 1}/{cases}: {case["spec"] or "clean"}')
+            results.append(run_case(case, options))
+        if progress:
+            progress(1.0, 'done')
+    return {'seed': seed, 'results': results, 'summary': summarize_validation(results)}
+
+
+def cmd_validate(args) -> int:
+    """Score the diagnosis on simulated recordings with hidden effects."""
+    from coreg_ros.cli.files import write_json
+
+    progress = Progress(f'{PROG} validate-diagnosis', enabled=None if not args.quiet else False)
+    out = validate(args.cases, args.seed, progress, jobs=args.jobs)
+    print(f'{PROG} validate-diagnosis: {args.cases} cases, seed {args.seed}')
+    print(format_validation(out['summary']))
+    if args.json:
+        write_json(args.json, json.loads(json.dumps(out, default=_jsonable)))
+        print(f'validation written to {args.json}')
+    return 0
+
+
+def _jsonable(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
+    return value
+
+
+def register(sub) -> None:
+    """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
+    from coreg_ros.cli.main import add_calibration_options
+
+    p = sub.add_parser('diagnose', help='detect, locate and explain the gap between a '
+                                        'recording and the model (sim-to-real)')
+    add_calibration_options(p)
+    p.add_argument('--json', metavar='OUT', help='also write the diagnosis as JSON')
+    p.add_argument('--report', metavar='DIR', help='write an HTML report (index.html + PNGs)')
+    p.add_argument('--quiet', action='store_true', help='no progress bar')
+    p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser('validate-diagnosis',
+                       help='score the diagnosis on simulated recordings with hidden effects')
+    p.add_argument('--cases', type=_positive_int, default=40, help='recordings (default 40)')
+    p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
+    p.add_argument('--jobs', type=_positive_int, default=1,
+                   help='processes to run cases in (default 1)')
+    p.add_argument('--json', metavar='OUT', help='also write every case and the summary')
+    p.add_argument('--quiet', action='store_true', help='no progress bar')
+    p.set_defaults(func=cmd_validate)
