@@ -8,7 +8,7 @@ import pytest
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.diagnosis import EFFECT_NAMES, diagnose_streams
 from coreg_ros.core.diagnosis import variance as vm
-from coreg_ros.core.diagnosis.data import prepare, spatial_folds, time_folds, Trajectory
+from coreg_ros.core.diagnosis.data import Trajectory, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.detect import detect, ljung_box
 from coreg_ros.core.diagnosis.engine import _params_of
 from coreg_ros.core.diagnosis.fit import Model, start_state
