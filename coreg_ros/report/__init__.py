@@ -1,1 +1,3 @@
-"""Reports for people: HTML pages and figures (matplotlib, Agg canvas only)."""
+"""
+Reports for people: the HTML page of ``coreg diagnose --report`` (matplotlib, Agg backend).
+"""
