@@ -1,3 +1,1 @@
-"""
-Reports for people: the HTML page of ``coreg diagnose --report`` (matplotlib, Agg backend).
-"""
+"""Reports for people: the HTML page of ``coreg diagnose --report`` (matplotlib, Agg)."""
