@@ -231,8 +231,7 @@ def main(argv=None) -> int:
            'scipy': scipy.__version__, 'machine': platform.machine(), 'cpus': os.cpu_count(),
            'load_average_at_start': os.getloadavg(),
            'threads': 'OPENBLAS_NUM_THREADS=OMP_NUM_THREADS=MKL_NUM_THREADS=1',
-           'command': 'python bench/run.py ' + ' '.join(argv if argv is not None
-                                                        else sys.argv[1:])}
+           'command': ' '.join(['python bench/run.py', *_shown_args(argv)])}
     log(f'coreg_ros benchmarks, {date}; BLAS/OpenMP pinned to 1 thread; '
         f'load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs')
     results = {'environment': env}
@@ -290,10 +289,25 @@ def main(argv=None) -> int:
     if args.readme:
         args.readme.write_text(
             f'## Benchmarks\n\nMeasured {date} with `{env["command"].strip()}` (`make bench`) '
-            f'on {os.cpu_count()} shared CPUs, {env["threads"]}; timings are the best of a '
-            f'few repeats, peak memory is the tracemalloc peak during the solve above the '
-            f'loaded pairs.\n\n{text}')
+            f'on {os.cpu_count()} shared CPUs (load average {os.getloadavg()[0]:.1f} at the end, '
+            f'{env["load_average_at_start"][0]:.1f} at the start), {env["threads"]}; timings '
+            f'are the best of a few repeats, peak memory is the tracemalloc peak during the '
+            f'solve above the loaded pairs. Total {results["total_seconds"]:.0f} s.\n\n{text}')
     return 0
+
+
+def _shown_args(argv) -> list:
+    """Command-line arguments as shown in the output, without --readme PATH."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    out, skip = [], False
+    for a in args:
+        if skip:
+            skip = False
+        elif a == '--readme':
+            skip = True
+        elif not a.startswith('--readme='):
+            out.append(a)
+    return out
 
 
 def _json_default(o):
