@@ -233,14 +233,17 @@ UNDAMPED = 1e-7
 # OLS (B.1)
 # ----------------------------------------------------------------------------------------------
 
-def _ols_cost(problem: Problem, params: Parameters) -> float:
+def _ols_residuals(problem: Problem, params: Parameters) -> tuple[float, np.ndarray]:
+    """Cost (eq. 31) and whitened output residuals (N, m) at φ."""
     cost = 0.0
+    res = np.empty((problem.n, problem.spec.n_res))
     for sl in problem.chunks():
         pos_b, quat_b = problem.output(sl)
-        e = output_error(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b)
-        cost += float(np.sum((e @ problem.whiten_b.T) ** 2))
+        r = output_error(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b)
+        res[sl] = r @ problem.whiten_b.T
+        cost += float(np.sum(res[sl] ** 2))
     r_prior, _ = _prior_rows(problem, params)
-    return cost + float(r_prior @ r_prior)
+    return cost + float(r_prior @ r_prior), res
 
 
 def _ols_normal(problem: Problem, params: Parameters, keep_residuals: bool = False):
@@ -302,13 +305,25 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
             trial = state.stepped(delta)
             if not trial.valid:
                 return trial, np.inf
-            return trial.recharted(), _ols_cost(problem, trial)
+            trial = trial.recharted()
+            cost, residuals = _ols_residuals(problem, trial)
+            cache['trial'] = (trial, cost, residuals)
+            return trial, cost
 
         return _Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose)
 
-    params, status, it, _, _ = _levenberg_marquardt(params, linearize, max_iterations, xtol,
-                                                    ftol)
-    H, _, cost, res, n_prior = _ols_normal(problem, params, keep_residuals=True)
+    params, status, it, _, lam = _levenberg_marquardt(params, linearize, max_iterations, xtol,
+                                                      ftol)
+    n_prior = len(_prior_rows(problem, params)[0])
+    if status > 0 and lam <= UNDAMPED:
+        # as in solve_tls: the last, almost undamped linearisation gives the posterior
+        # information, and the last trial's residuals are the solution's when it was accepted
+        H = cache['normal'][0]
+        trial, cost, res = cache.get('trial', (None, 0.0, None))
+        if trial is not params:
+            cost, res = _ols_residuals(problem, params)
+    else:
+        H, _, cost, res, n_prior = _ols_normal(problem, params, keep_residuals=True)
     return Solution(params, _inverse_or_none(H), H, cost, problem.n * problem.spec.n_res + n_prior,
                     res, None, it, status, _status_message(status, it))
 
@@ -478,9 +493,14 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             if not trial.valid:
                 return state, np.inf
             trial_x = x.stepped(back_substitute(problem, factors, delta))
-            return (trial.recharted(), trial_x), _tls_cost(problem, trial, trial_x)
+            trial = trial.recharted()
+            cost, res_y, res_x = _tls_cost(problem, trial, trial_x, keep_residuals=True)
+            last_trial[:] = [trial, cost, res_y, res_x]
+            return (trial, trial_x), cost
 
         return _Linearization(S, b, cost, propose)
+
+    last_trial = [None, 0.0, None, None]
 
     state = (params, InputState(problem.pos_a, problem.quat_a))
     (params, x), status, it, last, lam = _levenberg_marquardt(
@@ -492,7 +512,9 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         info = last.info
     else:
         info, _, _, _ = _tls_schur(problem, params, x, 0.0)
-    chi2, res_y, res_x = _tls_cost(problem, params, x, keep_residuals=True)
+    trial, chi2, res_y, res_x = last_trial
+    if trial is not params:
+        chi2, res_y, res_x = _tls_cost(problem, params, x, keep_residuals=True)
     n_prior = len(_prior_rows(problem, params)[0])
     return Solution(params, _inverse_or_none(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
