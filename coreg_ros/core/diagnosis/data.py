@@ -140,7 +140,9 @@ class DiagData:
     a_scale : ndarray, shape (N,)
         Factor on A's noise variance per pair (interpolation).
     cov_a : ndarray, shape (6, 6)
-        Metric covariance of A's input noise.
+        Covariance of A's input noise over (p_A, δ_A), δ_A the rotation vector of the
+        perturbation ``q_A ← Exp(δ_A) ⊗ q_A`` (ROS layout; the models' ``J_x`` is with
+        respect to δ_A itself, not to the half-angle metric).
     cov_b : ndarray, shape (m, m)
         Metric covariance of B's output noise.
     trajectory : Trajectory
@@ -248,7 +250,8 @@ def prepare(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = N
     return DiagData(spec=spec, stamps=stamps, t=t, pos_a=np.asarray(pairs.pos_a, float),
                     quat_a=np.asarray(pairs.quat_a, float),
                     pos_b=np.asarray(pairs.pos_b, float), quat_b=quat_b, a_scale=a_scale,
-                    cov_a=metric_covariance(cov_a), cov_b=output_covariance(cov_b, spec),
+                    cov_a=np.asarray(cov_a, dtype=float).reshape(6, 6),
+                    cov_b=output_covariance(cov_b, spec),
                     trajectory=traj, vel=vel, omega=omega,
                     sigma_a=tuple(settings.sigma_a), sigma_b=tuple(settings.sigma_b))
 

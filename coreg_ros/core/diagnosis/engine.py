@@ -333,6 +333,10 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
         rounds.append(cands)
         if best is None:
             break
+        if r == 0:
+            # later rounds only revisit what improved on the base model on its own: an
+            # effect that helps nothing alone is not looked for behind another one
+            names = [c.name for c in cands if c.passes]
         accepted = accepted + (best.name,)
         chosen.append((best, not_sep))
         for other in not_sep:

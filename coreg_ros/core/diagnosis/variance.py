@@ -24,6 +24,8 @@ import numpy as np
 from scipy import optimize
 
 _LOG2PI = float(np.log(2.0 * np.pi))
+#: Largest share of outliers: beyond it the errors are a wrong noise model, not glitches.
+MAX_OUTLIER_SHARE = 0.2
 
 #: Free parameters of each variance effect (in VarState).
 VAR_PARAMS = {
@@ -35,7 +37,7 @@ VAR_PARAMS = {
 _BOUNDS = {
     'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0), 'k': (-8.0, 8.0),
     'log_beta': (np.log(1e-5 ** 2), np.log(0.5 ** 2)),
-    'logit_eps': (-12.0, 0.0), 'log_lam': (np.log(3.0), np.log(1e5)),
+    'logit_eps': (-12.0, float(np.log(0.2 / 0.8))), 'log_lam': (np.log(5.0), np.log(1e5)),
 }
 
 
@@ -178,7 +180,7 @@ def _initial(name: str, st: PairStats, var: VarState) -> float:
     if name == 'logit_eps':
         from scipy import stats
         big = np.mean(quad > stats.chi2.ppf(1.0 - 1e-4, m))
-        eps = min(max(big, 1e-4), 0.4)
+        eps = min(max(big, 1e-4), MAX_OUTLIER_SHARE)
         return float(np.log(eps / (1.0 - eps)))
     if name == 'log_lam':
         from scipy import stats
@@ -265,7 +267,7 @@ def _outliers_em(st: PairStats, var: VarState, iterations: int = 60) -> VarState
     for _ in range(iterations):
         _, p_in, _ = loglik(var, st, with_parts=True)
         w = 1.0 - p_in
-        eps = float(np.clip(np.mean(w), 1e-6, 0.5))
+        eps = float(np.clip(np.mean(w), 1e-6, MAX_OUTLIER_SHARE))
         lam2 = float(np.sum(w * quad) / max(m * np.sum(w), 1e-300))
         log_lam = float(np.clip(0.5 * np.log(max(lam2, 1e-300)), lo, hi))
         new = var.with_values(['logit_eps', 'log_lam'], [np.log(eps / (1.0 - eps)), log_lam])
