@@ -41,6 +41,8 @@ SIZE_RANGES = {
 SIZES = ('small', 'medium', 'large')
 #: Share of clean recordings among the validation cases.
 CLEAN_SHARE = 0.25
+#: Range of the recordings' durations, s (B at 50 Hz: 2000-6000 pairs).
+DURATION = (40.0, 120.0)
 
 
 class Progress:
@@ -140,7 +142,8 @@ def cmd_diagnose(args) -> int:
 
 # -------------------------------------------------------------------------------- validation
 
-def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE) -> dict:
+def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE,
+              duration: Optional[tuple] = None) -> dict:
     """
     Draw one validation case: effect (or none), size class, value, recording settings.
 
@@ -156,7 +159,7 @@ def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE) -> dic
 
     case = {'seed': int(rng.integers(0, 2 ** 31 - 1)),
             'model': 'full_pose' if rng.random() < 0.75 else 'position_only',
-            'duration': float(rng.uniform(40.0, 120.0)),
+            'duration': float(rng.uniform(*(duration or DURATION))),
             'sigma_a': [float(rng.uniform(0.05, 0.3) * 1e-3), float(rng.uniform(0.2, 1.0) * 1e-3)],
             'sigma_b': [float(rng.uniform(0.2, 1.0) * 1e-3), float(rng.uniform(1.0, 4.0) * 1e-3)]}
     if rng.random() < clean_share:
@@ -350,10 +353,11 @@ def format_validation(summary: dict) -> str:
     return '\n'.join(lines)
 
 
-def validate(cases: int, seed: int, progress=None, options=None, jobs: int = 1) -> dict:
+def validate(cases: int, seed: int, progress=None, options=None, jobs: int = 1,
+             duration: Optional[tuple] = None) -> dict:
     """Run ``cases`` blind validation cases from ``seed``; returns results and summary."""
     rng = np.random.default_rng(seed)
-    drawn = [draw_case(rng) for _ in range(cases)]
+    drawn = [draw_case(rng, duration=duration or DURATION) for _ in range(cases)]
     results = []
     if jobs > 1:
         from concurrent.futures import ProcessPoolExecutor

@@ -1,0 +1,94 @@
+"""Tests of ``coreg diagnose`` and ``coreg validate-diagnosis`` (issue 4)."""
+
+import json
+
+import numpy as np
+
+from coreg_ros.bag.posebag import write_pose_bag
+from coreg_ros.cli.diagnose import draw_case, summarize_validation, validate
+from coreg_ros.cli.main import main
+from coreg_ros.sim import simulate_recording
+from coreg_ros.sim.effect_library import parse_effect
+
+KEYS = {'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after', 'location',
+        'verdict'}
+
+
+def test_diagnose_bag_json_and_report(tmp_path, capsys):
+    rec = simulate_recording(9, 25.0, effects=[parse_effect('outliers=0.03')])
+    bag = tmp_path / 'rec'
+    write_pose_bag(bag, rec.streams)
+    out = tmp_path / 'diag.json'
+    rep = tmp_path / 'report'
+    assert main(['diagnose', str(bag), '--json', str(out), '--report', str(rep),
+                 '--quiet']) == 0
+    text = capsys.readouterr().out
+    assert 'verdict:' in text and 'outliers' in text
+    data = json.loads(out.read_text())
+    assert KEYS <= set(data)
+    assert data['gap_detected'] is True
+    assert data['effects'][0]['name'] == 'outliers'
+    assert {'name', 'estimate', 'held_out_gain'} <= set(data['effects'][0])
+    assert 'chi2_per_dof' in data['gap_before'] and 'chi2_per_dof' in data['gap_after']
+    html = (rep / 'index.html').read_text()
+    assert 'img src' in html
+    for png in ('residuals_time.png', 'qq.png', 'xcorr.png', 'speed_distance.png',
+                'workspace.png', 'candidates.png', 'before_after.png'):
+        assert (rep / png).stat().st_size > 1000
+
+
+def test_diagnose_missing_bag_is_one_line_error(tmp_path, capsys):
+    assert main(['diagnose', str(tmp_path / 'nope'), '--quiet']) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('coreg diagnose: error:') and err.count('\n') == 1
+
+
+def test_draw_case_ranges():
+    rng = np.random.default_rng(0)
+    cases = [draw_case(rng) for _ in range(200)]
+    clean = [c for c in cases if c['effect'] is None]
+    assert 20 < len(clean) < 80
+    for c in cases:
+        if c['effect']:
+            parse_effect(c['spec'])  # every drawn effect is valid for the simulator
+            assert c['size'] in ('small', 'medium', 'large')
+
+
+def test_validate_tiny(tmp_path):
+    out = validate(2, seed=3, duration=(15.0, 20.0))
+    s = out['summary']
+    assert s['cases'] == 2
+    cm = s['confusion_matrix']
+    assert len(cm['counts']) == 11 and len(cm['counts'][0]) == 12
+    assert sum(map(sum, cm['counts'])) == 2
+    for r in out['results']:
+        assert r['effect'] is None or r['spec']
+        # the diagnosis never saw the truth; the outcome is one of the answers
+        assert r['outcome'] in cm['columns_answer']
+
+
+def test_summary_counts_not_separable_apart():
+    base = {'gap_after': {'position_rms_to_floor': 1.0}, 'gap_detected': True, 'seconds': 1.0,
+            'named': ['time_offset'], 'value': 0.01}
+    results = [
+        dict(base, effect='time_offset', size='large', outcome='time_offset'),
+        dict(base, effect='backlash', size='large', outcome='not_separable'),
+        dict(base, effect='scale', size='medium', outcome='none', named=[], value=0.01),
+        dict(base, effect=None, size=None, outcome='none', named=[], gap_detected=False,
+             value=None),
+    ]
+    s = summarize_validation(results)
+    assert s['medium_large_named_correctly_share'] == 0.5
+    assert s['medium_large_not_separable'] == 1
+    assert s['false_alarm_rate_clean'] == 0.0
+
+
+def test_validate_command(tmp_path, capsys, monkeypatch):
+    import coreg_ros.cli.diagnose as d
+    monkeypatch.setattr(d, 'DURATION', (15.0, 16.0))
+    out = tmp_path / 'val.json'
+    assert main(['validate-diagnosis', '--cases', '1', '--seed', '5', '--json', str(out),
+                 '--quiet']) == 0
+    text = capsys.readouterr().out
+    assert 'truth \\ answer' in text and 'false alarms' in text
+    assert json.loads(out.read_text())['summary']['cases'] == 1
