@@ -3,8 +3,11 @@ Integration tests of coreg_node with real rclpy: the node runs in a subprocess, 
 process publishes as the tracker drivers and calls the services. Each test has its own domain.
 """
 
+import json
 import math
 import signal
+import subprocess
+import sys
 import time
 
 from geometry_msgs.msg import PoseStamped
@@ -124,6 +127,18 @@ def test_play_into_node_matches_offline_calibration(ros_domain, ros_session, sta
                       list(offline[which]['orientation'].values()))
     base = wait_for_result(ros_session, '/coreg_node/base_to_base', timeout=5)
     _assert_msg_equals(base, offline['base_to_base'])
+
+    # The offline command line gives the same numbers from the same bag.
+    out = tmp_path / 'offline.json'
+    cli = subprocess.run([sys.executable, '-m', 'coreg_ros.cli.main', 'calibrate', str(bag),
+                          '--json', str(out)], capture_output=True, text=True, timeout=60)
+    assert cli.returncode == 0, cli.stderr
+    cli_result = json.loads(out.read_text())
+    assert cli_result['n_pairs'] == live['n_pairs']
+    assert math.isclose(cli_result['chi2'], live['chi2'], rel_tol=1e-9)
+    for which in ('base_to_base', 'tool_to_marker'):
+        assert _close(live[which]['position'], cli_result[which]['position'])
+        assert _close(live[which]['covariance'], cli_result[which]['covariance'])
 
     # coreg echo receives the latched result and prints it with the std of the diagonal.
     echoed = run_cli(ros_domain, 'echo', 'base_to_base', '--once', '--timeout', 10)
