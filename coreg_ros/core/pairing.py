@@ -19,7 +19,7 @@ from typing import Union
 import numpy as np
 
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.quaternion import validate_quaternions
+from coreg_ros.core.quaternion import slerp, validate_quaternions
 from coreg_ros.core.types import PairingReport, Pairs, PoseStream
 
 #: Reasons a B sample is not paired, in the order they are tested (one reason per sample).
@@ -174,31 +174,6 @@ def _bracket(t_src: np.ndarray, t: np.ndarray,
     return lo, hi, alpha, ok, before, after
 
 
-def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """
-    Slerp of unit quaternions along the shorter arc, rows (K, 4) (w, x, y, z), fractions (K,).
-
-    Same result as ``quaternion.slerp`` (to rounding, sign w >= 0) in a fraction of the time,
-    which matters for a million pairs: the weights sin((1-α)θ)/sin θ and sin(αθ)/sin θ are
-    computed on (K,) vectors, and the (K, 4) arrays are touched only to combine them. The angle
-    θ from arccos is imprecise near 0, but the weights depend on θ only at second order there.
-
-    """
-    dot = np.einsum('ij,ij->i', q0, q1)
-    shorter = np.where(dot < 0.0, -1.0, 1.0)  # q and -q are one rotation: take the short arc
-    theta = np.arccos(np.minimum(np.abs(dot), 1.0))
-    small = theta < 1e-6  # sin θ -> 0: the weights tend to the linear ones, error O(θ²)
-    sin_theta = np.sin(np.where(small, 1.0, theta))
-    w0 = np.where(small, 1.0 - alpha, np.sin((1.0 - alpha) * theta) / sin_theta)
-    w1 = shorter * np.where(small, alpha, np.sin(alpha * theta) / sin_theta)
-    # Canonical sign (w >= 0) chosen on the scalar part before forming the (K, 4) result.
-    flip = np.where(w0 * q0[:, 0] + w1 * q1[:, 0] < 0.0, -1.0, 1.0)
-    # In place: with a million rows every (K, 4) temporary costs as much as the arithmetic.
-    out = q0 * (flip * w0)[:, None]
-    out += q1 * (flip * w1)[:, None]
-    return out
-
-
 def _lerp(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """Linear interpolation values[lo] + α (values[hi] - values[lo]), rows (K, d)."""
     v_lo = values[lo]
@@ -307,8 +282,8 @@ def pair_streams(stream_a: PoseStream,
     interp = alpha_k > 0.0
     if interp.any():
         # An exact match keeps its sample unchanged; only true interpolations are slerped.
-        quat_a[interp] = _slerp(a.quat_wxyz[lo_k[interp]], a.quat_wxyz[hi_k[interp]],
-                                alpha_k[interp])
+        quat_a[interp] = slerp(a.quat_wxyz[lo_k[interp]], a.quat_wxyz[hi_k[interp]],
+                           alpha_k[interp])
     a_var_scale = alpha_k ** 2 + (1.0 - alpha_k) ** 2
 
     if three:
