@@ -198,7 +198,8 @@ def log(q: np.ndarray) -> np.ndarray:
     """
     Rotation vector (rad) of unit quaternions, shape (..., 4) -> (..., 3), angle in [0, π].
 
-    The sign of q is irrelevant: q and -q give the same rotation vector.
+    q and -q give the same rotation vector, except at exactly π (w = 0) where the two results
+    are opposite vectors, both of angle π: the same rotation.
     """
     q = canonical(q)
     w = np.clip(q[..., 0], -1.0, 1.0)
