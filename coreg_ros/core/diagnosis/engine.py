@@ -204,8 +204,9 @@ def _candidate(sel: _Selector, accepted: tuple, name: str, ref: tuple, round_no:
     reasons = []
     if gain < thr:
         reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
-    if np.sum(fold_gains > 0) < sel.K - 1:
-        reasons.append(f'improves only {int(np.sum(fold_gains > 0))} of {sel.K} time blocks')
+    blocks = int(np.sum(np.bincount(sel.tf, minlength=sel.K) > 0))
+    if np.sum(fold_gains > 0) < blocks - 1:
+        reasons.append(f'improves only {int(np.sum(fold_gains > 0))} of {blocks} time blocks')
     if cand.spatial_gain is not None and cand.spatial_gain < 0.5 * thr:
         reasons.append(f'spatial held-out gain {cand.spatial_gain:.1f} too small')
     cand.passes = not reasons
