@@ -133,7 +133,7 @@ def _plot_map(plt, d, quad_before, out):
     p = d.b_points[:, 0, :]
     ex = quad_before / d.m - 1.0
     step = max(1, d.n // 6000)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), layout='constrained')
     vmax = max(1.0, float(np.percentile(ex, 95)))
     for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2)), strict=True):
         sc = ax.scatter(p[::step, i], p[::step, j], c=np.clip(ex[::step], -1, vmax), s=3,
@@ -141,7 +141,7 @@ def _plot_map(plt, d, quad_before, out):
         ax.set_xlabel('xyz'[i] + ' (m, B base)')
         ax.set_ylabel('xyz'[j] + ' (m, B base)')
         ax.set_aspect('equal', adjustable='datalim')
-    fig.colorbar(sc, ax=axes, shrink=0.8, label='excess (before)')
+    fig.colorbar(sc, ax=list(axes), shrink=0.8, label='excess (before)')
     fig.suptitle('workspace map of the excess', fontsize=9)
     fig.savefig(out / 'workspace.png', dpi=90)
     _plt().close(fig)
