@@ -86,11 +86,22 @@ def _cached(model, ch) -> bool:
 
 
 def transforms(fit) -> dict:
-    """T0 and T1 of a fit: positions (m) and quaternions (w, x, y, z)."""
+    """
+    T0 and T1 of a fit: positions (m) with standard deviations, quaternions (w, x, y, z).
+
+    The standard deviations are of the fit with its effects modelled (φ's posterior, inflated
+    by any chi-square per dof left above one).
+    """
     p = fit.state.params
-    out = {'base_to_base': {'position': p.p0.tolist(),
+    cov = fit.mean_cov()
+    sd0 = sd1 = [float('nan')] * 3
+    if cov is not None:
+        infl = _inflation(fit)
+        sd0 = np.sqrt(np.clip(np.diag(cov)[0:3], 0, None) * infl).tolist()
+        sd1 = np.sqrt(np.clip(np.diag(cov)[6:9], 0, None) * infl).tolist()
+    out = {'base_to_base': {'position': p.p0.tolist(), 'sigma_position': sd0,
                             'quat_wxyz': quat.canonical(p.q0).tolist()},
-           'tool_to_marker': {'position': p.markers[0].tolist(),
+           'tool_to_marker': {'position': p.markers[0].tolist(), 'sigma_position': sd1,
                               'quat_wxyz': quat.canonical(p.q1).tolist()}}
     if p.spec.n_markers > 1:
         out['markers'] = p.markers.tolist()
