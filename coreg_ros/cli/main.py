@@ -91,30 +91,33 @@ def settings_from_args(args):
 
 def cmd_calibrate(args) -> int:
     """Calibrate a recording offline and print (and optionally write) the result."""
+    import json
+
     from coreg_ros.bag.posebag import read_pose_bag
+    from coreg_ros.cli.convert import direction_guard
     from coreg_ros.cli.files import write_json
     from coreg_ros.cli.text import format_result
     from coreg_ros.core.pipeline import calibrate_streams
     from coreg_ros.core.result_io import result_to_dict
-
-    settings = settings_from_args(args)
     from coreg_ros.report.calibration_report import points_from_flat
+
+    # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
+    out = sys.stderr if args.json == '-' else sys.stdout
+    settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
     streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
-    result, report = calibrate_streams(
-        streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings)
-    from coreg_ros.cli.convert import direction_guard
-    check = direction_guard(args, streams[settings.topic_a],
-                            [streams[t] for t in settings.topic_b], settings, result)
+    stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
+    result, report = calibrate_streams(stream_a, streams_b, settings)
+    check = direction_guard(args, stream_a, streams_b, settings, result)
     wrong_way = check is not None and check.flagged
-    print(f'{PROG} calibrate: {args.bag}')
+    print(f'{PROG} calibrate: {args.bag}', file=out)
     if wrong_way:
         print(f'{PROG} calibrate: error: {check.message} (or --no-direction-check to fit the '
               f'data as given)', file=sys.stderr)
     else:
-        print(format_result(result, report))
+        print(format_result(result, report), file=out)
         if check is not None:
-            print(f'direction check: {check.message}')
+            print(f'direction check: {check.message}', file=out)
     if args.json:
         data = result_to_dict(result)
         data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
@@ -122,14 +125,17 @@ def cmd_calibrate(args) -> int:
         data['settings'] = settings.as_dict()
         if check is not None:
             data['direction_check'] = check.as_dict()
-        write_json(args.json, data)
-        print(f'result written to {args.json}')
+        if args.json == '-':
+            print(json.dumps(data, indent=2))
+        else:
+            write_json(args.json, data)
+            print(f'result written to {args.json}', file=out)
     if args.report:
         from coreg_ros.report.calibration_report import write_calibration_report
         page = write_calibration_report(
             result, args.report, report=report, points=points,
             points_frame=args.points_frame, title=f'{PROG} calibrate {args.bag}')
-        print(f'report written to {page}')
+        print(f'report written to {page}', file=out)
     return 0 if result.success and not wrong_way else 1
 
 
@@ -174,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)')
     add_calibration_options(p)
-    p.add_argument('--json', metavar='OUT', help='also write the result as JSON (atomically)')
+    p.add_argument('--json', metavar='OUT',
+                   help='also write the result as JSON (atomically); - for stdout')
     p.add_argument('--no-direction-check', action='store_true',
                    help='do not check, after a bad fit, whether a stream should be inverted')
     p.add_argument('--report', metavar='DIR',
