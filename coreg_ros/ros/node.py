@@ -13,7 +13,8 @@ Services (std_srvs/Trigger)
 Publications
     ``~/base_to_base`` (pose of ``frame_base_a`` in ``frame_base_b``) and ``~/tool_to_marker``
     (pose of ``frame_marker`` in ``frame_tool``), PoseWithCovarianceStamped, transient-local
-    so late subscribers get the last result; ``/diagnostics`` at 1 Hz.
+    so late subscribers get the last result; ``/diagnostics`` at 1 Hz. Once a calibration
+    exists, ``~/fused_pose`` and ``~/uncertainty_markers`` (``ros.uncertainty_outputs``).
 Persistence
     The result is stored atomically in ``storage_dir/result.yaml`` and republished at
     start-up; on SIGINT or SIGTERM the samples not yet saved go to a bag in ``storage_dir``.
@@ -47,7 +48,6 @@ from std_srvs.srv import Trigger
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.pipeline import calibrate_streams
-from coreg_ros.core.result_io import result_to_dict
 from coreg_ros.core.settings import Settings
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import REASONS, StreamBuffer, reason_hint
@@ -58,6 +58,7 @@ from coreg_ros.ros.parameters import (
     read_config,
     settings_from_values,
 )
+from coreg_ros.ros.uncertainty_outputs import UncertaintyOutputs, stored_result_dict
 
 NODE_NAME = 'coreg_node'
 #: Seconds between two warnings about the same topic and rejection reason.
@@ -134,6 +135,7 @@ class CoregNode(Node):
         self.create_service(Trigger, '~/save_samples', self._on_save_samples)
         self.create_timer(1.0, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._check_parameters)
+        self.uncertainty = UncertaintyOutputs(self)
         self._republish_stored()
         self.get_logger().info(
             f'listening to A {settings.topic_a}, B {", ".join(settings.topic_b)} '
@@ -204,9 +206,10 @@ class CoregNode(Node):
             self.get_logger().warning(f'calibrate: {response.message}')
             return response
         self._publish_result(result.base_to_base, result.tool_to_marker)
+        self.uncertainty.set_result(result)
         try:
             with self._io_lock:
-                path = persistence.save_result(self.config.storage_dir, result_to_dict(result),
+                path = persistence.save_result(self.config.storage_dir, stored_result_dict(result),
                                                self.config.frames, settings.as_dict())
             stored = f'stored in {path}'
         except OSError as e:
@@ -262,6 +265,7 @@ class CoregNode(Node):
             return
         doc, base_to_base, tool_to_marker = stored
         self._publish_result(base_to_base, tool_to_marker)
+        self.uncertainty.set_stored(doc, base_to_base, tool_to_marker)
         r = doc['result']
         dof = r.get('dof') or 0
         self._last = {'n_pairs': r.get('n_pairs'), 'success': r.get('success'),

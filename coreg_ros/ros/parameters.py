@@ -72,6 +72,19 @@ PARAMETERS = (
     ('storage_dir', '~/.ros/coreg',
      _desc('directory of the stored result (result.yaml) and saved sample bags',
            read_only=True)),
+    # Uncertainty outputs (coreg_ros.ros.uncertainty_outputs), changeable at run time.
+    ('publish_fused_pose', True,
+     _desc('publish ~/fused_pose: A through the calibration fused with B, in frame_base_b, '
+           'once a calibration exists')),
+    ('publish_markers', True,
+     _desc('publish ~/uncertainty_markers: 3-sigma ellipsoids and axis cones of T0, T1 and '
+           'the latest fused pose (transient local)')),
+    ('fused_rate_limit', 50.0,
+     _desc('largest rate (Hz) of ~/fused_pose and of the fused markers (the newest pair '
+           'each time); 0.0 = every pair', floats=_float_range(0.0, 1000.0))),
+    ('marker_magnification', 1.0,
+     _desc('display gain on the ellipsoid semi-axes and on tan of the cone half-angles '
+           '(1 = true size)', floats=_float_range(1e-3, 1e6))),
 )
 
 #: Names of the calibration keys (those of Settings).

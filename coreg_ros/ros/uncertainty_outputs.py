@@ -1,0 +1,376 @@
+"""
+The node's uncertainty outputs: ``~/fused_pose`` and ``~/uncertainty_markers``.
+
+Once a calibration exists (fresh from ``~/calibrate`` or stored and loaded at start-up):
+
+``~/fused_pose`` (geometry_msgs/PoseWithCovarianceStamped, frame ``frame_base_b``, stamp = B's
+    header stamp of the pair)
+    Device A's pose carried into B's base frame through the calibration (``T0 · T_A · T1``,
+    with the calibration's joint covariance and A's noise ``sigma_a``), fused with device B's
+    measurement (noise ``sigma_b``); see ``coreg_ros.core.fusion_stream``. ``full_pose``: the
+    whole pose is fused. ``position_only`` / ``three_marker``: the positions only (B's marker
+    1); the orientation is A's prediction and its covariance rows are marked unknown (-1 on
+    the diagonal). QoS: reliable, volatile, depth 100 (every-pair mode publishes in batches).
+``~/uncertainty_markers`` (visualization_msgs/MarkerArray, transient-local)
+    Hoff & Vincent's Fig. 1 for T0 (namespace ``base_to_base``, frame ``frame_base_b``), T1
+    (``tool_to_marker``, frame ``frame_tool``) and the latest fused pose (``fused``, frame
+    ``frame_base_b``): id 0 the 3σ position ellipsoid (SPHERE centred on the frame origin,
+    ``scale`` = the diameters 2·k·√λ, orientation = the eigenvectors), ids 1-3 the cones of
+    the frame's x, y, z axes (TRIANGLE_LIST, apex at the origin, 3σ ellipse of the axis tip
+    at ``AXIS_LENGTH``). Components not estimated (T1's rotation for position-only models)
+    are not drawn. Every message holds all the markers, so a late subscriber gets the whole
+    picture; switching ``publish_markers`` off publishes one DELETEALL.
+
+Parameters (``coreg_ros.ros.parameters``; changeable at run time)
+    ``publish_fused_pose``, ``publish_markers`` (bool), ``fused_rate_limit`` (Hz; 0 = every
+    pair), ``marker_magnification`` (display gain on the ellipsoid semi-axes and on tan of
+    the cone half-angles; 1 = true size).
+
+Threads: the work runs in a timer of the services thread, never in the subscription callbacks.
+Each tick copies the newest samples of each buffer (``A_WINDOW``, ``B_WINDOW``), pairs the B
+samples that arrived since the last tick by the one pairing rule (``pending_pairs``), fuses them
+vectorised and publishes: with a rate limit the newest pair only, at most ``fused_rate_limit``
+times per second; with 0 every pair, in batches every ``DRAIN_PERIOD`` s. The fused markers
+follow at most ``MARKER_MAX_RATE`` (10 Hz). A backlog larger than the windows (the services
+thread was busy with a calibration) is skipped, not published late.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from typing import Optional
+
+from geometry_msgs.msg import Point, PoseWithCovarianceStamped
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from coreg_ros.core import uncertainty as unc
+from coreg_ros.core.errors import CoregError
+from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream, pending_pairs
+from coreg_ros.core.result_io import result_to_dict
+from coreg_ros.core.types import CalibrationResult, Pairs, PoseStream, UncertainPose
+from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
+
+#: Samples of A and of each B topic looked at per tick (the newest ones).
+A_WINDOW = 2048
+B_WINDOW = 512
+#: Timer period (s) when ``fused_rate_limit`` is 0: every pair, published in batches (fusing
+#: twenty pairs costs about what one does, ~1.7 ms).
+DRAIN_PERIOD = 0.02
+#: The fused markers follow ``fused_rate_limit`` up to this rate, Hz: one MarkerArray (three
+#: ellipsoids, nine cones of 72 vertices) costs ~4 ms to build and serialise.
+MARKER_MAX_RATE = 10.0
+#: Drawn length of the axis cones, m.
+AXIS_LENGTH = 0.1
+#: n_sigma of the ellipsoids and cones (Hoff: 3σ, 97 % in 3-D, 98.9 % at an axis tip).
+N_SIGMA = 3.0
+#: Segments of a cone's rim.
+CONE_SEGMENTS = 24
+#: Seconds between two log lines about a failing tick.
+WARN_PERIOD = 5.0
+
+OUTPUT_KEYS = ('publish_fused_pose', 'publish_markers', 'fused_rate_limit',
+               'marker_magnification')
+
+#: Ellipsoid colour per namespace; cones are red, green, blue for the x, y, z axes.
+ELLIPSOID_RGBA = {'base_to_base': (1.0, 0.8, 0.1, 0.5), 'tool_to_marker': (0.1, 0.8, 1.0, 0.5),
+                  'fused': (0.9, 0.2, 0.9, 0.5)}
+AXIS_RGBA = ((0.9, 0.15, 0.15, 0.7), (0.15, 0.8, 0.15, 0.7), (0.2, 0.35, 1.0, 0.7))
+
+FUSED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+# --------------------------------------------------------------------------- markers
+
+def _colour(rgba) -> ColorRGBA:
+    r, g, b, a = rgba
+    return ColorRGBA(r=float(r), g=float(g), b=float(b), a=float(a))
+
+
+def pose_markers(pose: UncertainPose, frame_id: str, stamp, ns: str, *,
+                 magnification: float = 1.0, cone_magnification: Optional[float] = None,
+                 axis_length: float = AXIS_LENGTH, n_sigma: float = N_SIGMA) -> list:
+    """
+    Build Hoff's Fig. 1 for one uncertain pose: the position ellipsoid and the three axis cones.
+
+    Parameters
+    ----------
+    pose : UncertainPose
+        Pose of a frame in ``frame_id`` with its ROS-layout covariance (None: nothing drawn).
+    frame_id : str
+        Frame the pose is expressed in (``header.frame_id`` of the markers).
+    stamp : builtin_interfaces.msg.Time
+    ns : str
+        Marker namespace (ids 0 ellipsoid, 1-3 the x, y, z cones).
+    magnification : float
+        Display gain on the semi-axes and on tan of the cone half-angles (1 = true size).
+    cone_magnification : float, optional
+        A different gain for the cones (default: ``magnification``).
+    axis_length : float
+        Drawn axis length, m.
+    n_sigma : float
+        Size of the ellipsoid and of the ellipses at the axis tips.
+
+    Returns
+    -------
+    list of visualization_msgs.msg.Marker
+        The ellipsoid if the position covariance is known, the cones if the rotation is.
+
+    """
+    if pose.covariance is None:
+        return []
+    cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
+    diag = np.diag(cov)
+    origin = np.asarray(pose.position, dtype=float)
+    gain = float(magnification)
+    markers = []
+
+    def base(marker_id: int, kind: int) -> Marker:
+        m = Marker()
+        m.header.frame_id = frame_id
+        m.header.stamp = stamp
+        m.ns, m.id, m.type, m.action = ns, marker_id, kind, Marker.ADD
+        m.pose.orientation.w = 1.0
+        return m
+
+    if (diag[0:3] >= 0).all():
+        ell = unc.ellipsoid_axes(cov[0:3, 0:3], n_sigma)
+        m = base(0, Marker.SPHERE)
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in origin)
+        w, x, y, z = (float(v) for v in unc.ellipsoid_orientation(ell))
+        o = m.pose.orientation
+        o.w, o.x, o.y, o.z = w, x, y, z
+        m.scale.x, m.scale.y, m.scale.z = (float(v) for v in 2.0 * gain * ell.semi_axes)
+        m.color = _colour(ELLIPSOID_RGBA.get(ns, (0.8, 0.8, 0.8, 0.5)))
+        markers.append(m)
+    if (diag[3:6] >= 0).all():
+        for cone in unc.axis_cones(UncertainPose(origin, pose.quat_wxyz, cov), n_sigma):
+            tri = unc.cone_mesh(cone, length=axis_length, n=CONE_SEGMENTS,
+                                gain=gain if cone_magnification is None else cone_magnification,
+                                origin=origin)
+            m = base(1 + cone.index, Marker.TRIANGLE_LIST)
+            m.scale.x = m.scale.y = m.scale.z = 1.0
+            m.color = _colour(AXIS_RGBA[cone.index])
+            m.points = [Point(x=x, y=y, z=z) for x, y, z in tri.reshape(-1, 3).tolist()]
+            markers.append(m)
+    return markers
+
+
+def delete_all_markers() -> MarkerArray:
+    """Return a MarkerArray that clears every marker of the topic (RViz DELETEALL)."""
+    m = Marker()
+    m.action = Marker.DELETEALL
+    return MarkerArray(markers=[m])
+
+
+# --------------------------------------------------------------------------- buffers
+
+def buffer_tail(buffer, n: int) -> PoseStream:
+    """
+    Copy the newest ``n`` samples of a ``StreamBuffer``, oldest first (cheap: O(n), not O(size)).
+
+    Uses ``buffer.tail(n)`` when the buffer offers it; otherwise reads the ring under the
+    buffer's own lock (``StreamBuffer.snapshot`` would copy the whole buffer every tick).
+    """
+    tail = getattr(buffer, 'tail', None)
+    if callable(tail):
+        return tail(n)
+    with buffer._lock:
+        k = min(int(n), buffer._size)
+        idx = np.arange(buffer._next - k, buffer._next) % buffer.capacity
+        stamps = buffer._stamps[idx]
+        vals = buffer._vals[idx]
+        frame = buffer.frame_id or ''
+    return PoseStream(stamps=stamps, position=vals[:, 0:3], quat_wxyz=vals[:, 3:7],
+                      frame_id=frame)
+
+
+def _last_pair(pairs: Pairs) -> Pairs:
+    def last(v):
+        return None if v is None else v[-1:]
+    return Pairs(stamps=pairs.stamps[-1:], pos_a=pairs.pos_a[-1:], quat_a=pairs.quat_a[-1:],
+                 pos_b=pairs.pos_b[-1:], quat_b=last(pairs.quat_b),
+                 a_var_scale=last(pairs.a_var_scale))
+
+
+def stored_result_dict(result: CalibrationResult) -> dict:
+    """
+    Return ``result_to_dict(result)`` plus the 12×12 ``cov_joint`` of (T0, T1) (144 numbers).
+
+    What the node stores: a node restarted on the stored result then fuses with the cross
+    terms of T0 and T1 too, exactly as right after the calibration.
+    """
+    out = result_to_dict(result)
+    if result.cov_joint is not None:
+        out['cov_joint'] = [float(v) for v in np.ravel(result.cov_joint)]
+    return out
+
+
+# --------------------------------------------------------------------------- the outputs
+
+class UncertaintyOutputs:
+    """
+    Publish ``~/fused_pose`` and ``~/uncertainty_markers`` for a ``CoregNode``.
+
+    Parameters
+    ----------
+    node : coreg_ros.ros.node.CoregNode
+        Provides ``buffers``, ``config``, ``current_settings()`` and the parameters of
+        ``OUTPUT_KEYS``; the publishers and the timer are created on it (services thread).
+
+    """
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.pub_fused = node.create_publisher(PoseWithCovarianceStamped, '~/fused_pose',
+                                               FUSED_QOS)
+        self.pub_markers = node.create_publisher(MarkerArray, '~/uncertainty_markers',
+                                                 MARKER_QOS)
+        self.calibration: Optional[FusionCalibration] = None
+        self._calibration_markers: list = []
+        self._cursor: Optional[int] = None
+        self._warned = -WARN_PERIOD
+        self._marker_time = -1.0  # monotonic time of the last fused MarkerArray
+        self.published = 0  # fused poses published since start-up
+        values = {k: node.get_parameter(k).value for k in OUTPUT_KEYS}
+        self.fused_on = bool(values['publish_fused_pose'])
+        self.markers_on = bool(values['publish_markers'])
+        self.rate = float(values['fused_rate_limit'])
+        self.magnification = float(values['marker_magnification'])
+        self.timer = node.create_timer(self._period(), self._tick, autostart=False)
+        node.add_post_set_parameters_callback(self._on_parameters)
+
+    # --- calibration -----------------------------------------------------------------------
+
+    def set_result(self, result: CalibrationResult) -> None:
+        """Use a fresh calibration (joint covariance with its cross terms)."""
+        self.set_calibration(FusionCalibration.from_result(result))
+
+    def set_stored(self, doc: dict, base_to_base: UncertainPose,
+                   tool_to_marker: UncertainPose) -> None:
+        """Use a stored calibration (``persistence.load_result``); cov_joint if it was stored."""
+        r = doc.get('result', {})
+        joint = r.get('cov_joint')
+        self.set_calibration(FusionCalibration.from_poses(
+            base_to_base, tool_to_marker, r.get('model', 'full_pose'),
+            None if joint is None else np.asarray(joint, dtype=float).reshape(12, 12)))
+
+    def set_calibration(self, calibration: FusionCalibration) -> None:
+        """Start fusing with ``calibration`` from the newest samples on; publish its markers."""
+        self.calibration = calibration
+        b = self.node.buffers[self.node.config.settings.topic_b[0]]
+        newest = buffer_tail(b, 1).stamps
+        self._cursor = int(newest[0]) if len(newest) else None
+        self._build_calibration_markers()
+        if self.markers_on:
+            self.pub_markers.publish(MarkerArray(markers=list(self._calibration_markers)))
+        self._update_timer()
+
+    def _build_calibration_markers(self) -> None:
+        cal, config = self.calibration, self.node.config
+        if cal is None:
+            self._calibration_markers = []
+            return
+        stamp = self.node.get_clock().now().to_msg()
+        self._calibration_markers = (
+            pose_markers(cal.base_to_base, config.frame_base_b, stamp, 'base_to_base',
+                         magnification=self.magnification)
+            + pose_markers(cal.tool_to_marker, config.frame_tool, stamp, 'tool_to_marker',
+                           magnification=self.magnification))
+
+    # --- parameters ------------------------------------------------------------------------
+
+    def _period(self) -> float:
+        return 1.0 / self.rate if self.rate > 0 else DRAIN_PERIOD
+
+    def _update_timer(self) -> None:
+        active = self.calibration is not None and (self.fused_on or self.markers_on)
+        period_ns = int(round(self._period() * 1e9))
+        if self.timer.timer_period_ns != period_ns:
+            self.timer.timer_period_ns = period_ns
+        if active and self.timer.is_canceled():
+            self.timer.reset()
+        elif not active and not self.timer.is_canceled():
+            self.timer.cancel()
+
+    def _on_parameters(self, params) -> None:
+        changed = {p.name: p.value for p in params if p.name in OUTPUT_KEYS}
+        if not changed:
+            return
+        was_markers = self.markers_on
+        self.fused_on = bool(changed.get('publish_fused_pose', self.fused_on))
+        self.markers_on = bool(changed.get('publish_markers', self.markers_on))
+        self.rate = float(changed.get('fused_rate_limit', self.rate))
+        if 'marker_magnification' in changed:
+            self.magnification = float(changed['marker_magnification'])
+            self._build_calibration_markers()
+        if was_markers and not self.markers_on:
+            self.pub_markers.publish(delete_all_markers())
+        elif self.markers_on and self.calibration is not None and (
+                not was_markers or 'marker_magnification' in changed):
+            self.pub_markers.publish(MarkerArray(markers=list(self._calibration_markers)))
+        self._update_timer()
+
+    # --- the tick --------------------------------------------------------------------------
+
+    def _tick(self) -> None:
+        try:
+            self.fuse_and_publish()
+        except Exception as e:  # never let a bug stop the services thread's executor
+            now = time.monotonic()
+            if now - self._warned >= WARN_PERIOD:
+                self._warned = now
+                detail = str(e) if isinstance(e, CoregError) else traceback.format_exc()
+                self.node.get_logger().error(f'fused pose: {detail}')
+
+    def fuse_and_publish(self) -> int:
+        """
+        Fuse the pairs that became available since the last call and publish them.
+
+        Returns
+        -------
+        n : int
+            Fused poses published.
+
+        """
+        cal = self.calibration
+        if cal is None or not (self.fused_on or self.markers_on):
+            return 0
+        settings = self.node.current_settings()  # sigmas, gap and offset may change live
+        buffers = self.node.buffers
+        stream_a = buffer_tail(buffers[settings.topic_a], A_WINDOW)
+        streams_b = [buffer_tail(buffers[t], B_WINDOW) for t in settings.topic_b]
+        pairs, self._cursor = pending_pairs(
+            stream_a, streams_b if len(streams_b) == 3 else streams_b[0], self._cursor,
+            max_gap_ns=settings.max_gap_ns, offset_ns=settings.time_offset_ns,
+            with_orientation_b=settings.model == 'full_pose')
+        if len(pairs) == 0:
+            return 0
+        if self.rate > 0:
+            pairs = _last_pair(pairs)
+        fused = fused_stream(cal, pairs, settings.sigma_a, settings.sigma_b)
+        frame = self.node.config.frame_base_b
+        n = 0
+        if self.fused_on:
+            publish = self.pub_fused.publish
+            for i in range(len(fused)):
+                publish(uncertain_pose_to_msg(fused.pose(i), frame,
+                                              ns_to_stamp(fused.stamps[i])))
+            n = len(fused)
+            self.published += n
+        now = time.monotonic()
+        if self.markers_on and now - self._marker_time >= 0.8 / MARKER_MAX_RATE:
+            self._marker_time = now
+            latest = pose_markers(fused.pose(-1), frame, ns_to_stamp(fused.stamps[-1]),
+                                  'fused', magnification=self.magnification)
+            self.pub_markers.publish(MarkerArray(markers=self._calibration_markers + latest))
+        return n
