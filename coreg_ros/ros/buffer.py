@@ -142,16 +142,17 @@ class StreamBuffer:
 
     def snapshot(self) -> PoseStream:
         """Return a copy of the held samples, oldest first, as a PoseStream."""
+        return self.tail(self.capacity)
+
+    def tail(self, n: int) -> PoseStream:
+        """Return a copy of the newest ``n`` samples (O(n), not O(capacity)), oldest first."""
         with self._lock:
-            if self._size < self.capacity:
-                idx = slice(0, self._size)
-                stamps, recv, vals = self._stamps[idx], self._recv[idx], self._vals[idx]
-            else:  # full ring: oldest sample sits at the write index
-                order = np.r_[self._next:self.capacity, 0:self._next]
-                stamps, recv, vals = self._stamps[order], self._recv[order], self._vals[order]
-            return PoseStream(stamps=stamps.copy(), position=vals[:, :3].copy(),
-                              quat_wxyz=vals[:, 3:].copy(), frame_id=self.frame_id or '',
-                              receive_stamps=recv.copy())
+            k = min(int(n), self._size)
+            idx = np.arange(self._next - k, self._next) % self.capacity
+            vals = self._vals[idx]  # fancy indexing copies
+            return PoseStream(stamps=self._stamps[idx], position=vals[:, :3],
+                              quat_wxyz=vals[:, 3:], frame_id=self.frame_id or '',
+                              receive_stamps=self._recv[idx])
 
     def clear(self) -> None:
         """Forget the samples, the reference frame id and the last stamp (not the counters)."""

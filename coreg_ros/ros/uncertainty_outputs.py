@@ -52,7 +52,7 @@ from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream, pending_pairs
 from coreg_ros.core.result_io import result_to_dict
-from coreg_ros.core.types import CalibrationResult, Pairs, PoseStream, UncertainPose
+from coreg_ros.core.types import CalibrationResult, Pairs, UncertainPose
 from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
 
 #: Samples of A and of each B topic looked at per tick (the newest ones).
@@ -174,26 +174,6 @@ def delete_all_markers() -> MarkerArray:
 
 # --------------------------------------------------------------------------- buffers
 
-def buffer_tail(buffer, n: int) -> PoseStream:
-    """
-    Copy the newest ``n`` samples of a ``StreamBuffer``, oldest first (cheap: O(n), not O(size)).
-
-    Uses ``buffer.tail(n)`` when the buffer offers it; otherwise reads the ring under the
-    buffer's own lock (``StreamBuffer.snapshot`` would copy the whole buffer every tick).
-    """
-    tail = getattr(buffer, 'tail', None)
-    if callable(tail):
-        return tail(n)
-    with buffer._lock:
-        k = min(int(n), buffer._size)
-        idx = np.arange(buffer._next - k, buffer._next) % buffer.capacity
-        stamps = buffer._stamps[idx]
-        vals = buffer._vals[idx]
-        frame = buffer.frame_id or ''
-    return PoseStream(stamps=stamps, position=vals[:, 0:3], quat_wxyz=vals[:, 3:7],
-                      frame_id=frame)
-
-
 def _last_pair(pairs: Pairs) -> Pairs:
     def last(v):
         return None if v is None else v[-1:]
@@ -268,7 +248,7 @@ class UncertaintyOutputs:
         """Start fusing with ``calibration`` from the newest samples on; publish its markers."""
         self.calibration = calibration
         b = self.node.buffers[self.node.config.settings.topic_b[0]]
-        newest = buffer_tail(b, 1).stamps
+        newest = b.tail(1).stamps
         self._cursor = int(newest[0]) if len(newest) else None
         self._build_calibration_markers()
         if self.markers_on:
@@ -347,8 +327,8 @@ class UncertaintyOutputs:
             return 0
         settings = self.node.current_settings()  # sigmas, gap and offset may change live
         buffers = self.node.buffers
-        stream_a = buffer_tail(buffers[settings.topic_a], A_WINDOW)
-        streams_b = [buffer_tail(buffers[t], B_WINDOW) for t in settings.topic_b]
+        stream_a = buffers[settings.topic_a].tail(A_WINDOW)
+        streams_b = [buffers[t].tail(B_WINDOW) for t in settings.topic_b]
         pairs, self._cursor = pending_pairs(
             stream_a, streams_b if len(streams_b) == 3 else streams_b[0], self._cursor,
             max_gap_ns=settings.max_gap_ns, offset_ns=settings.time_offset_ns,
