@@ -56,8 +56,8 @@ class Options:
     max_select_pairs : int
         Pairs used to select effects (an even subsample beyond); the final fit uses all.
     practical : float
-        Smallest held-out gain that counts, in nats per residual (0.01 ≈ a change of 0.02 in
-        chi-square per degree of freedom, or a noise factor off by 10 %).
+        Smallest held-out gain that counts, in nats per residual (0.005 ≈ a change of 0.01 in
+        chi-square per degree of freedom, or a noise factor off by 7 %).
     practical_next : float
         The same for the second and third effect.
     min_gain : float
@@ -65,6 +65,9 @@ class Options:
     not_separable_ratio : float
         A runner-up gaining at least this share of the best candidate's gain is tested for
         separability.
+    nested_share : float
+        The richer of two nested candidates is preferred when it gains at least this share of
+        the practical threshold more than the simpler one.
     candidates : tuple of str
     seed : int
         Seed of the spatial blocks.
@@ -74,10 +77,11 @@ class Options:
     n_folds: int = 5
     max_effects: int = 3
     max_select_pairs: int = 15000
-    practical: float = 0.01
+    practical: float = 0.005
     practical_next: float = 0.02
     min_gain: float = 10.0
     not_separable_ratio: float = 0.6
+    nested_share: float = 0.25
     candidates: tuple = fx.EFFECT_NAMES
     seed: int = 0
 
@@ -242,11 +246,13 @@ def _select_round(sel: _Selector, accepted: tuple, ref: tuple, names: Sequence[s
         return None, cands, []
     best = passing[0]
     thr = sel.threshold(round_no)
-    # nested: prefer the simpler unless the richer gains a practical amount more
+    # nested: prefer the simpler unless the richer gains clearly more (its few extra
+    # parameters are already paid for on the held-out blocks)
+    margin = max(sel.opts.min_gain, sel.opts.nested_share * thr)
     for simple, rich in fx.NESTED:
         if best.name == rich:
             alt = next((c for c in passing if c.name == simple), None)
-            if alt is not None and best.gain - alt.gain < thr:
+            if alt is not None and best.gain - alt.gain < margin:
                 best = alt
     not_sep = []
     for other in passing:
