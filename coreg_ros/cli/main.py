@@ -213,13 +213,10 @@ def build_parser() -> argparse.ArgumentParser:
                         'link_flex=1 (mm), outliers=0.02, backlash=0.3 (mm), noise_scale=2')
     p.set_defaults(func=cmd_simulate)
 
-    from coreg_ros.cli import ros_commands
-    ros_commands.register(sub)
-    from coreg_ros.cli import plan
-    plan.register(sub)
-    from coreg_ros.cli import convert
-    convert.register(sub)
-    from coreg_ros.cli import diagnose; diagnose.register(sub)  # noqa: E702, I001
+    # the other front ends add their own subcommands (each imports its heavy parts lazily)
+    from coreg_ros.cli import convert, diagnose, plan, ros_commands
+    for module in (diagnose, convert, plan, ros_commands):
+        module.register(sub)
     return parser
 
 
