@@ -192,6 +192,12 @@ def other_table(results: dict) -> str:
                      f'{node["estimator_seconds"]} s) | success {node["success"]} |')
     elif node:
         lines.append(f'| node | – | {node} | – |')
+    diag = results.get('diagnosis')
+    if isinstance(diag, dict) and 'runtime' in diag:
+        d = diag['runtime']
+        lines.append(f'| diagnosis (coreg diagnose) | {d["n_pairs"]:,} pairs, {d["effect"]} '
+                     f'| {d["seconds"]:.1f} s (goal {d["goal_seconds"]:g} s) '
+                     f'| named {", ".join(d["named"]) or "none"} |')
     return '\n'.join(lines)
 
 
@@ -222,6 +228,10 @@ def main(argv=None) -> int:
     parser.add_argument('--mc-workers', type=int, default=2)
     parser.add_argument('--node-duration', type=float, default=60.0,
                         help='node benchmark streaming time, s (0 skips it)')
+    parser.add_argument('--diagnosis-cases', type=int, default=0,
+                        help='also run the blind diagnosis validation on this many cases '
+                             '(the 60k-pair diagnosis timing always runs)')
+    parser.add_argument('--no-diagnosis', action='store_true', help='skip the diagnosis timing')
     parser.add_argument('--no-profile', action='store_true')
     parser.add_argument('--readme', type=Path, help='also write the markdown tables here')
     args = parser.parse_args(argv)
@@ -259,6 +269,10 @@ def main(argv=None) -> int:
             results['node'] = f'not available: {type(e).__name__}: {e}'
         else:
             _section(results, 'node', bench_node.run, args.node_duration)
+    if not args.no_diagnosis:
+        from bench import bench_diagnosis
+        _section(results, 'diagnosis', bench_diagnosis.run, args.diagnosis_cases, 2024,
+                 jobs=2, timing=True)
     if not args.no_mc:
         _section(results, 'montecarlo', mc.run_all, args.mc_scale, args.mc_workers, log=log)
     results['total_seconds'] = time.perf_counter() - started
