@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-import math
 from pathlib import Path
 import sys
 from typing import Optional
 
+from coreg_ros.cli.argtypes import finite, positive
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.types import METHODS, MODELS
 
@@ -27,26 +27,6 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(1, f'{self.prog}: error: {message}; see {self.prog} --help\n')
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not value > 0 or math.isinf(value):
-        raise argparse.ArgumentTypeError(f'must be a positive number, got {text}')
-    return value
-
-
-def _number(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f'must be finite, got {text}')
-    return value
-
-
 def add_calibration_options(p: argparse.ArgumentParser) -> None:
     """Options shared by ``calibrate`` and (later) ``diagnose``: topics, model, noise."""
     p.add_argument('bag', help='rosbag2 directory (sqlite3 or mcap)')
@@ -57,13 +37,13 @@ def add_calibration_options(p: argparse.ArgumentParser) -> None:
                         '(default /device_b/pose)')
     p.add_argument('--model', choices=MODELS, help='measurement model (default full_pose)')
     p.add_argument('--method', choices=METHODS, help='estimator (default tls)')
-    p.add_argument('--sigma-a', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'),
+    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
                    help='device A noise std: position m, rotation rad')
-    p.add_argument('--sigma-b', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'),
+    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
                    help='device B noise std: position m, rotation rad')
-    p.add_argument('--max-gap', type=_positive, metavar='S',
+    p.add_argument('--max-gap', type=positive, metavar='S',
                    help='largest time from a B stamp to the A samples it is paired with, s')
-    p.add_argument('--time-offset', type=_number, metavar='S',
+    p.add_argument('--time-offset', type=finite, metavar='S',
                    help="B's clock minus A's clock, s (default 0)")
     p.add_argument('--min-pairs', type=int, help='fewest pairs accepted (default 30)')
 
@@ -186,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='do not check, after a bad fit, whether a stream should be inverted')
     p.add_argument('--report', metavar='DIR',
                    help='also write an HTML report (ellipsoids, axis cones, residuals) to DIR')
-    p.add_argument('--points', nargs='+', type=_number, metavar='X Y Z',
+    p.add_argument('--points', nargs='+', type=finite, metavar='X Y Z',
                    help="points (m) in A's base frame (or see --points-frame) at which the "
                         'report gives the registration error to expect')
     p.add_argument('--points-frame', choices=('a_base', 'a_tool'), default='a_base',
@@ -197,15 +177,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('simulate', help='write a simulated two-device recording')
     p.add_argument('out_bag', help='rosbag2 directory to create')
     p.add_argument('--seed', type=int, required=True)
-    p.add_argument('--duration', type=_positive, required=True, metavar='SECONDS')
+    p.add_argument('--duration', type=positive, required=True, metavar='SECONDS')
     p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
     p.add_argument('--model', choices=MODELS, default='full_pose')
     p.add_argument('--motion', default='diverse',
                    choices=('diverse', 'single_axis', 'no_rotation', 'static'))
-    p.add_argument('--rate-a', type=_positive, default=100.0, help='Hz (default 100)')
-    p.add_argument('--rate-b', type=_positive, default=50.0, help='Hz (default 50)')
-    p.add_argument('--sigma-a', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'))
-    p.add_argument('--sigma-b', nargs=2, type=_positive, metavar=('POS_M', 'ROT_RAD'))
+    p.add_argument('--rate-a', type=positive, default=100.0, help='Hz (default 100)')
+    p.add_argument('--rate-b', type=positive, default=50.0, help='Hz (default 50)')
+    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'))
+    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'))
     p.add_argument('--effect', action='append', metavar='NAME=VALUE',
                    help='inject an unmodelled effect (repeatable), e.g. time_offset=0.012 (s), '
                         'clock_drift=100 (ppm), timestamp_jitter=0.005 (s), '

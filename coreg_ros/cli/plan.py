@@ -10,23 +10,12 @@ model (``coreg_ros.core.planning``).
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
+from coreg_ros.cli.argtypes import positive
 from coreg_ros.core.types import MODELS
 
 PRESETS = ('diverse', 'single_axis', 'no_rotation', 'static')
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not (value > 0 and np.isfinite(value)):
-        raise argparse.ArgumentTypeError(f'must be a positive number, got {text}')
-    return value
 
 
 def register(subparsers) -> None:
@@ -34,24 +23,24 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         'plan', help='predict the calibration accuracy (Cramér-Rao bound) and the best '
                      'motion to add')
-    p.add_argument('--sigma-a', nargs=2, type=_positive, required=True,
+    p.add_argument('--sigma-a', nargs=2, type=positive, required=True,
                    metavar=('POS_M', 'ROT_RAD'), help='device A noise std: position m, '
                                                       'rotation rad')
-    p.add_argument('--sigma-b', nargs=2, type=_positive, required=True,
+    p.add_argument('--sigma-b', nargs=2, type=positive, required=True,
                    metavar=('POS_M', 'ROT_RAD'), help='device B noise std')
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument('--bag', help='a recording whose device A motion is used')
-    src.add_argument('--duration', type=_positive, metavar='S',
+    src.add_argument('--duration', type=positive, metavar='S',
                      help='simulate a recording of this length (with --motion)')
     p.add_argument('--motion', choices=PRESETS, default='diverse',
                    help='motion preset simulated with --duration (default diverse)')
     p.add_argument('--model', choices=MODELS, default='full_pose')
-    p.add_argument('--rate-b', type=_positive, metavar='HZ',
+    p.add_argument('--rate-b', type=positive, metavar='HZ',
                    help="pairs per second, device B's rate (default 50; with --bag and B "
                         'in it, the recorded pairs)')
     p.add_argument('--topic-a', default=None, help='device A topic in the bag')
     p.add_argument('--topic-b', nargs='+', metavar='T', help='device B topic(s) in the bag')
-    p.add_argument('--extra', type=_positive, default=0.5,
+    p.add_argument('--extra', type=positive, default=0.5,
                    help='recording time each candidate adds, as a fraction (default 0.5)')
     p.add_argument('--seed', type=int, default=0,
                    help='seed of the random truth and simulated motion (default 0)')

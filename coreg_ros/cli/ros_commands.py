@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import argparse
 import functools
-import math
 from pathlib import Path
 import sys
+
+from coreg_ros.cli.argtypes import positive, positive_or_inf
 
 SERVICES = ('calibrate', 'reset', 'save_samples')
 
@@ -116,18 +117,11 @@ def cmd_echo(args) -> int:
     return 0
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0 or math.isnan(value):
-        raise argparse.ArgumentTypeError(f'must be > 0, got {text}')
-    return value
-
-
 def register(subparsers) -> None:
     """Add the ``play``, ``record``, ``call`` and ``echo`` subcommands to ``subparsers``."""
     p = subparsers.add_parser('play', help='publish a bag on live topics with its timing')
     p.add_argument('bag', help='rosbag2 directory')
-    p.add_argument('--rate', type=_positive, default=1.0,
+    p.add_argument('--rate', type=positive_or_inf, default=1.0,
                    help='speed factor (default 1: real time; inf: as fast as possible)')
     p.add_argument('--topics', nargs='+', help='topics to play (default: every PoseStamped)')
     p.add_argument('--wait', type=float, default=10.0,
@@ -137,14 +131,14 @@ def register(subparsers) -> None:
     p = subparsers.add_parser('record', help='record live PoseStamped topics to a bag')
     p.add_argument('out_bag', help='rosbag2 directory to create')
     p.add_argument('--topics', nargs='+', required=True, help='PoseStamped topics')
-    p.add_argument('--duration', type=_positive, help='seconds (default: until Ctrl-C)')
+    p.add_argument('--duration', type=positive, help='seconds (default: until Ctrl-C)')
     p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
     p.set_defaults(func=cmd_record)
 
     p = subparsers.add_parser('call', help='call a coreg_node service and print the answer')
     p.add_argument('service', choices=SERVICES)
     p.add_argument('--node', default='coreg_node', help='node name (default coreg_node)')
-    p.add_argument('--timeout', type=_positive, default=60.0,
+    p.add_argument('--timeout', type=positive, default=60.0,
                    help='seconds to wait for the service and its answer (default 60)')
     p.set_defaults(func=cmd_call)
 
@@ -153,7 +147,7 @@ def register(subparsers) -> None:
     p.add_argument('--node', default='coreg_node',
                    help='node whose private topic a relative name means (default coreg_node)')
     p.add_argument('--once', action='store_true', help='exit after the first message')
-    p.add_argument('--timeout', type=_positive,
+    p.add_argument('--timeout', type=positive,
                    help='seconds to wait for a message (default: 10 with --once, else forever)')
     p.set_defaults(func=cmd_echo)
 
