@@ -51,6 +51,8 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     How the tool turned: RMS rotation (rad) about its principal axes, in A's tool frame.
 
+    Rotation vectors are taken relative to the chordal mean orientation.
+
     Parameters
     ----------
     quat_a : ndarray, shape (N, 4)
@@ -63,8 +65,8 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         Rows are the principal axes (unit vectors in the tool frame).
 
     """
-    ref = quat_a[len(quat_a) // 2]
-    rotvecs = quat.log(quat.multiply(quat.conjugate(ref), quat_a))  # body-frame rotations
+    ref = quat.chordal_mean(quat_a)
+    rotvecs = quat.log(quat.multiply(quat.conjugate(ref), quat_a))  # tool-frame rotations
     rotvecs = rotvecs - rotvecs.mean(axis=0)
     _, sv, vt = np.linalg.svd(rotvecs / np.sqrt(len(rotvecs)), full_matrices=False)
     return sv, vt

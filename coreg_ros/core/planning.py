@@ -29,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from coreg_ros.core import observability
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.crlb import CRLB_DIMENSION, cramer_rao_bound, model_jacobians
 from coreg_ros.core.errors import InputError
@@ -209,16 +210,12 @@ def predict_accuracy(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
                               registration_rms=np.array([rms_pos, rms_rot]))
 
 
-def mean_orientation(quat_a: np.ndarray) -> np.ndarray:
-    """Chordal mean of unit quaternions (w, x, y, z), shape (4,), w >= 0."""
-    q = np.asarray(quat_a, dtype=float)
-    _, vec = np.linalg.eigh(q.T @ q)
-    return quat.canonical(vec[:, -1])
-
-
 def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
-    Principal axes of the motion's rotation, in the tool frame at the mean orientation.
+    Principal axes of the motion's rotation, in the tool frame, weakest first.
+
+    ``observability.rotation_spread`` in the order planning wants: the least excited axis
+    first, axes as columns.
 
     Parameters
     ----------
@@ -233,10 +230,8 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         The axes as columns (unit, A's tool frame), in the same order.
 
     """
-    q_mean = mean_orientation(quat_a)
-    r = quat.log(quat.multiply(quat.conjugate(q_mean), quat_a))  # tool-frame rotation vectors
-    lam, vec = np.linalg.eigh(r.T @ r / len(r))
-    return np.sqrt(np.clip(lam, 0.0, None)), vec
+    spread, axes = observability.rotation_spread(np.asarray(quat_a, dtype=float))
+    return spread[::-1].copy(), axes[::-1].T.copy()
 
 
 def _resample(pos_a, quat_a, n: int):

@@ -250,6 +250,17 @@ def slerp(q0: np.ndarray, q1: np.ndarray, t) -> np.ndarray:
     return out
 
 
+def chordal_mean(q: np.ndarray) -> np.ndarray:
+    """
+    Chordal mean of unit quaternions, shape (N, 4) -> (4,), w >= 0.
+
+    The top eigenvector of Σ q qᵀ: insensitive to the signs of the q.
+    """
+    q = np.asarray(q, dtype=float)
+    _, vec = np.linalg.eigh(q.T @ q)
+    return canonical(vec[:, -1])
+
+
 def angle_between(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     """Rotation angle (rad, in [0, π]) between two orientations, shape (...)."""
     d = np.abs(np.sum(np.asarray(q0) * np.asarray(q1), axis=-1))
