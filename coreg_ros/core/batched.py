@@ -70,22 +70,3 @@ def solve_upper_t(L: list, B: np.ndarray) -> np.ndarray:
         acc /= L[i][i]
         X[i] = acc
     return X
-
-
-def spd_solve(U: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """
-    Solve ``U_i X_i = B_i`` for a stack of SPD matrices.
-
-    Parameters
-    ----------
-    U : ndarray, shape (c, n, n)
-    B : ndarray, shape (c, n, r)
-
-    Returns
-    -------
-    X : ndarray, shape (c, n, r)
-
-    """
-    L = cholesky(U)
-    Bt = np.ascontiguousarray(B.transpose(1, 2, 0))
-    return solve_upper_t(L, solve_lower(L, Bt)).transpose(2, 0, 1)

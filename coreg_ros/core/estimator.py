@@ -74,10 +74,9 @@ class Problem:
     priors: list = field(default_factory=list)
 
     def __post_init__(self):
-        # Diagonal whitening (independent noise per axis, the usual case) is applied by
+        # Diagonal output whitening (independent noise per axis, the usual case) is applied by
         # broadcasting instead of a batched matrix product.
         self.diag_b = _diagonal_or_none(self.whiten_b)
-        self.diag_a = _diagonal_or_none(self.whiten_a)
 
     def whiten_out(self, M: np.ndarray) -> np.ndarray:
         """L_y M for a stack M of shape (c, m, k)."""
