@@ -20,18 +20,17 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+import functools
 from typing import Optional
 
 import numpy as np
 
-from coreg_ros.core import batched
-from coreg_ros.core import quaternion as quat
+from coreg_ros.core import batched, structured
 from coreg_ros.core.models import (
     ModelSpec,
     Parameters,
     error_rotation_jacobian,
     linearize,
-    output_error,
 )
 
 #: Pairs processed at once; bounds the transient memory (about 3 KB per pair in a chunk).
@@ -90,6 +89,13 @@ class Problem:
     def chunks(self):
         """Slices of at most CHUNK pairs covering all pairs."""
         return [slice(i, min(i + CHUNK, self.n)) for i in range(0, self.n, CHUNK)]
+
+    @functools.cached_property
+    def columns(self) -> tuple:
+        """Contiguous pair-last copies (pos_a (3, N), quat_a (4, N), pos_b, quat_b or None)."""
+        def t(a):
+            return None if a is None else np.ascontiguousarray(np.asarray(a, dtype=float).T)
+        return t(self.pos_a), t(self.quat_a), t(self.pos_b), t(self.quat_b)
 
     def output(self, sl: slice):
         """Measured output of the pairs in ``sl``."""
@@ -165,14 +171,17 @@ class _Linearization:
     One linearisation of the problem for the LM driver.
 
     ``info`` is the (damped) normal matrix of φ, ``rhs`` its right-hand side (the step solves
-    ``info δ = rhs``), ``cost`` the cost at the linearisation point, and ``propose(δ)`` returns
-    the trial state and its cost.
+    ``info δ = rhs``), ``cost`` the cost at the linearisation point. ``propose(δ, λ')``
+    returns the trial state, its cost and the linearisation at the trial made with damping λ'
+    (or None): when the trial is accepted that linearisation is the next one, so evaluating a
+    trial and linearising there is one pass over the pairs, not two.
     """
 
     info: np.ndarray
     rhs: np.ndarray
     cost: float
     propose: Callable
+    residuals: Optional[tuple] = None
 
 
 def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
@@ -188,34 +197,37 @@ def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: 
 
     Returns
     -------
-    state, status, iterations, last : _Linearization, lam : float
-        ``last`` is the last linearisation and ``lam`` the damping it was made with.
+    state, status, iterations, last : _Linearization or None, lam : float
+        ``last`` is the linearisation at the returned state, made with damping ``lam``
+        (None if there is none).
 
     """
     lam = 1e-6
-    lin = None
+    lin = linearize(state, lam)
     for it in range(1, max_iterations + 1):
         while True:
-            lin = None  # release the previous linearisation's per-pair factors first
-            lin = linearize(state, lam)
             delta = np.linalg.lstsq(lin.info, lin.rhs, rcond=None)[0]
             if _step_is_small(delta, lin.info, xtol):
                 return state, 1, it, lin, lam
-            trial, new_cost = lin.propose(delta)
-            lin.propose = None  # keeps only info: the per-pair factors are spent
+            lam_next = max(lam / 10.0, 1e-12)
+            trial, new_cost, trial_lin = lin.propose(delta, lam_next)
             if new_cost <= lin.cost:
                 break
+            trial_lin = None  # release the rejected trial's per-pair factors
             if new_cost - lin.cost <= ftol * max(lin.cost, 1.0):
                 return state, 2, it, lin, lam
             lam *= 10.0
             if lam > 1e16:
                 return state, -1, it, lin, lam
-        state = trial
-        if _step_is_small(delta, lin.info, xtol):
+            lin = None
+            lin = linearize(state, lam)
+        state, old, lam = trial, lin, lam_next
+        lin = None
+        lin = trial_lin if trial_lin is not None else linearize(state, lam)
+        if _step_is_small(delta, old.info, xtol):
             return state, 1, it, lin, lam
-        if lin.cost - new_cost <= ftol * max(new_cost, 1.0):
+        if old.cost - new_cost <= ftol * max(new_cost, 1.0):
             return state, 2, it, lin, lam
-        lam = max(lam / 10.0, 1e-12)
     return state, 0, max_iterations, lin, lam
 
 
@@ -224,6 +236,13 @@ def _step_is_small(delta: np.ndarray, info: np.ndarray, xtol: float) -> bool:
     cov = _inverse_or_none(info)
     return cov is not None and bool(np.all(np.abs(delta) <= xtol * np.sqrt(np.diag(cov))))
 
+
+#: Default convergence tolerance: stop when the next step would move every parameter by at
+#: most this many of its posterior standard deviations. 1e-5 σ is far below anything a
+#: statistic can see (scipy's default, 1e-8 relative to |φ|, is ~1e-2 σ at 100k pairs) and
+#: lets TLS stop at the linearisation that proves convergence instead of taking one more
+#: step of ~1e-7 σ and a whole pass over the pairs to evaluate it.
+XTOL = 1e-5
 
 #: Damping below which a linearisation's information matrix is used as the posterior
 #: information without re-linearising (relative change of the covariance below 1e-6).
@@ -234,47 +253,40 @@ UNDAMPED = 1e-7
 # OLS (B.1)
 # ----------------------------------------------------------------------------------------------
 
-def _ols_residuals(problem: Problem, params: Parameters) -> tuple[float, np.ndarray]:
-    """Cost (eq. 31) and whitened output residuals (N, m) at φ."""
-    cost = 0.0
-    res = np.empty((problem.n, problem.spec.n_res))
-    for sl in problem.chunks():
-        pos_b, quat_b = problem.output(sl)
-        r = output_error(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b)
-        res[sl] = r @ problem.whiten_b.T
-        cost += float(np.sum(res[sl] ** 2))
-    r_prior, _ = _prior_rows(problem, params)
-    return cost + float(r_prior @ r_prior), res
+def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.ndarray] = None):
+    """
+    JᵀJ, Jᵀr and the cost at φ (eqs. 32-36), priors included, chunk by chunk.
 
-
-def _ols_normal(problem: Problem, params: Parameters, keep_residuals: bool = False):
-    """Accumulate JᵀJ, Jᵀg and the cost at φ (eqs. 32-36), chunk by chunk."""
-    P = problem.spec.n_params
-    H = np.zeros((P, P))
-    g = np.zeros(P)
-    cost = 0.0
-    res = np.empty((problem.n, problem.spec.n_res)) if keep_residuals else None
-    L = problem.whiten_b
-    for sl in problem.chunks():
-        pos_b, quat_b = problem.output(sl)
-        e, j_phi, _ = linearize(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b,
-                                with_input=False)
-        r = e @ L.T
-        J = problem.whiten_out(j_phi).reshape(-1, P)
-        H += J.T @ J
-        g += J.T @ r.reshape(-1)
-        cost += float(np.sum(r * r))
-        if keep_residuals:
-            res[sl] = r
+    ``residuals`` (N, m), if given, is filled with the whitened output residuals.
+    """
+    if structured.applies(problem):
+        H, g, cost = structured.ols_normal(problem, params, residuals)
+    else:
+        P = problem.spec.n_params
+        H = np.zeros((P, P))
+        g = np.zeros(P)
+        cost = 0.0
+        L = problem.whiten_b
+        for sl in problem.chunks():
+            pos_b, quat_b = problem.output(sl)
+            e, j_phi, _ = linearize(params, problem.pos_a[sl], problem.quat_a[sl], pos_b,
+                                    quat_b, with_input=False)
+            r = e @ L.T
+            J = problem.whiten_out(j_phi).reshape(-1, P)
+            H += J.T @ J
+            g += J.T @ r.reshape(-1)
+            cost += float(np.sum(r * r))
+            if residuals is not None:
+                residuals[sl] = r
     r_prior, j_prior = _prior_rows(problem, params)
     H += j_prior.T @ j_prior
     g += j_prior.T @ r_prior
     cost += float(r_prior @ r_prior)
-    return H, g, cost, res, len(r_prior)
+    return H, g, cost
 
 
 def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
-              xtol: float = 1e-8, ftol: float = 1e-12) -> Solution:
+              xtol: float = XTOL, ftol: float = 1e-12) -> Solution:
     """
     Weighted OLS by Levenberg-Marquardt with Marquardt's diagonal scaling.
 
@@ -294,39 +306,38 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
     Solution
 
     """
-    cache = {}
+    normals = []  # (state, H, g, cost, residuals) of the current state and the last trial
+
+    def normal_at(state: Parameters):
+        for entry in normals:
+            if entry[0] is state:  # re-damping needs no new pass over the pairs
+                return entry
+        res = np.empty((problem.n, problem.spec.n_res))
+        entry = (state, *_ols_normal(problem, state, res), res)
+        normals[:] = normals[-1:] + [entry]
+        return entry
 
     def linearize(state: Parameters, lam: float) -> _Linearization:
-        if cache.get('state') is not state:  # re-damping needs no new pass over the pairs
-            cache['state'] = state
-            cache['normal'] = _ols_normal(problem, state)
-        H, g, cost, _, _ = cache['normal']
+        _, H, g, cost, res = normal_at(state)
 
-        def propose(delta):
+        def propose(delta, lam_next):
             trial = state.stepped(delta)
             if not trial.valid:
-                return trial, np.inf
+                return trial, np.inf, None
             trial = trial.recharted()
-            cost, residuals = _ols_residuals(problem, trial)
-            cache['trial'] = (trial, cost, residuals)
-            return trial, cost
+            lin = linearize(trial, lam_next)
+            return trial, lin.cost, lin
 
-        return _Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose)
+        return _Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose, (res,))
 
-    params, status, it, _, lam = _levenberg_marquardt(params, linearize, max_iterations, xtol,
-                                                      ftol)
+    params, status, it, _, _ = _levenberg_marquardt(params, linearize, max_iterations, xtol,
+                                                    ftol)
+    # JᵀJ does not depend on the damping: the linearisation at the solution gives the
+    # posterior information and the residuals (Ikits B.4.2)
+    _, H, _, cost, res = normal_at(params)
     n_prior = len(_prior_rows(problem, params)[0])
-    if status > 0 and lam <= UNDAMPED:
-        # as in solve_tls: the last, almost undamped linearisation gives the posterior
-        # information, and the last trial's residuals are the solution's when it was accepted
-        H = cache['normal'][0]
-        trial, cost, res = cache.get('trial', (None, 0.0, None))
-        if trial is not params:
-            cost, res = _ols_residuals(problem, params)
-    else:
-        H, _, cost, res, n_prior = _ols_normal(problem, params, keep_residuals=True)
     return Solution(params, _inverse_or_none(H), H, cost, problem.n * problem.spec.n_res + n_prior,
-                    res, None, it, status, _status_message(status, it))
+                    res, None, it, status, _status_message(status, it, xtol))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -335,21 +346,34 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
 
 class InputState:
     """
-    The TLS estimates of the inputs x_i = (p_A, q_A), shapes (N, 3) and (N, 4).
+    The TLS estimates of the inputs x_i = (p_A, q_A), stored pair-last: (3, N) and (4, N).
 
-    Each orientation is stepped multiplicatively, ``q ← Exp(δ) ⊗ q``: a chart centred at the
-    current estimate (the limit of §3.1's re-charting), so no per-pair chart bookkeeping is
-    needed and every input block is equally well conditioned.
+    ``pos`` and ``quat`` are the (N, 3) and (N, 4) views. Each orientation is stepped
+    multiplicatively, ``q ← Exp(δ) ⊗ q``: a chart centred at the current estimate (the limit
+    of §3.1's re-charting), so no per-pair chart bookkeeping is needed and every input block
+    is equally well conditioned.
     """
 
     def __init__(self, pos: np.ndarray, quats: np.ndarray):
-        self.pos = np.array(pos, dtype=float)
-        self.quat = np.array(quats, dtype=float)
+        self.pos_t = np.ascontiguousarray(np.asarray(pos, dtype=float).T)
+        self.quat_t = np.ascontiguousarray(np.asarray(quats, dtype=float).T)
+
+    @property
+    def pos(self) -> np.ndarray:
+        """Input positions, (N, 3) view."""
+        return self.pos_t.T
+
+    @property
+    def quat(self) -> np.ndarray:
+        """Input orientations, (N, 4) view."""
+        return self.quat_t.T
 
     def stepped(self, dx: np.ndarray) -> InputState:
-        """Return the state after the step dx (N, 6) = (δp, δθ)."""
-        q = quat.multiply(quat.exp(dx[:, 3:6]), self.quat)
-        return InputState(self.pos + dx[:, 0:3], q / np.linalg.norm(q, axis=1, keepdims=True))
+        """Return the state after the step dx (6, N) = (δp, δθ), pair-last."""
+        out = InputState.__new__(InputState)
+        out.pos_t = self.pos_t + dx[0:3]
+        out.quat_t = structured.rotated(self.quat_t, dx[3:6])
+        return out
 
 
 def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
@@ -374,27 +398,6 @@ def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
     return r_x, e_y @ problem.whiten_b.T, A_x, problem.whiten_out(j_x), problem.whiten_out(j_phi)
 
 
-def _tls_cost(problem: Problem, params: Parameters, x: InputState,
-              keep_residuals: bool = False):
-    """Cost (eq. 43) at (x, φ); with ``keep_residuals`` also the whitened residuals."""
-    cost = 0.0
-    res_y = np.empty((problem.n, problem.spec.n_res)) if keep_residuals else None
-    res_x = np.empty((problem.n, 6)) if keep_residuals else None
-    for sl in problem.chunks():
-        pos_b, quat_b = problem.output(sl)
-        r_y = output_error(params, x.pos[sl], x.quat[sl], pos_b, quat_b) @ problem.whiten_b.T
-        ex_rot, _ = error_rotation_jacobian(x.quat[sl], problem.quat_a[sl])
-        r_x = np.concatenate([x.pos[sl] - problem.pos_a[sl], ex_rot], axis=1) @ problem.whiten_a.T
-        if problem.a_scale is not None:
-            r_x = r_x / np.sqrt(problem.a_scale[sl])[:, None]
-        cost += float(np.sum(r_x ** 2) + np.sum(r_y ** 2))
-        if keep_residuals:
-            res_y[sl], res_x[sl] = r_y, r_x
-    r_prior, _ = _prior_rows(problem, params)
-    cost += float(r_prior @ r_prior)
-    return (cost, res_y, res_x) if keep_residuals else cost
-
-
 def _damped(U: np.ndarray, lam: float) -> np.ndarray:
     """U + λ diag(U) for a stack of 6×6 blocks."""
     if lam == 0.0:
@@ -405,21 +408,25 @@ def _damped(U: np.ndarray, lam: float) -> np.ndarray:
     return U
 
 
-def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float):
+def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float,
+               residuals: Optional[tuple] = None):
     """
     Reduced system S δφ = b and the cost at (x, φ), chunk by chunk (Schur complement).
 
     With ``U_i = L_i L_iᵀ`` (batched Cholesky of the damped 6×6 input blocks) and
     ``Z_i = L_i⁻¹ [W_i | g_i]``, ``S = Σ B_iᵀB_i - Σ Z_iᵀZ_i`` (W and g parts). Only the
-    factors and Z are kept per pair, for ``back_substitute``.
+    factors and Z are kept per pair, for ``back_substitute``. Priors and the damping of the φ
+    block are added by the caller.
 
     Returns
     -------
     S : ndarray, shape (P, P)
     b : ndarray, shape (P,)
+    v_diag : ndarray, shape (P,)
+        diag(Σ BᵀB), the scale of the φ damping.
     cost : float
-    factors : tuple
-        Per-chunk (L, Z) for the back-substitution.
+    factors : list
+        Per-chunk (L, Z) for ``back_substitute``.
 
     """
     P = problem.spec.n_params
@@ -451,24 +458,51 @@ def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float):
         v_diag += np.einsum('ij,ij->j', B2, B2)
         b += -(B2.T @ r_y.reshape(-1)) + ZW.T @ Zg
         cost += float(np.sum(r_x ** 2) + np.sum(r_y ** 2))
-    r_prior, j_prior = _prior_rows(problem, params)
-    S += j_prior.T @ j_prior + lam * np.diag(v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
-    b -= j_prior.T @ r_prior
-    cost += float(r_prior @ r_prior)
-    return S, b, cost, factors
+        if residuals is not None:
+            residuals[0][sl], residuals[1][sl] = r_y, r_x
+    return S, b, v_diag, cost, factors
 
 
 def back_substitute(problem: Problem, factors: list, delta_phi: np.ndarray) -> np.ndarray:
-    """Input corrections ``δx_i = -U_i⁻¹(g_i + W_i δφ) = -L_i⁻ᵀ(Z_g,i + Z_W,i δφ)``, (N, 6)."""
-    dx = np.empty((problem.n, 6))
+    """Input corrections ``δx_i = -U_i⁻¹(g_i + W_i δφ) = -L_i⁻ᵀ(Z_g,i + Z_W,i δφ)``, (6, N)."""
+    if isinstance(factors, structured.TlsFactors):
+        return structured.back_substitute(problem.n, factors, delta_phi)
+    dx = np.empty((6, problem.n))
     for sl, (L, Z) in zip(problem.chunks(), factors, strict=True):
         rhs = Z[:, :-1, :].transpose(0, 2, 1) @ delta_phi + Z[:, -1, :]  # (6, c), float64
-        dx[sl] = -batched.solve_upper_t(L, rhs[:, None, :])[:, 0, :].T
+        dx[:, sl] = -batched.solve_upper_t(L, rhs[:, None, :])[:, 0, :]
     return dx
 
 
+def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: float):
+    """
+    Linearise TLS at (x, φ): the damped reduced system with priors, cost and residuals.
+
+    The structured path (``structured.applies``) and the generic one give the same system.
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+        Damped Schur complement (undamped when λ = 0: the posterior information).
+    b : ndarray, shape (P,)
+    cost : float
+    residuals : tuple of ndarray
+        Whitened output (N, m) and input (N, 6) residuals.
+    factors
+        For ``back_substitute``.
+
+    """
+    residuals = (np.empty((problem.n, problem.spec.n_res)), np.empty((problem.n, 6)))
+    schur = structured.tls_schur if structured.applies(problem) else _tls_schur
+    S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
+    r_prior, j_prior = _prior_rows(problem, params)
+    S = S + j_prior.T @ j_prior + lam * np.diag(v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
+    b = b - j_prior.T @ r_prior
+    return S, b, cost + float(r_prior @ r_prior), residuals, factors
+
+
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
-              xtol: float = 1e-8, ftol: float = 1e-12) -> Solution:
+              xtol: float = XTOL, ftol: float = 1e-12) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -492,41 +526,39 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     """
     def linearize(state, lam: float) -> _Linearization:
         phi, x = state
-        S, b, cost, factors = _tls_schur(problem, phi, x, lam)
+        S, b, cost, residuals, factors = tls_linearization(problem, phi, x, lam)
 
-        def propose(delta):
+        def propose(delta, lam_next):
             trial = phi.stepped(delta)
             if not trial.valid:
-                return state, np.inf
-            trial_x = x.stepped(back_substitute(problem, factors, delta))
-            factors.clear()
-            trial = trial.recharted()
-            return (trial, trial_x), _tls_cost(problem, trial, trial_x)
+                return state, np.inf, None
+            trial = (trial.recharted(), x.stepped(back_substitute(problem, factors, delta)))
+            factors.clear()  # spent: free them before the trial's are made
+            lin = linearize(trial, lam_next)
+            return trial, lin.cost, lin
 
-        return _Linearization(S, b, cost, propose)
-
+        return _Linearization(S, b, cost, propose, residuals)
 
     state = (params, InputState(problem.pos_a, problem.quat_a))
     (params, x), status, it, last, lam = _levenberg_marquardt(
         state, linearize, max_iterations, xtol, ftol)
     if status > 0 and lam <= UNDAMPED:
-        # Converged within xtol·σ (or on a flat cost) of the last, almost undamped
-        # linearisation: its Schur complement is the posterior information (relative change
-        # of the covariance ~1e-5), which saves a whole pass over the pairs.
-        info = last.info
+        # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
+        # is almost undamped: its Schur complement is the posterior information (relative
+        # change of the covariance ~1e-5), which saves a whole pass over the pairs.
+        info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
     else:
-        info, _, _, _ = _tls_schur(problem, params, x, 0.0)
-    # (residuals are recomputed rather than kept from the last trial: 96 bytes per pair)
-    chi2, res_y, res_x = _tls_cost(problem, params, x, keep_residuals=True)
+        last = None
+        info, _, chi2, (res_y, res_x), _ = tls_linearization(problem, params, x, 0.0)
     n_prior = len(_prior_rows(problem, params)[0])
     return Solution(params, _inverse_or_none(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
-                    _status_message(status, it))
+                    _status_message(status, it, xtol))
 
 
-def _status_message(status: int, iterations: int) -> str:
+def _status_message(status: int, iterations: int, xtol: float) -> str:
     return {
-        1: f'converged in {iterations} iterations: steps below 1e-8 standard deviations',
+        1: f'converged in {iterations} iterations: steps below {xtol:g} standard deviations',
         2: f'converged in {iterations} iterations: cost no longer decreases',
         0: f'stopped at the iteration limit ({iterations}) before converging; raise '
            f'max_iterations or check the noise settings',

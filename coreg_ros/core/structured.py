@@ -1,0 +1,534 @@
+"""
+Normal equations of full-pose and position-only problems through their block structure.
+
+The generic code in ``estimator`` forms every pair's Jacobian blocks and multiplies them as
+stacks of small matrices. For one marker (full pose, position only) with noise that does not
+correlate position and rotation (block-diagonal whitening, the usual case), the same normal
+equations (Ikits eqs. 36, 42) follow from far less work:
+
+- Every pair is written in *channels* expressed in A's base frame: the position channel
+  ``ε_p = R0ᵀ e_p`` (information ``Q̄p = R0ᵀ Qp R0``, one 3×3 matrix for all pairs) and the
+  rotation channel, whose linearisation depends on the parameters and the input only through
+  the total left perturbation ``t = θ0' + δθ_A + R_A θ1`` (information
+  ``H_r = (D R0)ᵀ Q_r (D R0)`` with D the §3.2 metric's Jacobian, eq. 15). In the parameter
+  coordinates ``φ' = (R0ᵀ δp0, R0ᵀ δθ0, δp1, δθ1)`` a pair's Jacobian is
+  ``B_p = [I, -[v]×, R_A, 0]`` and ``B_r = [0, I, 0, R_A]`` with ``v = p_A + R_A p1``; φ' maps
+  to the reduced-quaternion φ by one constant block-diagonal matrix T.
+- The position part of ``Σ B_pᵀ Q B_p`` (Q constant) is a contraction of the 13×13 moment
+  matrix of ``f = (1, v, R_A)``, one matrix product over the pairs.
+- TLS (B.2): the input position enters linearly with a constant information block, so it is
+  eliminated in closed form (one constant 3×3 inverse, Schur complement ``Q_e``); only a 3×3
+  block per pair remains for the input rotation, factored by closed-form Cholesky. Per pair
+  that is a few dozen vector operations on arrays with the pair index last, instead of 6×6
+  factorisations with 13 right-hand sides.
+
+The results equal the generic path's to rounding (``test_structured.py`` compares them, damped
+and undamped); ``applies`` says when this path is valid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.models import Parameters, tangent_of_chart
+
+#: Pairs processed at once. Larger than the generic CHUNK: the per-pair state here is small
+#: (about 1.5 KB transient) and longer vectors amortise numpy's per-call overhead.
+CHUNK = 8192
+
+
+def applies(problem) -> bool:
+    """
+    Tell whether the structured path computes this problem's normal equations.
+
+    True for full-pose and position-only models without per-pair input weights whose noise
+    does not correlate position with rotation (block-diagonal whitening of both devices).
+    """
+    if problem.spec.name not in ('full_pose', 'position_only') or problem.a_scale is not None:
+        return False
+    return _block_diagonal(problem.whiten_a) and _block_diagonal(problem.whiten_b)
+
+
+def _block_diagonal(L: np.ndarray) -> bool:
+    """Tell whether L (3×3 or 6×6) has no position-rotation cross blocks."""
+    return L.shape == (3, 3) or (not L[0:3, 3:6].any() and not L[3:6, 0:3].any())
+
+
+# ----------------------------------------------------------------------------------------------
+# Structure-of-arrays helpers: vectors (3, c), matrices (3, 3, c), quaternions (4, c)
+# ----------------------------------------------------------------------------------------------
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (3, 3, c) of unit quaternions (4, c) (Ikits eq. 21)."""
+    w, x, y, z = q
+    R = np.empty((3, 3, q.shape[1]))
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R[0, 0], R[0, 1], R[0, 2] = ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz
+    return R
+
+
+def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of quaternions (4,) or (4, c), broadcast to (4, c)."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return np.array([pw * qw - px * qx - py * qy - pz * qz,
+                     pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx,
+                     pw * qz + px * qy - py * qx + pz * qw])
+
+
+def rotated(q: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """
+    ``Exp(d) ⊗ q``, renormalised, for quaternions (4, c) and rotation vectors d (3, c), rad.
+
+    The TLS input step (pair-last layout); accurate near zero angle (Taylor series of
+    sin(θ/2)/θ).
+    """
+    th2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    th = np.sqrt(th2)
+    small = th < 1e-6
+    safe = np.where(small, 1.0, th)
+    k = np.where(small, 0.5 - th2 / 48.0, np.sin(0.5 * safe) / safe)
+    out = _qmul(np.concatenate([np.cos(0.5 * th)[None], k * d]), q)
+    out /= np.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
+    return out
+
+
+def _skew(u: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [u]× (3, 3, c) of vectors (3, c)."""
+    S = np.zeros((3, 3, u.shape[1]))
+    S[0, 1], S[0, 2], S[1, 2] = -u[2], u[1], -u[0]
+    S[1, 0], S[2, 0], S[2, 1] = u[2], -u[1], u[0]
+    return S
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Cross products of vectors (3, c)."""
+    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                     u[0] * v[1] - u[1] * v[0]])
+
+
+def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Per-pair products A B of matrices (3, 3, c) (contiguous inputs keep einsum fast)."""
+    return np.einsum('abn,bcn->acn', A, B)
+
+
+def _tmm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Per-pair products Aᵀ B of matrices (3, 3, c)."""
+    return np.einsum('ban,bcn->acn', A, B)
+
+
+def _left(Q: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Q A for a constant Q (3, 3) and matrices (3, 3, c): one matrix product."""
+    return (Q @ A.reshape(3, -1)).reshape(A.shape)
+
+
+def _gram(Y: np.ndarray) -> np.ndarray:
+    """``Σ_pairs Y_iᵀ Y_i`` for Y (r, k, c): k×k, by r symmetric matrix products."""
+    return sum(Y[a] @ Y[a].T for a in range(Y.shape[0]))
+
+
+def _metric_jacobian(E: np.ndarray) -> np.ndarray:
+    """D = ∂vec(E)/∂a (3, 3, c) for ``E ← Exp(a) ⊗ E``: ``(E_w I - [E_v]×) / 2`` (eq. 15)."""
+    D = _skew(-0.5 * E[1:])
+    for k in range(3):
+        D[k, k] = 0.5 * E[0]
+    return D
+
+
+def _error_quaternion(q_model: np.ndarray, q_meas: np.ndarray) -> np.ndarray:
+    """``q_model ⊗ q_meas*`` with the sign that makes its scalar part >= 0 (§3.2), (4, c)."""
+    E = _qmul(q_model, q_meas * np.array([1.0, -1.0, -1.0, -1.0])[:, None])
+    return np.where(E[0] < 0.0, -E, E)
+
+
+def _sym_solve3(L: tuple, rhs: np.ndarray, transpose: bool) -> np.ndarray:
+    """Solve ``L y = rhs`` (or ``Lᵀ y = rhs``) with L the closed-form 3×3 Cholesky factor."""
+    l00, l10, l11, l20, l21, l22 = L
+    y = np.empty_like(rhs)
+    if not transpose:
+        y[0] = rhs[0] / l00
+        y[1] = (rhs[1] - l10 * y[0]) / l11
+        y[2] = (rhs[2] - l20 * y[0] - l21 * y[1]) / l22
+    else:
+        y[2] = rhs[2] / l22
+        y[1] = (rhs[1] - l21 * y[2]) / l11
+        y[0] = (rhs[0] - l10 * y[1] - l20 * y[2]) / l00
+    return y
+
+
+def _cholesky3(U: np.ndarray) -> tuple:
+    """Closed-form lower Cholesky factors of SPD blocks (3, 3, c): l00, l10, l11, l20, l21, l22."""
+    l00 = np.sqrt(U[0, 0])
+    l10 = U[1, 0] / l00
+    l20 = U[2, 0] / l00
+    l11 = np.sqrt(U[1, 1] - l10 * l10)
+    l21 = (U[2, 1] - l20 * l10) / l11
+    l22 = np.sqrt(U[2, 2] - l20 * l20 - l21 * l21)
+    return l00, l10, l11, l20, l21, l22
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-chunk channels
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class _Frame:
+    """Constants of one linearisation: φ, whitening blocks and the φ' -> φ map."""
+
+    params: Parameters
+    has_rot: bool
+    P: int
+    Lp: np.ndarray
+    Lr: Optional[np.ndarray]
+    Lap: np.ndarray
+    Lar: np.ndarray
+    Qp_bar: np.ndarray
+    T: np.ndarray
+    xi: np.ndarray
+    q_model: np.ndarray
+
+    @classmethod
+    def of(cls, problem, params: Parameters) -> _Frame:
+        spec = problem.spec
+        has_rot = spec.has_q1
+        P = spec.n_params
+        Lb, La = problem.whiten_b, problem.whiten_a
+        R0 = params.R0
+        Lp = Lb[0:3, 0:3]
+        T = np.zeros((P, P))
+        T[0:3, 0:3] = R0.T
+        T[3:6, 3:6] = R0.T @ tangent_of_chart(params.q0, params.dq0)
+        T[6:9, 6:9] = np.eye(3)
+        if has_rot:
+            T[9:12, 9:12] = tangent_of_chart(params.q1, params.dq1)
+        return cls(params, has_rot, P, Lp, Lb[3:6, 3:6] if has_rot else None, La[0:3, 0:3],
+                   La[3:6, 3:6], R0.T @ (Lp.T @ Lp) @ R0, T, _moment_map(P),
+                   # q0 ⊗ q_A ⊗ q1 as one constant 4×4 matrix on q_A
+                   quat.left_matrix(params.q0) @ quat.right_matrix(params.q1))
+
+    def gram(self, F: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """``Σ B_pᵀ Q B_p`` (P×P, φ' coordinates) from the moments F = Σ f fᵀ."""
+        return np.einsum('akl,ab,bjm,lm->kj', self.xi, Q, self.xi, F, optimize=True)
+
+
+def _moment_map(P: int) -> np.ndarray:
+    """Ξ (3, P, 13) with ``B_p[a, k] = Σ_l Ξ[a, k, l] f_l``, ``f = (1, v, vec R_A)``."""
+    xi = np.zeros((3, P, 13))
+    eps = np.zeros((3, 3, 3))
+    eps[0, 1, 2] = eps[1, 2, 0] = eps[2, 0, 1] = 1.0
+    eps[0, 2, 1] = eps[2, 1, 0] = eps[1, 0, 2] = -1.0
+    for a in range(3):
+        xi[a, a, 0] = 1.0                       # p0': I
+        for j in range(3):
+            for lv in range(3):
+                xi[a, 3 + j, 1 + lv] = -eps[a, lv, j]   # θ0': -[v]×
+            xi[a, 6 + j, 4 + 3 * a + j] = 1.0   # p1: R_A
+    return xi
+
+
+@dataclass
+class _Chunk:
+    """Channel quantities of the pairs of one chunk (pair index last)."""
+
+    Ra: np.ndarray      # (3, 3, c) input orientations
+    c: np.ndarray       # (3, c) R_A p1
+    v: np.ndarray       # (3, c) p_A + R_A p1
+    r_out: np.ndarray   # (m, c) whitened output residuals
+    gp: np.ndarray      # (3, c) R0ᵀ Qp e_p
+    Hr: Optional[np.ndarray]   # (3, 3, c) rotation channel information
+    gr: Optional[np.ndarray]   # (3, c) rotation channel gradient
+
+
+def _scalar(L: np.ndarray) -> Optional[float]:
+    """Return l if L = l·I (isotropic noise), else None."""
+    return float(L[0, 0]) if np.array_equal(L, L[0, 0] * np.eye(len(L))) else None
+
+
+def _rotation_information(L: np.ndarray, E: np.ndarray, R: np.ndarray):
+    """
+    Whitened residual, information and gradient of a rotation error E (4, c) (§3.2).
+
+    The metric ``e = vec(E)`` is perturbed by ``E ← Exp(R t) ⊗ E``, so ``∂e/∂t = D R`` with
+    D of eq. 15. Returns ``r = L e`` (3, c), ``H = (D R)ᵀ Lᵀ L (D R)`` (3, 3, c) and
+    ``g = (D R)ᵀ Lᵀ r`` (3, c). For isotropic L = w·I these are closed forms: with
+    ``f = Rᵀ e``, ``H = w²/4 (I - f fᵀ)`` (since DᵀD = (I - e eᵀ)/4 for a unit E) and
+    ``g = w²/2 E_w f``.
+    """
+    ev = E[1:]
+    w = _scalar(L)
+    if w is None:
+        r = L @ ev
+        X = _left(L, np.einsum('abn,bc->acn', _metric_jacobian(E), R))
+        return r, _tmm(X, X), np.einsum('ban,bn->an', X, r)
+    f = R.T @ ev
+    H = np.empty((3, 3, E.shape[1]))
+    q = -0.25 * w * w
+    for i in range(3):
+        for j in range(i + 1):
+            H[i, j] = H[j, i] = q * f[i] * f[j]
+        H[i, i] -= q
+    return w * ev, H, (0.5 * w * w * E[0]) * f
+
+
+def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b) -> _Chunk:
+    """Residuals and channel Jacobians of a chunk, all pair-last: inputs (3, c), (4, c)."""
+    params = frame.params
+    R0 = params.R0
+    Ra = _rotation(qa)
+    c = np.einsum('abn,b->an', Ra, params.markers[0])
+    v = pos_a + c
+    e_p = (params.p0[:, None] + R0 @ v) - pos_b
+    r_p = frame.Lp @ e_p
+    gp = (R0.T @ frame.Lp.T) @ r_p
+    if not frame.has_rot:
+        return _Chunk(Ra, c, v, r_p, gp, None, None)
+    E = _error_quaternion(frame.q_model @ qa, quat_b)
+    r_r, Hr, gr = _rotation_information(frame.Lr, E, R0)
+    return _Chunk(Ra, c, v, np.concatenate([r_p, r_r]), gp, Hr, gr)
+
+
+def _features(ch: _Chunk) -> np.ndarray:
+    """Moment features ``f = (1, v, vec R_A)`` per pair, (13, c)."""
+    return np.concatenate([np.ones((1, ch.v.shape[1])), ch.v, ch.Ra.reshape(9, -1)])
+
+
+def _sum_gradient(frame: _Frame, ch: _Chunk, hp: np.ndarray) -> np.ndarray:
+    """``Σ (B_pᵀ hp + B_rᵀ gr)`` over the chunk, (P,) in φ' coordinates."""
+    g = np.zeros(frame.P)
+    g[0:3] = hp.sum(axis=1)
+    g[3:6] = _cross(ch.v, hp).sum(axis=1)
+    g[6:9] = np.einsum('abn,an->b', ch.Ra, hp)
+    if frame.has_rot:
+        g[3:6] += ch.gr.sum(axis=1)
+        g[9:12] = np.einsum('abn,an->b', ch.Ra, ch.gr)
+    return g
+
+
+def _add_rotation_block(M: np.ndarray, Hr: np.ndarray, HrRa: np.ndarray, Ra: np.ndarray):
+    """
+    Add ``Σ B_rᵀ H_r B_r`` (the θ0', θ1 blocks, ``B_r = [0, I, 0, R_A]``) to M in place.
+
+    Blocks: ``Σ H_r``, ``Σ H_r R_A`` and ``Σ R_Aᵀ H_r R_A``.
+    """
+    M[3:6, 3:6] += Hr.sum(axis=2)
+    M[3:6, 9:12] += HrRa.sum(axis=2)
+    M[9:12, 3:6] = M[3:6, 9:12].T
+    M[9:12, 9:12] += np.einsum('abn,acn->bc', Ra, HrRa)
+
+
+def _chunk_of(columns: tuple, sl: slice) -> list:
+    """Return the pair-last columns of the pairs in ``sl`` (None stays None)."""
+    return [None if a is None else a[:, sl] for a in columns]
+
+
+def _chunks(n: int):
+    return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
+
+
+# ----------------------------------------------------------------------------------------------
+# OLS (B.1)
+# ----------------------------------------------------------------------------------------------
+
+def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = None):
+    """
+    JᵀJ, Jᵀr and the cost of the whitened output residuals at φ (Ikits eqs. 32-36).
+
+    Parameters
+    ----------
+    problem : estimator.Problem
+        One for which ``applies`` is true.
+    params : Parameters
+    residuals : ndarray, shape (N, m), optional
+        Filled with the whitened output residuals.
+
+    Returns
+    -------
+    H : ndarray, shape (P, P)
+    g : ndarray, shape (P,)
+        Jᵀr, the half-gradient of the cost.
+    cost : float
+
+    """
+    frame = _Frame.of(problem, params)
+    P = frame.P
+    F = np.zeros((13, 13))
+    H = np.zeros((P, P))
+    g = np.zeros(P)
+    cost = 0.0
+    for sl in _chunks(problem.n):
+        ch = _channels(frame, *_chunk_of(problem.columns, sl))
+        f = _features(ch)
+        F += f @ f.T
+        if frame.has_rot:
+            _add_rotation_block(H, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+        g += _sum_gradient(frame, ch, ch.gp)
+        cost += float(np.einsum('ij,ij->', ch.r_out, ch.r_out))
+        if residuals is not None:
+            residuals[sl] = ch.r_out.T
+    H += frame.gram(F, frame.Qp_bar)
+    T = frame.T
+    return T.T @ H @ T, T.T @ g, cost
+
+
+# ----------------------------------------------------------------------------------------------
+# TLS (B.2)
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class TlsFactors:
+    """What the input back-substitution needs of one linearisation (per chunk lists)."""
+
+    T: np.ndarray
+    Mp: np.ndarray
+    Qp_bar: np.ndarray
+    chunks: list  # (slice, L (6, c), Zs (3, k, c), c, v, Ra, gpa)
+
+    def clear(self) -> None:
+        """Drop the per-pair factors (spent after the back-substitution)."""
+        self.chunks.clear()
+
+
+def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
+    """
+    Reduced system ``S δφ = b`` and the cost at (x, φ) (Ikits eqs. 42-49), damped by λ.
+
+    Per pair, the input position is eliminated in closed form (constant ``M_p``, ``Q_e``)
+    and the input rotation by the closed-form Cholesky factor L of the remaining 3×3 block
+    ``Ũ = [c]×ᵀ Q_e [c]× + H_r + H_ar``. With ``Z = L⁻¹ [N | H_r | g̃_θ]`` (``N = [c]× Q_e``)
+    the pair's coupling to φ' is ``Z_W = Z_N B_p + Z_H B_r`` and
+    ``S' = Σ B_pᵀ Q_e B_p + Σ B_rᵀ H_r B_r - Σ Z_Wᵀ Z_W``.
+
+    Damping as in the generic path: λ·diag on every pair's 6×6 input block and λ·diag(V) on
+    the φ block, V = Σ Bᵀ B. Priors are not included (the caller adds them).
+
+    Parameters
+    ----------
+    problem : estimator.Problem
+    params : Parameters
+    x : estimator.InputState
+        Current input estimates.
+    lam : float
+    residuals : tuple of ndarray, optional
+        (N, m) and (N, 6) arrays filled with the whitened output and input residuals.
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+    b : ndarray, shape (P,)
+    v_diag : ndarray, shape (P,)
+        diag(V), for the damping of the φ block by the caller.
+    cost : float
+    factors : TlsFactors
+
+    """
+    frame = _Frame.of(problem, params)
+    P, Qp_bar, has_rot = frame.P, frame.Qp_bar, frame.has_rot
+    Qap = frame.Lap.T @ frame.Lap
+    Upp = Qp_bar + Qap
+    Mp = np.linalg.inv(Upp + lam * np.diag(np.diag(Upp)))
+    QM = Qp_bar @ Mp
+    Qe = Qp_bar - QM @ Qp_bar
+    Qe = 0.5 * (Qe + Qe.T)
+    F = np.zeros((13, 13))
+    V = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
+    ZZ = np.zeros((P + 1, P + 1))
+    g = np.zeros(P)
+    cost = 0.0
+    factors = TlsFactors(frame.T, Mp, Qp_bar, [])
+    k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
+    for sl in _chunks(problem.n):
+        pos_a, quat_a, pos_b, quat_b = _chunk_of(problem.columns, sl)
+        xp, xq = x.pos_t[:, sl], x.quat_t[:, sl]
+        ch = _channels(frame, xp, xq, pos_b, quat_b)
+        n = ch.c.shape[1]
+        r_ap = frame.Lap @ (xp - pos_a)
+        gap = frame.Lap.T @ r_ap
+        Ea = _error_quaternion(xq, quat_a)
+        r_ar, U, gar = _rotation_information(frame.Lar, Ea, np.eye(3))
+        # the rotation block's diagonal before eliminating δp_A scales its damping
+        C = _skew(ch.c)
+        pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
+        N = np.einsum('abn,bc->acn', C, Qe)
+        U -= _mm(N, C)
+        gpa = ch.gp + gap
+        hp = ch.gp - QM @ gpa
+        rhs = np.empty((3, k, n))
+        rhs[:, 0:3] = N
+        rhs[:, k - 1] = _cross(ch.c, hp) + gar
+        if has_rot:
+            pre += ch.Hr[[0, 1, 2], [0, 1, 2]]
+            U += ch.Hr
+            rhs[:, 3:6] = ch.Hr
+            rhs[:, k - 1] += ch.gr
+            _add_rotation_block(V, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+        for i in range(3):
+            U[i, i] += lam * pre[i]
+        L = _cholesky3(U)
+        Zs = _sym_solve3(L, rhs, transpose=False)
+        ZZ += _gram(_coupling(Zs, ch, P))
+        f = _features(ch)
+        F += f @ f.T
+        g += _sum_gradient(frame, ch, hp)
+        cost += float(np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
+                      + np.einsum('ij,ij->', r_ar, r_ar))
+        if residuals is not None:
+            residuals[0][sl] = ch.r_out.T
+            residuals[1][sl, 0:3] = r_ap.T
+            residuals[1][sl, 3:6] = r_ar.T
+        # kept for the back-substitution; float32 as in the generic path (an inexact Newton
+        # step in x only: δφ is solved from S and b accumulated in float64)
+        factors.chunks.append((sl, np.array(L, dtype=np.float32), Zs.astype(np.float32),
+                               ch.c, ch.v, ch.Ra.astype(np.float32), gpa))
+    T = frame.T
+    S = T.T @ (frame.gram(F, Qe) + V - ZZ[:P, :P]) @ T
+    b = T.T @ (-g + ZZ[:P, P])
+    v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + V) @ T).copy()
+    return S, b, v_diag, cost, factors
+
+
+def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
+    """``[Z_W | Z_g]`` (3, P+1, c) from ``Zs = L⁻¹[N | H_r | g̃_θ]``: Z_W = Z_N B_p + Z_H B_r."""
+    Zn = Zs[:, 0:3]
+    out = np.empty((3, P + 1, Zs.shape[2]))
+    out[:, 0:3] = Zn
+    for a in range(3):
+        out[a, 3:6] = _cross(ch.v, Zn[a])   # row a of -Z_N [v]× is v × (row a of Z_N)
+    out[:, 6:9] = _mm(Zn, ch.Ra)
+    if P == 12:
+        out[:, 3:6] += Zs[:, 3:6]
+        out[:, 9:12] = _mm(Zs[:, 3:6], ch.Ra)
+    out[:, P] = Zs[:, -1]
+    return out
+
+
+def back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray) -> np.ndarray:
+    """
+    Input corrections (6, N) = (δp_A, δθ_A) for the parameter step δφ (reduced coordinates).
+
+    ``δθ_A = -L⁻ᵀ(Z_g + Z_N B_p δφ' + Z_H B_r δφ')`` by the stored factors, then
+    ``δp_A = -M_p(g_p + g_ap - Q̄p[c]× δθ_A + Q̄p B_p δφ')``.
+    """
+    d = factors.T @ delta_phi
+    dx = np.empty((6, n))
+    for sl, L, Zs, c, v, Ra, gpa in factors.chunks:
+        L = tuple(L.astype(float))
+        Zs = Zs.astype(float)
+        Bp = d[0:3, None] - _cross(v, np.broadcast_to(d[3:6, None], v.shape)) \
+            + np.einsum('abn,b->an', Ra, d[6:9])
+        rhs = np.einsum('abn,bn->an', Zs[:, 0:3], Bp) + Zs[:, -1]
+        if len(d) == 12:
+            Br = d[3:6, None] + np.einsum('abn,b->an', Ra, d[9:12])
+            rhs += np.einsum('abn,bn->an', Zs[:, 3:6], Br)
+        dth = -_sym_solve3(L, rhs, transpose=True)
+        dp = -factors.Mp @ (gpa + factors.Qp_bar @ (Bp - _cross(c, dth)))
+        dx[0:3, sl] = dp
+        dx[3:6, sl] = dth
+    return dx

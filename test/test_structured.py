@@ -1,0 +1,169 @@
+"""
+The structured normal equations (core/structured.py) against the generic path.
+
+The generic path forms every pair's Jacobian blocks and eliminates 6×6 input blocks; the
+structured one works in channels, eliminates the input position in closed form and keeps a
+3×3 block per pair. Both must give the same linear systems, damped and undamped, for either
+whitening branch (isotropic closed forms and general matrices), in every chart, and the same
+solutions. A problem with ``a_scale`` set to ones is the same problem, solved generically.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from coreg_ros.core import estimator as est
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core import structured
+from coreg_ros.core.calibrate import whitening
+from coreg_ros.core.initialize import initialize
+from coreg_ros.core.models import SPECS
+from coreg_ros.sim import Truth, simulate_pairs
+
+N = 400
+ISOTROPIC = (np.diag([1e-6] * 3 + [4e-5] * 3), np.diag([4e-6] * 3 + [3e-4] * 3))
+ANISOTROPIC = (np.diag([1e-6, 4e-6, 9e-6, 1e-5, 4e-5, 2e-5]),
+               np.diag([4e-6, 1e-6, 2e-6, 1e-4, 3e-4, 2e-4]))
+
+
+def _problem(model, noise, seed, truth=None):
+    rng = np.random.default_rng(seed)
+    noisy, _, truth = simulate_pairs(rng, N, model, sigma_a=(1e-3, 6e-3), sigma_b=(2e-3, 1.5e-2),
+                                     truth=truth)
+    spec = SPECS[model]
+    cov_a, cov_b = noise
+    cov_a = cov_a.copy()
+    # a full (non-diagonal) rotation block exercises the general whitening branch
+    if noise is ANISOTROPIC:
+        cov_a[3:6, 3:6] += 0.5e-5 * (np.ones((3, 3)) - np.eye(3))
+    return est.Problem(spec, noisy.pos_a, noisy.quat_a, noisy.pos_b, noisy.quat_b,
+                       whitening(cov_b, spec, 'b'), whitening(cov_a, None, 'a')), rng
+
+
+def _generic(problem):
+    """The same problem, routed to the generic path by unit per-pair input weights."""
+    return dataclasses.replace(problem, a_scale=np.ones(problem.n))
+
+
+def _perturbed_state(problem, rng):
+    spec = problem.spec
+    start = initialize(spec, problem.pos_a, problem.quat_a, problem.pos_b, problem.quat_b)
+    params = start.stepped(rng.normal(0.0, 2e-3, spec.n_params)).recharted()
+    x = est.InputState(problem.pos_a + rng.normal(0.0, 1e-3, (problem.n, 3)),
+                       quat.multiply(quat.exp(rng.normal(0.0, 5e-3, (problem.n, 3))),
+                                     problem.quat_a))
+    return params, x
+
+
+def _rel(a, b):
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+CASES = [(m, w) for m in ('full_pose', 'position_only') for w in ('isotropic', 'anisotropic')]
+
+
+@pytest.mark.parametrize('model, kind', CASES)
+def test_ols_normal_equations_match_the_generic_path(model, kind):
+    problem, rng = _problem(model, ISOTROPIC if kind == 'isotropic' else ANISOTROPIC, 1)
+    params, _ = _perturbed_state(problem, rng)
+    assert structured.applies(problem) and not structured.applies(_generic(problem))
+    r1, r2 = np.empty((N, problem.spec.n_res)), np.empty((N, problem.spec.n_res))
+    H1, g1, c1 = est._ols_normal(problem, params, r1)
+    H2, g2, c2 = est._ols_normal(_generic(problem), params, r2)
+    assert _rel(H1, H2) < 1e-12
+    assert _rel(g1, g2) < 1e-10
+    assert c1 == pytest.approx(c2, rel=1e-12)
+    assert np.abs(r1 - r2).max() < 1e-10
+
+
+@pytest.mark.parametrize('model, kind', CASES)
+@pytest.mark.parametrize('lam', [0.0, 1e-3, 0.5])
+def test_tls_schur_complement_matches_the_generic_path(model, kind, lam):
+    problem, rng = _problem(model, ISOTROPIC if kind == 'isotropic' else ANISOTROPIC, 2)
+    params, x = _perturbed_state(problem, rng)
+    S1, b1, c1, (ry1, rx1), f1 = est.tls_linearization(problem, params, x, lam)
+    S2, b2, c2, (ry2, rx2), f2 = est.tls_linearization(_generic(problem), params, x, lam)
+    assert isinstance(f1, structured.TlsFactors) and not isinstance(f2, structured.TlsFactors)
+    assert _rel(S1, S2) < 1e-11
+    assert _rel(b1, b2) < 1e-10
+    assert c1 == pytest.approx(c2, rel=1e-12)
+    assert np.abs(ry1 - ry2).max() < 1e-10 and np.abs(rx1 - rx2).max() < 1e-10
+    # the input corrections of one step agree to the float32 storage of the factors
+    delta = np.linalg.solve(S1, b1)
+    dx1 = est.back_substitute(problem, f1, delta)
+    dx2 = est.back_substitute(_generic(problem), f2, delta)
+    assert dx1.shape == (6, N)
+    assert _rel(dx1, dx2) < 1e-5
+
+
+def _half_turn(axis):
+    axis = np.asarray(axis, dtype=float)
+    return np.concatenate([[0.0], axis / np.linalg.norm(axis)])
+
+
+@pytest.mark.parametrize('q0, q1', [
+    (_half_turn([1, 0, 0]), _half_turn([0, 1, 1])),
+    ([1.0, 0.0, 0.0, 0.0], quat.exp(np.array([0.0, 0.0, np.pi - 1e-3]))),
+    (quat.exp(np.array([0.3, -2.0, 1.0])), quat.exp(np.array([-1.0, 0.5, 2.5]))),
+])
+def test_tls_matches_in_every_chart(q0, q1):
+    truth = Truth(p0=[0.4, -0.6, 0.3], q0=q0, p1=[0.05, -0.08, 0.12], q1=q1,
+                  markers=np.array([[0.05, -0.08, 0.12]]), model='full_pose')
+    problem, rng = _problem('full_pose', ISOTROPIC, 3, truth=truth)
+    params, x = _perturbed_state(problem, rng)
+    S1, b1, *_ = est.tls_linearization(problem, params, x, 1e-2)
+    S2, b2, *_ = est.tls_linearization(_generic(problem), params, x, 1e-2)
+    assert _rel(S1, S2) < 1e-11
+    assert _rel(b1, b2) < 1e-10
+
+
+@pytest.mark.parametrize('model', ['full_pose', 'position_only'])
+def test_solutions_match_the_generic_path(model):
+    problem, _ = _problem(model, ISOTROPIC, 4)
+    start = initialize(problem.spec, problem.pos_a, problem.quat_a, problem.pos_b,
+                       problem.quat_b)
+    for solve in (est.solve_ols, est.solve_tls):
+        fast = solve(problem, start)
+        slow = solve(_generic(problem), start)
+        assert fast.status > 0 and slow.status > 0
+        sigma = np.sqrt(np.diag(slow.cov))
+        # both stop within 1e-5 σ of the optimum
+        assert np.all(np.abs(fast.params.phi - slow.params.phi) <= 3e-5 * sigma)
+        assert fast.chi2 == pytest.approx(slow.chi2, rel=1e-9)
+        assert _rel(fast.cov, slow.cov) < 1e-4
+
+
+def test_applies_only_where_the_structure_holds():
+    problem, _ = _problem('full_pose', ISOTROPIC, 5)
+    assert structured.applies(problem)
+    Lb = problem.whiten_b.copy()
+    Lb[4, 1] = 0.3 * Lb[4, 4]  # position-rotation correlation in B's noise
+    assert not structured.applies(dataclasses.replace(problem, whiten_b=Lb))
+    La = problem.whiten_a.copy()
+    La[0, 5] = 0.1 * La[0, 0]
+    assert not structured.applies(dataclasses.replace(problem, whiten_a=La))
+    three, _ = _problem('three_marker', ISOTROPIC, 5)
+    assert not structured.applies(three)
+
+
+def test_rotated_input_step():
+    rng = np.random.default_rng(6)
+    q = quat.exp(rng.normal(size=(50, 3)))
+    d = np.concatenate([rng.normal(0.0, 1e-8, (10, 3)), rng.normal(0.0, 1.0, (40, 3))])
+    want = quat.multiply(quat.exp(d), q)
+    got = structured.rotated(np.ascontiguousarray(q.T), np.ascontiguousarray(d.T)).T
+    assert np.abs(got - want).max() < 1e-14
+    assert np.abs(np.linalg.norm(got, axis=1) - 1.0).max() < 1e-15
+
+
+def test_input_state_views_and_step():
+    rng = np.random.default_rng(7)
+    pos, q = rng.normal(size=(20, 3)), quat.exp(rng.normal(size=(20, 3)))
+    x = est.InputState(pos, q)
+    assert np.array_equal(x.pos, pos) and np.array_equal(x.quat, q)
+    dx = rng.normal(0.0, 0.1, (6, 20))
+    y = x.stepped(dx)
+    assert np.allclose(y.pos, pos + dx[0:3].T, atol=1e-15)
+    assert np.allclose(y.quat, quat.multiply(quat.exp(dx[3:6].T), q), atol=1e-14)
+    assert np.array_equal(x.pos, pos)  # stepping returns a new state
