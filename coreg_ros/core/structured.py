@@ -29,6 +29,8 @@ and undamped); ``applies`` says when this path is valid.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import functools
+import operator
 from typing import Optional
 
 import numpy as np
@@ -329,6 +331,17 @@ def _chunk_of(columns: tuple, sl: slice) -> list:
     return [None if a is None else a[:, sl] for a in columns]
 
 
+def _sum_chunks(fn, n: int) -> list:
+    """
+    Apply ``fn`` to every chunk of pairs and add up what it returns, term by term.
+
+    (Linearising chunks in two threads was tried: slower, as the GIL is held between the
+    short numpy calls and BLAS threads oversubscribe the two cores.)
+    """
+    parts = [fn(sl) for sl in _chunks(n)]
+    return [functools.reduce(operator.add, terms) for terms in zip(*parts, strict=True)]
+
+
 def _chunks(n: int):
     return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
@@ -358,24 +371,22 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
 
     """
     frame = _Frame.of(problem, params)
-    P = frame.P
-    F = np.zeros((13, 13))
-    H = np.zeros((P, P))
-    g = np.zeros(P)
-    cost = 0.0
-    for sl in _chunks(problem.n):
+
+    def chunk(sl):
         ch = _channels(frame, *_chunk_of(problem.columns, sl))
         f = _features(ch)
-        F += f @ f.T
+        H = np.zeros((frame.P, frame.P))
         if frame.has_rot:
             _add_rotation_block(H, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
-        g += _sum_gradient(frame, ch, ch.gp)
-        cost += float(np.einsum('ij,ij->', ch.r_out, ch.r_out))
         if residuals is not None:
             residuals[sl] = ch.r_out.T
+        return f @ f.T, H, _sum_gradient(frame, ch, ch.gp), np.einsum('ij,ij->', ch.r_out,
+                                                                       ch.r_out)
+
+    F, H, g, cost = _sum_chunks(chunk, problem.n)
     H += frame.gram(F, frame.Qp_bar)
     T = frame.T
-    return T.T @ H @ T, T.T @ g, cost
+    return T.T @ H @ T, T.T @ g, float(cost)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -437,14 +448,16 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
     QM = Qp_bar @ Mp
     Qe = Qp_bar - QM @ Qp_bar
     Qe = 0.5 * (Qe + Qe.T)
-    F = np.zeros((13, 13))
-    V = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
-    ZZ = np.zeros((P + 1, P + 1))
-    g = np.zeros(P)
-    cost = 0.0
+    lp, lap = _scalar(frame.Lp), _scalar(frame.Lap)
+    iso = None
+    if lp is not None and lap is not None:  # isotropic position noise: scalar closed forms
+        q = lp * lp
+        m = 1.0 / ((q + lap * lap) * (1.0 + lam))
+        iso = (q, q - q * q * m)
     factors = TlsFactors(frame.T, Mp, Qp_bar, [])
     k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
-    for sl in _chunks(problem.n):
+
+    def chunk(sl):
         pos_a, quat_a, pos_b, quat_b = _chunk_of(problem.columns, sl)
         xp, xq = x.pos_t[:, sl], x.quat_t[:, sl]
         ch = _channels(frame, xp, xq, pos_b, quat_b)
@@ -455,14 +468,26 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         r_ar, U, gar = _rotation_information(frame.Lar, Ea, np.eye(3))
         # the rotation block's diagonal before eliminating δp_A scales its damping
         C = _skew(ch.c)
-        pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
-        N = np.einsum('abn,bc->acn', C, Qe)
-        U -= _mm(N, C)
+        if iso is None:
+            pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
+            N = np.einsum('abn,bc->acn', C, Qe)
+            U -= _mm(N, C)
+        else:  # Q̄p = q I, Q_e = q_e I: [c]×ᵀ Q [c]× = q (|c|² I - c cᵀ), N = q_e [c]×
+            q, qe = iso
+            cc = ch.c * ch.c
+            c2 = cc.sum(axis=0)
+            pre = q * (c2 - cc) + U[[0, 1, 2], [0, 1, 2]]
+            for i in range(3):
+                U[i, i] += qe * (c2 - cc[i])
+                for j in range(i):
+                    U[i, j] -= qe * (ch.c[i] * ch.c[j])  # the lower triangle is all L uses
+            N = qe * C
         gpa = ch.gp + gap
         hp = ch.gp - QM @ gpa
         rhs = np.empty((3, k, n))
         rhs[:, 0:3] = N
         rhs[:, k - 1] = _cross(ch.c, hp) + gar
+        V = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
         if has_rot:
             pre += ch.Hr[[0, 1, 2], [0, 1, 2]]
             U += ch.Hr
@@ -473,25 +498,26 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             U[i, i] += lam * pre[i]
         L = _cholesky3(U)
         Zs = _sym_solve3(L, rhs, transpose=False)
-        ZZ += _gram(_coupling(Zs, ch, P))
         f = _features(ch)
-        F += f @ f.T
-        g += _sum_gradient(frame, ch, hp)
-        cost += float(np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
-                      + np.einsum('ij,ij->', r_ar, r_ar))
         if residuals is not None:
             residuals[0][sl] = ch.r_out.T
             residuals[1][sl, 0:3] = r_ap.T
             residuals[1][sl, 3:6] = r_ar.T
         # kept for the back-substitution; float32 as in the generic path (an inexact Newton
         # step in x only: δφ is solved from S and b accumulated in float64)
-        factors.chunks.append((sl, np.array(L, dtype=np.float32), Zs.astype(np.float32),
-                               ch.c, ch.v, ch.Ra.astype(np.float32), gpa))
+        kept = (sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c, ch.v,
+                ch.Ra.astype(np.float32), gpa)
+        cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
+                + np.einsum('ij,ij->', r_ar, r_ar))
+        return (f @ f.T, V, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost,
+                [kept])
+
+    F, V, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
     T = frame.T
     S = T.T @ (frame.gram(F, Qe) + V - ZZ[:P, :P]) @ T
     b = T.T @ (-g + ZZ[:P, P])
     v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + V) @ T).copy()
-    return S, b, v_diag, cost, factors
+    return S, b, v_diag, float(cost), factors
 
 
 def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
@@ -499,12 +525,16 @@ def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
     Zn = Zs[:, 0:3]
     out = np.empty((3, P + 1, Zs.shape[2]))
     out[:, 0:3] = Zn
-    for a in range(3):
-        out[a, 3:6] = _cross(ch.v, Zn[a])   # row a of -Z_N [v]× is v × (row a of Z_N)
-    out[:, 6:9] = _mm(Zn, ch.Ra)
+    # -Z_N [v]×: row a is v × (row a of Z_N), for the three rows at once
+    v0, v1, v2 = ch.v
+    z0, z1, z2 = Zn[:, 0], Zn[:, 1], Zn[:, 2]
+    out[:, 3] = v1 * z2 - v2 * z1
+    out[:, 4] = v2 * z0 - v0 * z2
+    out[:, 5] = v0 * z1 - v1 * z0
+    np.einsum('abn,bcn->acn', Zn, ch.Ra, out=out[:, 6:9])
     if P == 12:
         out[:, 3:6] += Zs[:, 3:6]
-        out[:, 9:12] = _mm(Zs[:, 3:6], ch.Ra)
+        np.einsum('abn,bcn->acn', Zs[:, 3:6], ch.Ra, out=out[:, 9:12])
     out[:, P] = Zs[:, -1]
     return out
 
