@@ -8,6 +8,7 @@ whitening branch (isotropic closed forms and general matrices), in every chart, 
 solutions. A problem with ``a_scale`` set to ones is the same problem, solved generically.
 """
 
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -41,9 +42,18 @@ def _problem(model, noise, seed, truth=None):
                        whitening(cov_b, spec, 'b'), whitening(cov_a, None, 'a')), rng
 
 
-def _generic(problem):
-    """The same problem, routed to the generic path by unit per-pair input weights."""
-    return dataclasses.replace(problem, a_scale=np.ones(problem.n))
+@contextlib.contextmanager
+def generic(monkeypatch):
+    """Within the block, every problem takes the generic path."""
+    with monkeypatch.context() as m:
+        m.setattr(structured, 'applies', lambda problem, inputs=True: False)
+        yield
+
+
+def _weighted(problem, seed=0):
+    """The problem with per-pair weights on A's noise as pairing makes them (0.5 to 1)."""
+    alpha = np.random.default_rng(seed).uniform(0.0, 1.0, problem.n)
+    return dataclasses.replace(problem, a_scale=alpha ** 2 + (1.0 - alpha) ** 2)
 
 
 def _perturbed_state(problem, rng):
@@ -64,26 +74,34 @@ CASES = [(m, w) for m in ('full_pose', 'position_only') for w in ('isotropic', '
 
 
 @pytest.mark.parametrize('model, kind', CASES)
-def test_ols_normal_equations_match_the_generic_path(model, kind):
+def test_ols_normal_equations_match_the_generic_path(model, kind, monkeypatch):
     problem, rng = _problem(model, ISOTROPIC if kind == 'isotropic' else ANISOTROPIC, 1)
     params, _ = _perturbed_state(problem, rng)
-    assert structured.applies(problem) and not structured.applies(_generic(problem))
+    assert structured.applies(problem, inputs=False)
     r1, r2 = np.empty((N, problem.spec.n_res)), np.empty((N, problem.spec.n_res))
     H1, g1, c1 = est._ols_normal(problem, params, r1)
-    H2, g2, c2 = est._ols_normal(_generic(problem), params, r2)
+    with generic(monkeypatch):
+        H2, g2, c2 = est._ols_normal(problem, params, r2)
     assert _rel(H1, H2) < 1e-12
     assert _rel(g1, g2) < 1e-10
     assert c1 == pytest.approx(c2, rel=1e-12)
     assert np.abs(r1 - r2).max() < 1e-10
 
 
-@pytest.mark.parametrize('model, kind', CASES)
+WEIGHTED = [(m, w, a) for m, w in CASES for a in (False, True) if not (a and w == 'anisotropic')]
+
+
+@pytest.mark.parametrize('model, kind, weighted', WEIGHTED)
 @pytest.mark.parametrize('lam', [0.0, 1e-3, 0.5])
-def test_tls_schur_complement_matches_the_generic_path(model, kind, lam):
+def test_tls_schur_complement_matches_the_generic_path(model, kind, weighted, lam, monkeypatch):
     problem, rng = _problem(model, ISOTROPIC if kind == 'isotropic' else ANISOTROPIC, 2)
+    if weighted:
+        problem = _weighted(problem)
     params, x = _perturbed_state(problem, rng)
+    assert structured.applies(problem)
     S1, b1, c1, (ry1, rx1), f1 = est.tls_linearization(problem, params, x, lam)
-    S2, b2, c2, (ry2, rx2), f2 = est.tls_linearization(_generic(problem), params, x, lam)
+    with generic(monkeypatch):
+        S2, b2, c2, (ry2, rx2), f2 = est.tls_linearization(problem, params, x, lam)
     assert isinstance(f1, structured.TlsFactors) and not isinstance(f2, structured.TlsFactors)
     assert _rel(S1, S2) < 1e-11
     assert _rel(b1, b2) < 1e-10
@@ -92,7 +110,7 @@ def test_tls_schur_complement_matches_the_generic_path(model, kind, lam):
     # the input corrections of one step agree to the float32 storage of the factors
     delta = np.linalg.solve(S1, b1)
     dx1 = est.back_substitute(problem, f1, delta)
-    dx2 = est.back_substitute(_generic(problem), f2, delta)
+    dx2 = est.back_substitute(problem, f2, delta)
     assert dx1.shape == (6, N)
     assert _rel(dx1, dx2) < 1e-5
 
@@ -107,25 +125,28 @@ def _half_turn(axis):
     ([1.0, 0.0, 0.0, 0.0], quat.exp(np.array([0.0, 0.0, np.pi - 1e-3]))),
     (quat.exp(np.array([0.3, -2.0, 1.0])), quat.exp(np.array([-1.0, 0.5, 2.5]))),
 ])
-def test_tls_matches_in_every_chart(q0, q1):
+def test_tls_matches_in_every_chart(q0, q1, monkeypatch):
     truth = Truth(p0=[0.4, -0.6, 0.3], q0=q0, p1=[0.05, -0.08, 0.12], q1=q1,
                   markers=np.array([[0.05, -0.08, 0.12]]), model='full_pose')
     problem, rng = _problem('full_pose', ISOTROPIC, 3, truth=truth)
     params, x = _perturbed_state(problem, rng)
     S1, b1, *_ = est.tls_linearization(problem, params, x, 1e-2)
-    S2, b2, *_ = est.tls_linearization(_generic(problem), params, x, 1e-2)
+    with generic(monkeypatch):
+        S2, b2, *_ = est.tls_linearization(problem, params, x, 1e-2)
     assert _rel(S1, S2) < 1e-11
     assert _rel(b1, b2) < 1e-10
 
 
 @pytest.mark.parametrize('model', ['full_pose', 'position_only'])
-def test_solutions_match_the_generic_path(model):
+def test_solutions_match_the_generic_path(model, monkeypatch):
     problem, _ = _problem(model, ISOTROPIC, 4)
+    problem = _weighted(problem, 4)
     start = initialize(problem.spec, problem.pos_a, problem.quat_a, problem.pos_b,
                        problem.quat_b)
     for solve in (est.solve_ols, est.solve_tls):
         fast = solve(problem, start)
-        slow = solve(_generic(problem), start)
+        with generic(monkeypatch):
+            slow = solve(problem, start)
         assert fast.status > 0 and slow.status > 0
         sigma = np.sqrt(np.diag(slow.cov))
         # both stop within 1e-5 σ of the optimum
@@ -145,6 +166,11 @@ def test_applies_only_where_the_structure_holds():
     assert not structured.applies(dataclasses.replace(problem, whiten_a=La))
     three, _ = _problem('three_marker', ISOTROPIC, 5)
     assert not structured.applies(three)
+    # per-pair input weights: TLS needs isotropic position noise, OLS does not use them
+    assert structured.applies(_weighted(problem))
+    aniso, _ = _problem('full_pose', ANISOTROPIC, 5)
+    assert not structured.applies(_weighted(aniso))
+    assert structured.applies(_weighted(aniso), inputs=False)
 
 
 def test_rotated_input_step():

@@ -259,7 +259,7 @@ def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.nda
 
     ``residuals`` (N, m), if given, is filled with the whitened output residuals.
     """
-    if structured.applies(problem):
+    if structured.applies(problem, inputs=False):
         H, g, cost = structured.ols_normal(problem, params, residuals)
     else:
         P = problem.spec.n_params

@@ -43,16 +43,22 @@ from coreg_ros.core.models import Parameters, tangent_of_chart
 CHUNK = 8192
 
 
-def applies(problem) -> bool:
+def applies(problem, inputs: bool = True) -> bool:
     """
     Tell whether the structured path computes this problem's normal equations.
 
-    True for full-pose and position-only models without per-pair input weights whose noise
-    does not correlate position with rotation (block-diagonal whitening of both devices).
+    True for full-pose and position-only models whose noise does not correlate position
+    with rotation (block-diagonal whitening of both devices). With ``inputs`` (TLS), per-pair
+    weights on A's noise (``a_scale``) also need isotropic position noise of both devices, so
+    that eliminating the input position stays a scalar per pair.
     """
-    if problem.spec.name not in ('full_pose', 'position_only') or problem.a_scale is not None:
+    if problem.spec.name not in ('full_pose', 'position_only'):
         return False
-    return _block_diagonal(problem.whiten_a) and _block_diagonal(problem.whiten_b)
+    if not (_block_diagonal(problem.whiten_a) and _block_diagonal(problem.whiten_b)):
+        return False
+    return (not inputs or problem.a_scale is None
+            or (_scalar(problem.whiten_b[0:3, 0:3]) is not None
+                and _scalar(problem.whiten_a[0:3, 0:3]) is not None))
 
 
 def _block_diagonal(L: np.ndarray) -> bool:
@@ -398,9 +404,9 @@ class TlsFactors:
     """What the input back-substitution needs of one linearisation (per chunk lists)."""
 
     T: np.ndarray
-    Mp: np.ndarray
+    Mp: Optional[np.ndarray]   # constant M_p, or None when it is a scalar per pair
     Qp_bar: np.ndarray
-    chunks: list  # (slice, L (6, c), Zs (3, k, c), c, v, Ra, gpa)
+    chunks: list  # (slice, L (6, c), Zs (3, k, c), c, v, Ra, gpa, scalar M_p or None)
 
     def clear(self) -> None:
         """Drop the per-pair factors (spent after the back-substitution)."""
@@ -442,18 +448,18 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
     """
     frame = _Frame.of(problem, params)
     P, Qp_bar, has_rot = frame.P, frame.Qp_bar, frame.has_rot
-    Qap = frame.Lap.T @ frame.Lap
-    Upp = Qp_bar + Qap
-    Mp = np.linalg.inv(Upp + lam * np.diag(np.diag(Upp)))
-    QM = Qp_bar @ Mp
-    Qe = Qp_bar - QM @ Qp_bar
-    Qe = 0.5 * (Qe + Qe.T)
     lp, lap = _scalar(frame.Lp), _scalar(frame.Lap)
-    iso = None
-    if lp is not None and lap is not None:  # isotropic position noise: scalar closed forms
-        q = lp * lp
-        m = 1.0 / ((q + lap * lap) * (1.0 + lam))
-        iso = (q, q - q * q * m)
+    iso = lp is not None and lap is not None
+    if iso:  # Q̄p = q I, Q_ap = q_a I: the position elimination is a scalar per pair
+        q, qa = lp * lp, lap * lap
+        Mp = Qe = None
+    else:  # constant 3×3 blocks (per-pair input weights need isotropic positions: applies)
+        Qap = frame.Lap.T @ frame.Lap
+        Upp = Qp_bar + Qap
+        Mp = np.linalg.inv(Upp + lam * np.diag(np.diag(Upp)))
+        QM = Qp_bar @ Mp
+        Qe = Qp_bar - QM @ Qp_bar
+        Qe = 0.5 * (Qe + Qe.T)
     factors = TlsFactors(frame.T, Mp, Qp_bar, [])
     k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
 
@@ -463,27 +469,36 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         ch = _channels(frame, xp, xq, pos_b, quat_b)
         n = ch.c.shape[1]
         r_ap = frame.Lap @ (xp - pos_a)
-        gap = frame.Lap.T @ r_ap
-        Ea = _error_quaternion(xq, quat_a)
-        r_ar, U, gar = _rotation_information(frame.Lar, Ea, np.eye(3))
-        # the rotation block's diagonal before eliminating δp_A scales its damping
+        r_ar, U, gar = _rotation_information(frame.Lar, _error_quaternion(xq, quat_a), np.eye(3))
+        # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
+        w = 1.0 if problem.a_scale is None else 1.0 / problem.a_scale[sl]
+        gap = (frame.Lap.T @ r_ap) * w
+        if problem.a_scale is not None:
+            r_ap *= np.sqrt(w)
+            r_ar *= np.sqrt(w)
+            U *= w
+            gar *= w
         C = _skew(ch.c)
-        if iso is None:
-            pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
-            N = np.einsum('abn,bc->acn', C, Qe)
-            U -= _mm(N, C)
-        else:  # Q̄p = q I, Q_e = q_e I: [c]×ᵀ Q [c]× = q (|c|² I - c cᵀ), N = q_e [c]×
-            q, qe = iso
+        gpa = ch.gp + gap
+        if iso:
+            # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q
+            m = 1.0 / ((q + qa * w) * (1.0 + lam))
+            qe = q - q * q * m
             cc = ch.c * ch.c
             c2 = cc.sum(axis=0)
-            pre = q * (c2 - cc) + U[[0, 1, 2], [0, 1, 2]]
+            pre = q * (c2 - cc) + U[[0, 1, 2], [0, 1, 2]]   # the diagonal that scales the damping
             for i in range(3):
                 U[i, i] += qe * (c2 - cc[i])
                 for j in range(i):
                     U[i, j] -= qe * (ch.c[i] * ch.c[j])  # the lower triangle is all L uses
             N = qe * C
-        gpa = ch.gp + gap
-        hp = ch.gp - QM @ gpa
+            hp = ch.gp - (q * m) * gpa
+        else:
+            m = None
+            pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
+            N = np.einsum('abn,bc->acn', C, Qe)
+            U -= _mm(N, C)
+            hp = ch.gp - QM @ gpa
         rhs = np.empty((3, k, n))
         rhs[:, 0:3] = N
         rhs[:, k - 1] = _cross(ch.c, hp) + gar
@@ -506,15 +521,17 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         # kept for the back-substitution; float32 as in the generic path (an inexact Newton
         # step in x only: δφ is solved from S and b accumulated in float64)
         kept = (sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c, ch.v,
-                ch.Ra.astype(np.float32), gpa)
+                ch.Ra.astype(np.float32), gpa, m)
         cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
                 + np.einsum('ij,ij->', r_ar, r_ar))
-        return (f @ f.T, V, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost,
-                [kept])
+        # Σ B_pᵀ Q_e B_p from moments: weighted by the scalar q_e, or Q_e applied at the end
+        fe = f * qe if iso else f
+        return (f @ f.T, fe @ f.T, V, _gram(_coupling(Zs, ch, P)),
+                _sum_gradient(frame, ch, hp), cost, [kept])
 
-    F, V, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
+    F, Fe, V, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
     T = frame.T
-    S = T.T @ (frame.gram(F, Qe) + V - ZZ[:P, :P]) @ T
+    S = T.T @ (frame.gram(Fe, np.eye(3) if iso else Qe) + V - ZZ[:P, :P]) @ T
     b = T.T @ (-g + ZZ[:P, P])
     v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + V) @ T).copy()
     return S, b, v_diag, float(cost), factors
@@ -548,7 +565,7 @@ def back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray) -> np.nd
     """
     d = factors.T @ delta_phi
     dx = np.empty((6, n))
-    for sl, L, Zs, c, v, Ra, gpa in factors.chunks:
+    for sl, L, Zs, c, v, Ra, gpa, m in factors.chunks:
         L = tuple(L.astype(float))
         Zs = Zs.astype(float)
         Bp = d[0:3, None] - _cross(v, np.broadcast_to(d[3:6, None], v.shape)) \
@@ -558,7 +575,8 @@ def back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray) -> np.nd
             Br = d[3:6, None] + np.einsum('abn,b->an', Ra, d[9:12])
             rhs += np.einsum('abn,bn->an', Zs[:, 3:6], Br)
         dth = -_sym_solve3(L, rhs, transpose=True)
-        dp = -factors.Mp @ (gpa + factors.Qp_bar @ (Bp - _cross(c, dth)))
+        y = gpa + factors.Qp_bar @ (Bp - _cross(c, dth))
+        dp = -(factors.Mp @ y) if m is None else -(m * y)
         dx[0:3, sl] = dp
         dx[3:6, sl] = dth
     return dx
