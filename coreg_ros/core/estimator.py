@@ -92,10 +92,17 @@ class Problem:
 
     @functools.cached_property
     def columns(self) -> tuple:
-        """Contiguous pair-last copies (pos_a (3, N), quat_a (4, N), pos_b, quat_b or None)."""
-        def t(a):
-            return None if a is None else np.ascontiguousarray(np.asarray(a, dtype=float).T)
-        return t(self.pos_a), t(self.quat_a), t(self.pos_b), t(self.quat_b)
+        """
+        Contiguous pair-last copies of the pairs, for ``structured``.
+
+        p_A (3, N), q_A (4, N), p_B (3, N) and q_B* (4, N) or None: B's orientations
+        conjugated, as the error quaternions use them.
+        """
+        def t(a, sign=1.0):
+            return None if a is None else np.ascontiguousarray(np.asarray(a, dtype=float).T
+                                                               * sign)
+        return (t(self.pos_a), t(self.quat_a), t(self.pos_b),
+                t(self.quat_b, np.array([1.0, -1.0, -1.0, -1.0])[:, None]))
 
     def output(self, sl: slice):
         """Measured output of the pairs in ``sl``."""
@@ -312,7 +319,7 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
         for entry in normals:
             if entry[0] is state:  # re-damping needs no new pass over the pairs
                 return entry
-        res = np.empty((problem.n, problem.spec.n_res))
+        res = _pair_last(problem.n, problem.spec.n_res)
         entry = (state, *_ols_normal(problem, state, res), res)
         normals[:] = normals[-1:] + [entry]
         return entry
@@ -492,7 +499,7 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
         For ``back_substitute``.
 
     """
-    residuals = (np.empty((problem.n, problem.spec.n_res)), np.empty((problem.n, 6)))
+    residuals = (_pair_last(problem.n, problem.spec.n_res), _pair_last(problem.n, 6))
     schur = structured.tls_schur if structured.applies(problem) else _tls_schur
     S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
     r_prior, j_prior = _prior_rows(problem, params)
@@ -554,6 +561,11 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     return Solution(params, _inverse_or_none(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
                     _status_message(status, it, xtol))
+
+
+def _pair_last(n: int, m: int) -> np.ndarray:
+    """Return an (n, m) array stored pair-last (chunks of pair-last rows copy in at once)."""
+    return np.empty((m, n)).T
 
 
 def _status_message(status: int, iterations: int, xtol: float) -> str:

@@ -94,18 +94,21 @@ def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def rotated(q: np.ndarray, d: np.ndarray) -> np.ndarray:
     """
-    ``Exp(d) ⊗ q``, renormalised, for quaternions (4, c) and rotation vectors d (3, c), rad.
+    ``Exp(d) ⊗ q``, renormalised, for quaternions (4, N) and rotation vectors d (3, N), rad.
 
-    The TLS input step (pair-last layout); accurate near zero angle (Taylor series of
-    sin(θ/2)/θ).
+    The TLS input step (pair-last layout), chunk by chunk so that the temporaries stay in
+    cache; accurate near zero angle (Taylor series of sin(θ/2)/θ).
     """
-    th2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-    th = np.sqrt(th2)
-    small = th < 1e-6
-    safe = np.where(small, 1.0, th)
-    k = np.where(small, 0.5 - th2 / 48.0, np.sin(0.5 * safe) / safe)
-    out = _qmul(np.concatenate([np.cos(0.5 * th)[None], k * d]), q)
-    out /= np.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
+    out = np.empty_like(q)
+    for sl in _chunks(q.shape[1]):
+        dc = d[:, sl]
+        th2 = dc[0] * dc[0] + dc[1] * dc[1] + dc[2] * dc[2]
+        th = np.sqrt(th2)
+        small = th < 1e-6
+        safe = np.where(small, 1.0, th)
+        k = np.where(small, 0.5 - th2 / 48.0, np.sin(0.5 * safe) / safe)
+        qc = _qmul(np.concatenate([np.cos(0.5 * th)[None], k * dc]), q[:, sl])
+        out[:, sl] = qc / np.sqrt(qc[0] * qc[0] + qc[1] * qc[1] + qc[2] * qc[2] + qc[3] * qc[3])
     return out
 
 
@@ -151,10 +154,14 @@ def _metric_jacobian(E: np.ndarray) -> np.ndarray:
     return D
 
 
-def _error_quaternion(q_model: np.ndarray, q_meas: np.ndarray) -> np.ndarray:
-    """``q_model ⊗ q_meas*`` with the sign that makes its scalar part >= 0 (§3.2), (4, c)."""
-    E = _qmul(q_model, q_meas * np.array([1.0, -1.0, -1.0, -1.0])[:, None])
-    return np.where(E[0] < 0.0, -E, E)
+_CONJ = np.array([1.0, -1.0, -1.0, -1.0])[:, None]
+
+
+def _error_quaternion(q_model: np.ndarray, q_meas_conj: np.ndarray) -> np.ndarray:
+    """``q_model ⊗ q_meas*`` (given q_meas*) with its scalar part made >= 0 (§3.2), (4, c)."""
+    E = _qmul(q_model, q_meas_conj)
+    E *= np.where(E[0] < 0.0, -1.0, 1.0)
+    return E
 
 
 def _sym_solve3(L: tuple, rhs: np.ndarray, transpose: bool) -> np.ndarray:
@@ -469,11 +476,13 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         ch = _channels(frame, xp, xq, pos_b, quat_b)
         n = ch.c.shape[1]
         r_ap = frame.Lap @ (xp - pos_a)
-        r_ar, U, gar = _rotation_information(frame.Lar, _error_quaternion(xq, quat_a), np.eye(3))
+        Ea = _error_quaternion(xq, quat_a * _CONJ)
+        r_ar, U, gar = _rotation_information(frame.Lar, Ea, np.eye(3))
+        gap = frame.Lap.T @ r_ap
         # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
         w = 1.0 if problem.a_scale is None else 1.0 / problem.a_scale[sl]
-        gap = (frame.Lap.T @ r_ap) * w
         if problem.a_scale is not None:
+            gap *= w
             r_ap *= np.sqrt(w)
             r_ar *= np.sqrt(w)
             U *= w
@@ -524,14 +533,18 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
                 ch.Ra.astype(np.float32), gpa, m)
         cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
                 + np.einsum('ij,ij->', r_ar, r_ar))
-        # Σ B_pᵀ Q_e B_p from moments: weighted by the scalar q_e, or Q_e applied at the end
-        fe = f * qe if iso else f
-        return (f @ f.T, fe @ f.T, V, _gram(_coupling(Zs, ch, P)),
-                _sum_gradient(frame, ch, hp), cost, [kept])
+        # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
+        F = f @ f.T
+        Fe = (f * qe) @ f.T if iso and problem.a_scale is not None else F
+        return F, Fe, V, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost, [kept]
 
     F, Fe, V, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
+    if iso and problem.a_scale is None:  # q_e is one scalar for all pairs
+        Qe = (q - q * q / ((q + qa) * (1.0 + lam))) * np.eye(3)
+    elif iso:
+        Qe = np.eye(3)
     T = frame.T
-    S = T.T @ (frame.gram(Fe, np.eye(3) if iso else Qe) + V - ZZ[:P, :P]) @ T
+    S = T.T @ (frame.gram(Fe, Qe) + V - ZZ[:P, :P]) @ T
     b = T.T @ (-g + ZZ[:P, P])
     v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + V) @ T).copy()
     return S, b, v_diag, float(cost), factors
