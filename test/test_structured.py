@@ -99,9 +99,9 @@ def test_tls_schur_complement_matches_the_generic_path(model, kind, weighted, la
         problem = _weighted(problem)
     params, x = _perturbed_state(problem, rng)
     assert structured.applies(problem)
-    S1, b1, c1, (ry1, rx1), f1 = est.tls_linearization(problem, params, x, lam)
+    S1, b1, c1, (ry1, rx1), f1, _ = est.tls_linearization(problem, params, x, lam)
     with generic(monkeypatch):
-        S2, b2, c2, (ry2, rx2), f2 = est.tls_linearization(problem, params, x, lam)
+        S2, b2, c2, (ry2, rx2), f2, _ = est.tls_linearization(problem, params, x, lam)
     assert isinstance(f1, structured.TlsFactors) and not isinstance(f2, structured.TlsFactors)
     assert _rel(S1, S2) < 1e-11
     assert _rel(b1, b2) < 1e-10
@@ -193,3 +193,105 @@ def test_input_state_views_and_step():
     assert np.allclose(y.pos, pos + dx[0:3].T, atol=1e-15)
     assert np.allclose(y.quat, quat.multiply(quat.exp(dx[3:6].T), q), atol=1e-14)
     assert np.array_equal(x.pos, pos)  # stepping returns a new state
+
+
+# ---------------------------------------------------------------------------------------------
+# The LM driver (shared by both paths), on a one-parameter problem with injected faults
+# ---------------------------------------------------------------------------------------------
+
+class _Curve:
+    """r(θ) = (exp(θ) - 2, θ - 0.5): a small nonlinear least-squares problem for the driver."""
+
+    def __init__(self, faults=()):
+        self.faults = list(faults)  # trial costs to report instead of the true ones, in order
+        self.passes = 0
+
+    @staticmethod
+    def cost(theta):
+        return float((np.exp(theta) - 2.0) ** 2 + (theta - 0.5) ** 2)
+
+    def linearize(self, theta, lam):
+        self.passes += 1
+        r = np.array([np.exp(theta) - 2.0, theta - 0.5])
+        J = np.array([[np.exp(theta)], [1.0]])
+        H = J.T @ J
+
+        def propose(delta, lam_next):
+            trial = theta + float(delta[0])
+            lin = self.linearize(trial, lam_next)
+            cost = self.faults.pop(0) if self.faults else lin.cost
+            return trial, cost, lin
+
+        lin = est._Linearization(H + lam * np.diag(np.diag(H)), -(J.T @ r), self.cost(theta),
+                                 propose)
+        lin.made_at = (theta, lam)
+        return lin
+
+
+def _optimum():
+    from scipy.optimize import minimize_scalar
+    return minimize_scalar(_Curve.cost, bounds=(-2, 2), method='bounded',
+                           options={'xatol': 1e-12}).x
+
+
+def test_driver_converges_and_returns_the_linearisation_at_the_solution():
+    curve = _Curve()
+    theta, status, it, last, lam = est._levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
+                                                            1e-12)
+    assert status > 0
+    assert theta == pytest.approx(_optimum(), abs=1e-6)
+    assert last.made_at == (theta, lam)
+    assert curve.passes == it + 1 - (status == 1)  # one pass per step, plus the start
+
+
+@pytest.mark.parametrize('fault', [np.inf, np.nan, 1e300])
+def test_driver_rejects_bad_trials_and_raises_the_damping(fault):
+    curve = _Curve(faults=[fault, fault])
+    theta, status, _, last, lam = est._levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
+                                                           1e-12)
+    assert status > 0
+    assert theta == pytest.approx(_optimum(), abs=1e-6)
+    assert last.made_at == (theta, lam)
+
+
+def test_driver_gives_up_with_the_damping_of_its_last_linearisation():
+    curve = _Curve(faults=[1e300] * 100)
+    theta, status, _, last, lam = est._levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
+                                                           1e-12)
+    assert status == -1 and theta == 3.0
+    assert last.made_at == (3.0, lam)
+
+
+# ---------------------------------------------------------------------------------------------
+# Posterior information and input validation
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('model', ['full_pose', 'position_only'])
+def test_posterior_is_undamped_when_a_is_far_noisier_than_b(model, monkeypatch):
+    # With σ_A ≫ σ_B the Schur complement S is far smaller than V = Σ BᵀB, so even a tiny λ·V
+    # is a large share of S: the solver must then re-linearise without damping.
+    rng = np.random.default_rng(8)
+    noisy, _, _ = simulate_pairs(rng, N, model, sigma_a=(2e-2, 5e-2), sigma_b=(2e-5, 5e-5))
+    spec = SPECS[model]
+    cov_a = np.diag([4e-4] * 3 + [2.5e-3] * 3)
+    cov_b = np.diag([4e-10] * 3 + [2.5e-9] * 3)
+    problem = est.Problem(spec, noisy.pos_a, noisy.quat_a, noisy.pos_b, noisy.quat_b,
+                          whitening(cov_b, spec, 'b'), whitening(cov_a, None, 'a'))
+    start = est.solve_ols(problem, initialize(spec, problem.pos_a, problem.quat_a,
+                                              problem.pos_b, problem.quat_b)).params
+    sol = est.solve_tls(problem, start)
+    monkeypatch.setattr(est, 'DAMPING_SHARE', -1.0)  # always re-linearise at λ = 0
+    exact = est.solve_tls(problem, start)
+    assert sol.status > 0
+    assert _rel(sol.cov, exact.cov) < 1e-5
+
+
+def test_infinite_input_weights_are_refused():
+    from coreg_ros.core.calibrate import calibrate
+    from coreg_ros.core.errors import InputError
+    from coreg_ros.core.settings import Settings
+    noisy, _, _ = simulate_pairs(np.random.default_rng(9), 200, 'full_pose')
+    scale = np.ones(200)
+    scale[17] = np.inf
+    with pytest.raises(InputError, match='finite'):
+        calibrate(dataclasses.replace(noisy, a_var_scale=scale), Settings(method='tls'))

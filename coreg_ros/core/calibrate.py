@@ -84,8 +84,8 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
     scale = None
     if pairs.a_var_scale is not None:
         scale = np.asarray(pairs.a_var_scale, dtype=float)
-        if scale.shape != (n,) or not (scale > 0).all():
-            raise InputError('a_var_scale must be positive, one per pair')
+        if scale.shape != (n,) or not (np.isfinite(scale) & (scale > 0)).all():
+            raise InputError('a_var_scale must be positive and finite, one per pair')
     return pos_a, quat_a, pos_b, quat_b, scale
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-import functools
 from typing import Optional
 
 import numpy as np
@@ -89,20 +88,6 @@ class Problem:
     def chunks(self):
         """Slices of at most CHUNK pairs covering all pairs."""
         return [slice(i, min(i + CHUNK, self.n)) for i in range(0, self.n, CHUNK)]
-
-    @functools.cached_property
-    def columns(self) -> tuple:
-        """
-        Contiguous pair-last copies of the pairs, for ``structured``.
-
-        p_A (3, N), q_A (4, N), p_B (3, N) and q_B* (4, N) or None: B's orientations
-        conjugated, as the error quaternions use them.
-        """
-        def t(a, sign=1.0):
-            return None if a is None else np.ascontiguousarray(np.asarray(a, dtype=float).T
-                                                               * sign)
-        return (t(self.pos_a), t(self.quat_a), t(self.pos_b),
-                t(self.quat_b, np.array([1.0, -1.0, -1.0, -1.0])[:, None]))
 
     def output(self, sl: slice):
         """Measured output of the pairs in ``sl``."""
@@ -189,6 +174,7 @@ class _Linearization:
     cost: float
     propose: Callable
     residuals: Optional[tuple] = None
+    damping_share: float = 0.0  # largest λ·V_jj / info_jj: how far info is from undamped
 
 
 def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
@@ -212,20 +198,27 @@ def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: 
     lam = 1e-6
     lin = linearize(state, lam)
     for it in range(1, max_iterations + 1):
+        rejected = False
         while True:
             delta = np.linalg.lstsq(lin.info, lin.rhs, rcond=None)[0]
-            if _step_is_small(delta, lin.info, xtol):
+            # Only a step damped as little as the last accepted one may prove convergence: a
+            # damping raised by rejections shrinks any step below xtol·σ eventually.
+            if not rejected and _step_is_small(delta, lin.info, xtol):
                 return state, 1, it, lin, lam
             lam_next = max(lam / 10.0, 1e-12)
+            # the residuals at the current state are not needed while the trial is made
+            # (a return after a rejection re-linearises): their memory goes first
+            lin.residuals = None
             trial, new_cost, trial_lin = lin.propose(delta, lam_next)
-            if new_cost <= lin.cost:
+            if np.isfinite(new_cost) and new_cost <= lin.cost:
                 break
             trial_lin = None  # release the rejected trial's per-pair factors
             if new_cost - lin.cost <= ftol * max(lin.cost, 1.0):
                 return state, 2, it, lin, lam
-            lam *= 10.0
-            if lam > 1e16:
+            if lam * 10.0 > 1e16:
                 return state, -1, it, lin, lam
+            rejected = True
+            lam *= 10.0
             lin = None
             lin = linearize(state, lam)
         state, old, lam = trial, lin, lam_next
@@ -251,9 +244,11 @@ def _step_is_small(delta: np.ndarray, info: np.ndarray, xtol: float) -> bool:
 #: step of ~1e-7 σ and a whole pass over the pairs to evaluate it.
 XTOL = 1e-5
 
-#: Damping below which a linearisation's information matrix is used as the posterior
-#: information without re-linearising (relative change of the covariance below 1e-6).
-UNDAMPED = 1e-7
+#: A converged TLS linearisation serves as the posterior information (saving a pass over
+#: the pairs) only when its damping adds at most this share to any diagonal element. The
+#: share is λ·V_jj/S_jj, not λ: the Schur complement S can be far smaller than V = Σ BᵀB
+#: when A is much noisier than B.
+DAMPING_SHARE = 1e-6
 
 
 # ----------------------------------------------------------------------------------------------
@@ -318,6 +313,8 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
     def normal_at(state: Parameters):
         for entry in normals:
             if entry[0] is state:  # re-damping needs no new pass over the pairs
+                normals.remove(entry)
+                normals.append(entry)  # the most recently used stays when a trial is added
                 return entry
         res = _pair_last(problem.n, problem.spec.n_res)
         entry = (state, *_ols_normal(problem, state, res), res)
@@ -335,7 +332,7 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return _Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose, (res,))
+        return _Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose)
 
     params, status, it, _, _ = _levenberg_marquardt(params, linearize, max_iterations, xtol,
                                                     ftol)
@@ -375,12 +372,17 @@ class InputState:
         """Input orientations, (N, 4) view."""
         return self.quat_t.T
 
+    @classmethod
+    def _pair_last(cls, pos_t: np.ndarray, quat_t: np.ndarray) -> InputState:
+        """Wrap pair-last arrays (3, N) and (4, N) without copying them."""
+        out = cls.__new__(cls)
+        out.pos_t, out.quat_t = pos_t, quat_t
+        return out
+
     def stepped(self, dx: np.ndarray) -> InputState:
         """Return the state after the step dx (6, N) = (δp, δθ), pair-last."""
-        out = InputState.__new__(InputState)
-        out.pos_t = self.pos_t + dx[0:3]
-        out.quat_t = structured.rotated(self.quat_t, dx[3:6])
-        return out
+        return InputState._pair_last(self.pos_t + dx[0:3],
+                                     structured.rotated(self.quat_t, dx[3:6]))
 
 
 def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
@@ -497,15 +499,19 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
         Whitened output (N, m) and input (N, 6) residuals.
     factors
         For ``back_substitute``.
+    damping_share : float
+        Largest share of the φ damping in a diagonal element of S, max_j λ·V_jj / S_jj.
 
     """
     residuals = (_pair_last(problem.n, problem.spec.n_res), _pair_last(problem.n, 6))
     schur = structured.tls_schur if structured.applies(problem) else _tls_schur
     S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
     r_prior, j_prior = _prior_rows(problem, params)
-    S = S + j_prior.T @ j_prior + lam * np.diag(v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
+    damping = lam * (v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
+    S = S + j_prior.T @ j_prior + np.diag(damping)
     b = b - j_prior.T @ r_prior
-    return S, b, cost + float(r_prior @ r_prior), residuals, factors
+    share = float(np.max(damping / np.diag(S))) if lam > 0 else 0.0
+    return S, b, cost + float(r_prior @ r_prior), residuals, factors, share
 
 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
@@ -533,7 +539,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     """
     def linearize(state, lam: float) -> _Linearization:
         phi, x = state
-        S, b, cost, residuals, factors = tls_linearization(problem, phi, x, lam)
+        S, b, cost, residuals, factors, share = tls_linearization(problem, phi, x, lam)
 
         def propose(delta, lam_next):
             trial = phi.stepped(delta)
@@ -544,19 +550,19 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return _Linearization(S, b, cost, propose, residuals)
+        return _Linearization(S, b, cost, propose, residuals, share)
 
     state = (params, InputState(problem.pos_a, problem.quat_a))
     (params, x), status, it, last, lam = _levenberg_marquardt(
         state, linearize, max_iterations, xtol, ftol)
-    if status > 0 and lam <= UNDAMPED:
+    if status > 0 and last.residuals is not None and last.damping_share <= DAMPING_SHARE:
         # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
         # is almost undamped: its Schur complement is the posterior information (relative
-        # change of the covariance ~1e-5), which saves a whole pass over the pairs.
+        # change of the covariance below DAMPING_SHARE), which saves a pass over the pairs.
         info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
     else:
         last = None
-        info, _, chi2, (res_y, res_x), _ = tls_linearization(problem, params, x, 0.0)
+        info, _, chi2, (res_y, res_x), _, _ = tls_linearization(problem, params, x, 0.0)
     n_prior = len(_prior_rows(problem, params)[0])
     return Solution(params, _inverse_or_none(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,

@@ -31,11 +31,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 import functools
 import operator
-from typing import Optional
+from typing import NamedTuple, Optional, Union
 
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.errors import ConvergenceError
 from coreg_ros.core.models import Parameters, tangent_of_chart
 
 #: Pairs processed at once. Larger than the generic CHUNK: the per-pair state here is small
@@ -263,8 +264,14 @@ class _Chunk:
 
 
 def _scalar(L: np.ndarray) -> Optional[float]:
-    """Return l if L = l·I (isotropic noise), else None."""
-    return float(L[0, 0]) if np.array_equal(L, L[0, 0] * np.eye(len(L))) else None
+    """
+    Return w if L = w·I to rounding (isotropic noise), else None.
+
+    A relative tolerance of 1e-12 admits covariances that went through a message or a file;
+    the closed forms then differ from the exact ones by as little.
+    """
+    w = float(L[0, 0])
+    return w if np.allclose(L, w * np.eye(len(L)), rtol=0.0, atol=1e-12 * abs(w)) else None
 
 
 def _rotation_information(L: np.ndarray, E: np.ndarray, R: np.ndarray):
@@ -339,9 +346,18 @@ def _add_rotation_block(M: np.ndarray, Hr: np.ndarray, HrRa: np.ndarray, Ra: np.
     M[9:12, 9:12] += np.einsum('abn,acn->bc', Ra, HrRa)
 
 
-def _chunk_of(columns: tuple, sl: slice) -> list:
-    """Return the pair-last columns of the pairs in ``sl`` (None stays None)."""
-    return [None if a is None else a[:, sl] for a in columns]
+def _chunk_of(problem, sl: slice) -> tuple:
+    """
+    Pair-last copies of the measured pairs in ``sl``.
+
+    Returns p_A (3, c), q_A (4, c), p_B (3, c) and q_B* (4, c): B's orientations conjugated,
+    as the error quaternions use them. Copied per chunk (a few µs), not cached on the
+    problem: a cache would cost 112 B per pair for the problem's lifetime.
+    """
+    def t(a):
+        return np.ascontiguousarray(a[sl].T)
+    q_b = None if problem.quat_b is None else t(problem.quat_b) * _CONJ
+    return t(problem.pos_a), t(problem.quat_a), t(problem.pos_b), q_b
 
 
 def _sum_chunks(fn, n: int) -> list:
@@ -355,7 +371,8 @@ def _sum_chunks(fn, n: int) -> list:
     return [functools.reduce(operator.add, terms) for terms in zip(*parts, strict=True)]
 
 
-def _chunks(n: int):
+def _chunks(n: int) -> list:
+    """Slices of at most CHUNK pairs covering n pairs."""
     return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
 
@@ -386,7 +403,7 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
     frame = _Frame.of(problem, params)
 
     def chunk(sl):
-        ch = _channels(frame, *_chunk_of(problem.columns, sl))
+        ch = _channels(frame, *_chunk_of(problem, sl))
         f = _features(ch)
         H = np.zeros((frame.P, frame.P))
         if frame.has_rot:
@@ -406,14 +423,33 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
 # TLS (B.2)
 # ----------------------------------------------------------------------------------------------
 
+class ChunkFactors(NamedTuple):
+    """
+    What the back-substitution needs of one chunk of c pairs (float32 where marked).
+
+    The float32 arrays cost half the memory; δφ is solved from S and b accumulated in float64,
+    so only the input steps carry a relative error of ~1e-7, which the next linearisation
+    absorbs (an inexact Newton step in x, as in the generic path).
+    """
+
+    pairs: slice
+    L: np.ndarray        # (6, c) float32: l00, l10, l11, l20, l21, l22 of the 3×3 factor
+    Z: np.ndarray        # (3, k, c) float32: L⁻¹ [N | H_r | g̃_θ]
+    c: np.ndarray        # (3, c) R_A p1
+    v: np.ndarray        # (3, c) p_A + R_A p1
+    Ra: np.ndarray       # (3, 3, c) float32 input orientations
+    g_pos: np.ndarray    # (3, c) gradient of the input position before elimination
+    m: Optional[Union[float, np.ndarray]]  # scalar M_p (one or per pair), None: matrix
+
+
 @dataclass
 class TlsFactors:
-    """What the input back-substitution needs of one linearisation (per chunk lists)."""
+    """What the input back-substitution needs of one linearisation."""
 
-    T: np.ndarray
-    Mp: Optional[np.ndarray]   # constant M_p, or None when it is a scalar per pair
-    Qp_bar: np.ndarray
-    chunks: list  # (slice, L (6, c), Zs (3, k, c), c, v, Ra, gpa, scalar M_p or None)
+    T: np.ndarray                 # (P, P) φ' = T φ (reduced coordinates)
+    Mp: Optional[np.ndarray]      # (3, 3) constant M_p, None when it is a scalar
+    Qp_bar: np.ndarray            # (3, 3) Q̄p
+    chunks: list                  # of ChunkFactors
 
     def clear(self) -> None:
         """Drop the per-pair factors (spent after the back-substitution)."""
@@ -424,11 +460,14 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
     """
     Reduced system ``S δφ = b`` and the cost at (x, φ) (Ikits eqs. 42-49), damped by λ.
 
-    Per pair, the input position is eliminated in closed form (constant ``M_p``, ``Q_e``)
-    and the input rotation by the closed-form Cholesky factor L of the remaining 3×3 block
+    Per pair, the input position is eliminated in closed form (``M_p``, ``Q_e``) and the input
+    rotation by the closed-form Cholesky factor L of the remaining 3×3 block
     ``Ũ = [c]×ᵀ Q_e [c]× + H_r + H_ar``. With ``Z = L⁻¹ [N | H_r | g̃_θ]`` (``N = [c]× Q_e``)
     the pair's coupling to φ' is ``Z_W = Z_N B_p + Z_H B_r`` and
     ``S' = Σ B_pᵀ Q_e B_p + Σ B_rᵀ H_r B_r - Σ Z_Wᵀ Z_W``.
+
+    ``Q_e = Q̄p - Q̄p M_p Q̄p`` is evaluated as ``Q̄p M_p (Q_ap + Λ_p)``, without the
+    cancellation of the first form when A is far noisier than B.
 
     Damping as in the generic path: λ·diag on every pair's 6×6 input block and λ·diag(V) on
     the φ block, V = Σ Bᵀ B. Priors are not included (the caller adds them).
@@ -436,6 +475,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
     Parameters
     ----------
     problem : estimator.Problem
+        One for which ``applies(problem)`` is true.
     params : Parameters
     x : estimator.InputState
         Current input estimates.
@@ -455,69 +495,75 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
     """
     frame = _Frame.of(problem, params)
     P, Qp_bar, has_rot = frame.P, frame.Qp_bar, frame.has_rot
+    weighted = problem.a_scale is not None
     lp, lap = _scalar(frame.Lp), _scalar(frame.Lap)
     iso = lp is not None and lap is not None
-    if iso:  # Q̄p = q I, Q_ap = q_a I: the position elimination is a scalar per pair
-        q, qa = lp * lp, lap * lap
+    if iso:  # Q̄p = q_p I, Q_ap = q_a I: eliminating δp_A is a scalar per pair
+        q_p, q_a = lp * lp, lap * lap
         Mp = Qe = None
-    else:  # constant 3×3 blocks (per-pair input weights need isotropic positions: applies)
+    elif weighted:
+        raise ValueError('per-pair input weights need isotropic position noise here '
+                         '(structured.applies is false for this problem)')
+    else:  # constant 3×3 blocks
         Qap = frame.Lap.T @ frame.Lap
         Upp = Qp_bar + Qap
+        extra = Qap + lam * np.diag(np.diag(Upp))   # M_p⁻¹ - Q̄p
         Mp = np.linalg.inv(Upp + lam * np.diag(np.diag(Upp)))
-        QM = Qp_bar @ Mp
-        Qe = Qp_bar - QM @ Qp_bar
+        Qe = Qp_bar @ Mp @ extra
         Qe = 0.5 * (Qe + Qe.T)
+        keep = extra @ Mp    # I - Q̄p M_p, as hp = gp - Q̄p M_p (gp + gap) needs it
     factors = TlsFactors(frame.T, Mp, Qp_bar, [])
     k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
 
     def chunk(sl):
-        pos_a, quat_a, pos_b, quat_b = _chunk_of(problem.columns, sl)
+        pos_a, quat_a, pos_b, quat_b = _chunk_of(problem, sl)
         xp, xq = x.pos_t[:, sl], x.quat_t[:, sl]
         ch = _channels(frame, xp, xq, pos_b, quat_b)
-        n = ch.c.shape[1]
+        n_pairs = ch.c.shape[1]
         r_ap = frame.Lap @ (xp - pos_a)
         Ea = _error_quaternion(xq, quat_a * _CONJ)
         r_ar, U, gar = _rotation_information(frame.Lar, Ea, np.eye(3))
         gap = frame.Lap.T @ r_ap
         # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
-        w = 1.0 if problem.a_scale is None else 1.0 / problem.a_scale[sl]
-        if problem.a_scale is not None:
+        w = 1.0 if not weighted else 1.0 / problem.a_scale[sl]
+        if weighted:
             gap *= w
             r_ap *= np.sqrt(w)
             r_ar *= np.sqrt(w)
             U *= w
             gar *= w
         C = _skew(ch.c)
-        gpa = ch.gp + gap
+        g_pos = ch.gp + gap
         if iso:
-            # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q
-            m = 1.0 / ((q + qa * w) * (1.0 + lam))
-            qe = q - q * q * m
+            # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q_p
+            extra = q_a * w + lam * (q_p + q_a * w)   # M_p⁻¹ - q_p
+            m = 1.0 / (q_p + extra)
+            q_e = q_p * extra * m
             cc = ch.c * ch.c
             c2 = cc.sum(axis=0)
-            pre = q * (c2 - cc) + U[[0, 1, 2], [0, 1, 2]]   # the diagonal that scales the damping
+            pre = q_p * (c2 - cc) + U[[0, 1, 2], [0, 1, 2]]   # scales the damping
             for i in range(3):
-                U[i, i] += qe * (c2 - cc[i])
+                U[i, i] += q_e * (c2 - cc[i])
                 for j in range(i):
-                    U[i, j] -= qe * (ch.c[i] * ch.c[j])  # the lower triangle is all L uses
-            N = qe * C
-            hp = ch.gp - (q * m) * gpa
+                    U[i, j] -= q_e * (ch.c[i] * ch.c[j])  # the lower triangle is all L uses
+            N = q_e * C
+            hp = (extra * m) * ch.gp - (q_p * m) * gap
         else:
             m = None
             pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
             N = np.einsum('abn,bc->acn', C, Qe)
             U -= _mm(N, C)
-            hp = ch.gp - QM @ gpa
-        rhs = np.empty((3, k, n))
+            hp = keep @ ch.gp - (Qp_bar @ Mp) @ gap
+        rhs = np.empty((3, k, n_pairs))
         rhs[:, 0:3] = N
         rhs[:, k - 1] = _cross(ch.c, hp) + gar
-        V = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
+        Vr = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
         if has_rot:
             pre += ch.Hr[[0, 1, 2], [0, 1, 2]]
             U += ch.Hr
             rhs[:, 3:6] = ch.Hr
             rhs[:, k - 1] += ch.gr
-            _add_rotation_block(V, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+            _add_rotation_block(Vr, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
         for i in range(3):
             U[i, i] += lam * pre[i]
         L = _cholesky3(U)
@@ -527,26 +573,29 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             residuals[0][sl] = ch.r_out.T
             residuals[1][sl, 0:3] = r_ap.T
             residuals[1][sl, 3:6] = r_ar.T
-        # kept for the back-substitution; float32 as in the generic path (an inexact Newton
-        # step in x only: δφ is solved from S and b accumulated in float64)
-        kept = (sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c, ch.v,
-                ch.Ra.astype(np.float32), gpa, m)
+        kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c,
+                            ch.v, ch.Ra.astype(np.float32), g_pos, m)
         cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
                 + np.einsum('ij,ij->', r_ar, r_ar))
         # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
         F = f @ f.T
-        Fe = (f * qe) @ f.T if iso and problem.a_scale is not None else F
-        return F, Fe, V, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost, [kept]
+        Fe = (f * q_e) @ f.T if iso and weighted else F
+        return F, Fe, Vr, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost, [kept]
 
-    F, Fe, V, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
-    if iso and problem.a_scale is None:  # q_e is one scalar for all pairs
-        Qe = (q - q * q / ((q + qa) * (1.0 + lam))) * np.eye(3)
+    F, Fe, Vr, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
+    if iso and not weighted:  # q_e is one scalar for all pairs
+        extra = q_a + lam * (q_p + q_a)
+        Qe = (q_p * extra / (q_p + extra)) * np.eye(3)
     elif iso:
         Qe = np.eye(3)
     T = frame.T
-    S = T.T @ (frame.gram(Fe, Qe) + V - ZZ[:P, :P]) @ T
+    S = T.T @ (frame.gram(Fe, Qe) + Vr - ZZ[:P, :P]) @ T
     b = T.T @ (-g + ZZ[:P, P])
-    v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + V) @ T).copy()
+    v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + Vr) @ T).copy()
+    if not (np.isfinite(S).all() and np.isfinite(b).all()):
+        raise ConvergenceError('the linearised TLS system is not finite (a sample or an input '
+                               'weight is inf or NaN, or the noise is zero); check the pairs '
+                               'and the noise settings')
     return S, b, v_diag, float(cost), factors
 
 
@@ -571,25 +620,38 @@ def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
 
 def back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray) -> np.ndarray:
     """
-    Input corrections (6, N) = (δp_A, δθ_A) for the parameter step δφ (reduced coordinates).
+    Input corrections of a parameter step, from the factors of ``tls_schur``.
 
-    ``δθ_A = -L⁻ᵀ(Z_g + Z_N B_p δφ' + Z_H B_r δφ')`` by the stored factors, then
+    ``δθ_A = -L⁻ᵀ(Z_g + Z_N B_p δφ' + Z_H B_r δφ')``, then
     ``δp_A = -M_p(g_p + g_ap - Q̄p[c]× δθ_A + Q̄p B_p δφ')``.
+
+    Parameters
+    ----------
+    n : int
+        Number of pairs N.
+    factors : TlsFactors
+    delta_phi : ndarray, shape (P,)
+        The parameter step in reduced coordinates.
+
+    Returns
+    -------
+    dx : ndarray, shape (6, N)
+        (δp_A in m, δθ_A in rad) per pair, pair-last.
+
     """
     d = factors.T @ delta_phi
     dx = np.empty((6, n))
-    for sl, L, Zs, c, v, Ra, gpa, m in factors.chunks:
-        L = tuple(L.astype(float))
-        Zs = Zs.astype(float)
-        Bp = d[0:3, None] - _cross(v, np.broadcast_to(d[3:6, None], v.shape)) \
-            + np.einsum('abn,b->an', Ra, d[6:9])
-        rhs = np.einsum('abn,bn->an', Zs[:, 0:3], Bp) + Zs[:, -1]
+    for ch in factors.chunks:
+        L = tuple(ch.L.astype(float))
+        Z = ch.Z.astype(float)
+        Bp = d[0:3, None] - _cross(ch.v, np.broadcast_to(d[3:6, None], ch.v.shape)) \
+            + np.einsum('abn,b->an', ch.Ra, d[6:9])
+        rhs = np.einsum('abn,bn->an', Z[:, 0:3], Bp) + Z[:, -1]
         if len(d) == 12:
-            Br = d[3:6, None] + np.einsum('abn,b->an', Ra, d[9:12])
-            rhs += np.einsum('abn,bn->an', Zs[:, 3:6], Br)
+            Br = d[3:6, None] + np.einsum('abn,b->an', ch.Ra, d[9:12])
+            rhs += np.einsum('abn,bn->an', Z[:, 3:6], Br)
         dth = -_sym_solve3(L, rhs, transpose=True)
-        y = gpa + factors.Qp_bar @ (Bp - _cross(c, dth))
-        dp = -(factors.Mp @ y) if m is None else -(m * y)
-        dx[0:3, sl] = dp
-        dx[3:6, sl] = dth
+        y = ch.g_pos + factors.Qp_bar @ (Bp - _cross(ch.c, dth))
+        dx[0:3, ch.pairs] = -(factors.Mp @ y) if ch.m is None else -(ch.m * y)
+        dx[3:6, ch.pairs] = dth
     return dx
