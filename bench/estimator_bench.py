@@ -273,7 +273,7 @@ def bench_size(n: int, methods=('ols', 'tls'), scipy_cap: float = 120.0,
     pairs, _ = make_pairs(n)
     problem = make_problem(pairs)
     start = start_params(problem)
-    repeats = 5 if n <= 10_000 else (3 if n <= 100_000 else 1)
+    repeats = 5 if n <= 100_000 else 1  # best of 5: the machine is shared
     rows = {}
     t_ols, ols = best_time(lambda: solve_ols(problem, start), repeats)
     for method in methods:
