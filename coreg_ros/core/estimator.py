@@ -49,8 +49,11 @@ class Problem:
     spec : ModelSpec
     pos_a : ndarray, shape (N, 3)
     quat_a : ndarray, shape (N, 4)
+        Unit quaternions (w, x, y, z), as ``calibrate`` validates them; the closed forms of
+        ``structured`` rely on unit length.
     pos_b : ndarray, shape (N, 3) or (N, 3, 3)
     quat_b : ndarray, shape (N, 4) or None
+        Unit quaternions, or None for position-only models.
     whiten_b : ndarray, shape (m, m)
         L_y with ``L_yᵀ L_y`` the inverse covariance of the output error metric.
     whiten_a : ndarray, shape (6, 6)

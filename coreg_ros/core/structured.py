@@ -292,11 +292,11 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: np.ndarray):
         return r, _tmm(X, X), np.einsum('ban,bn->an', X, r)
     f = R.T @ ev
     H = np.empty((3, 3, E.shape[1]))
-    q = -0.25 * w * w
+    quarter = 0.25 * w * w
     for i in range(3):
         for j in range(i + 1):
-            H[i, j] = H[j, i] = q * f[i] * f[j]
-        H[i, i] -= q
+            H[i, j] = H[j, i] = -quarter * f[i] * f[j]
+        H[i, i] += quarter
     return w * ev, H, (0.5 * w * w * E[0]) * f
 
 
