@@ -69,6 +69,21 @@ SUB_DEPTH = 1000
 RCLError = _rclpy.RCLError
 
 
+def shutdown_quietly(context=None) -> None:
+    """
+    ``rclpy.try_shutdown`` that tolerates losing the race with rclpy's signal handler.
+
+    On SIGINT/SIGTERM rclpy shuts the context down from its own thread; ``try_shutdown``
+    checks ``ok()`` and then shuts down, so the handler can win in between and rcl raises
+    "rcl_shutdown already called". The context is shut down either way.
+    """
+    try:
+        rclpy.try_shutdown(context=context)
+    except RCLError:
+        if rclpy.ok(context=context):
+            raise
+
+
 def stream_qos(reliable: bool) -> QoSProfile:
     """QoS of the pose subscriptions: sensor-data (best effort) or reliable, deep history."""
     return QoSProfile(
@@ -426,7 +441,7 @@ def main(args=None) -> int:
         print(f'coreg_node: {e}', file=sys.stderr)
         code = 1
     finally:
-        rclpy.try_shutdown()  # also stops the services thread's spin
+        shutdown_quietly()  # also stops the services thread's spin
         if services is not None:
             services.join(10.0)
         if node is not None:

@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose, pose_stamped_values
-from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME, RCLError
+from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME, RCLError, shutdown_quietly
 
 #: Publisher QoS of ``play``: reliable with a deep history, so a reliable subscriber loses
 #: nothing, and it still matches best-effort (sensor-data) subscribers.
@@ -89,7 +89,7 @@ class RosSession:
         """Destroy the node and shut the context down."""
         self.executor.shutdown()
         self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+        shutdown_quietly(self.context)
 
     def __enter__(self) -> RosSession:
         return self
