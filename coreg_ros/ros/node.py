@@ -441,13 +441,15 @@ def main(args=None) -> int:
         print(f'coreg_node: {e}', file=sys.stderr)
         code = 1
     finally:
-        shutdown_quietly()  # also stops the services thread's spin
-        if services is not None:
-            services.join(10.0)
-        if node is not None:
-            node.save_on_shutdown()
-            node.stream_node.destroy_node()
-            node.destroy_node()
+        try:
+            shutdown_quietly()  # also stops the services thread's spin
+        finally:  # the samples are saved even if shutting down fails otherwise
+            if services is not None:
+                services.join(10.0)
+            if node is not None:
+                node.save_on_shutdown()
+                node.stream_node.destroy_node()
+                node.destroy_node()
     return code
 
 
