@@ -190,7 +190,7 @@ def test_tls_covariance_is_the_phi_block_of_the_dense_inverse(model):
     J = dense_jacobian(fun, P, n)
     H = J.T @ J
     cov_dense = np.linalg.inv(H)[:P, :P]
-    # (1e-3: the solver keeps the covariance of its last linearisation, one tiny step back)
+    # (1e-3: the covariance is that of the almost undamped last linearisation)
     assert_same_covariance(sol.cov, cov_dense, tol=1e-3)
     # Not the inverse of the φ block alone (that would ignore the input uncertainty).
     assert not np.allclose(np.linalg.inv(H[:P, :P]), cov_dense, rtol=1e-2)

@@ -90,7 +90,7 @@ class Problem:
 
     def chunks(self):
         """Slices of at most CHUNK pairs covering all pairs."""
-        return [slice(i, min(i + CHUNK, self.n)) for i in range(0, self.n, CHUNK)]
+        return structured.chunk_slices(self.n, CHUNK)
 
     def output(self, sl: slice):
         """Measured output of the pairs in ``sl``."""

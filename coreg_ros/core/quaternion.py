@@ -80,22 +80,29 @@ def canonical(q: np.ndarray) -> np.ndarray:
     return np.where(q[..., :1] < 0.0, -q, q)
 
 
+def multiply_parts(p, q) -> tuple:
+    """
+    Hamilton product p ⊗ q on components: p, q are (w, x, y, z) sequences of arrays.
+
+    The layout-free core of ``multiply``; ``structured`` calls it on pair-last arrays (4, c).
+    """
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return (pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw)
+
+
 def multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """
     Hamilton product p ⊗ q of quaternions in (w, x, y, z) order, shapes broadcast to (..., 4).
 
     With active rotations, ``R(p ⊗ q) = R(p) R(q)``.
     """
-    p = np.asarray(p, dtype=float)
-    q = np.asarray(q, dtype=float)
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack([
-        pw * qw - px * qx - py * qy - pz * qz,
-        pw * qx + px * qw + py * qz - pz * qy,
-        pw * qy - px * qz + py * qw + pz * qx,
-        pw * qz + px * qy - py * qx + pz * qw,
-    ], axis=-1)
+    p = np.moveaxis(np.asarray(p, dtype=float), -1, 0)
+    q = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    return np.stack(multiply_parts(p, q), axis=-1)
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:
@@ -134,6 +141,19 @@ def right_matrix(q: np.ndarray) -> np.ndarray:
     ], axis=-2)
 
 
+def matrix_parts(w, x, y, z) -> tuple:
+    """
+    Entries of the rotation matrix of unit quaternions (Ikits eq. 21), as 3 rows of 3 arrays.
+
+    The layout-free core of ``to_matrix``; ``structured`` calls it on pair-last arrays.
+    """
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return ((ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)),
+            (2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)),
+            (2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz))
+
+
 def to_matrix(q: np.ndarray) -> np.ndarray:
     """
     Rotation matrix of unit quaternions (Ikits eq. 21), shape (..., 3, 3).
@@ -144,13 +164,8 @@ def to_matrix(q: np.ndarray) -> np.ndarray:
         Unit quaternions (w, x, y, z).
 
     """
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
-    ww, xx, yy, zz = w * w, x * x, y * y, z * z
-    return np.stack([
-        np.stack([ww + xx - yy - zz, 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
-        np.stack([2 * (x * y + w * z), ww - xx + yy - zz, 2 * (y * z - w * x)], axis=-1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), ww - xx - yy + zz], axis=-1),
-    ], axis=-2)
+    rows = matrix_parts(*np.moveaxis(np.asarray(q, dtype=float), -1, 0))
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 def from_matrix(R: np.ndarray) -> np.ndarray:
@@ -180,18 +195,28 @@ def from_matrix(R: np.ndarray) -> np.ndarray:
     return canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
+def exp_parts(x, y, z) -> tuple:
+    """
+    Return the unit quaternion (w, x, y, z) of rotation vectors given by components, rad.
+
+    The layout-free core of ``exp``; accurate near zero angle (Taylor series of sin(θ/2)/θ).
+    """
+    theta2 = x * x + y * y + z * z
+    theta = np.sqrt(theta2)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    k = np.where(small, 0.5 - theta2 / 48.0, np.sin(0.5 * safe) / safe)
+    return np.cos(0.5 * theta), k * x, k * y, k * z
+
+
 def exp(rotvec: np.ndarray) -> np.ndarray:
     """
     Map rotation vectors (axis times angle, rad), shape (..., 3), to unit quaternions (..., 4).
 
     Accurate near zero angle (Taylor series of sin(θ/2)/θ).
     """
-    v = np.asarray(rotvec, dtype=float)
-    theta = np.linalg.norm(v, axis=-1)
-    small = theta < 1e-6
-    safe = np.where(small, 1.0, theta)
-    k = np.where(small, 0.5 - theta ** 2 / 48.0, np.sin(0.5 * safe) / safe)
-    return np.concatenate([np.cos(0.5 * theta)[..., None], k[..., None] * v], axis=-1)
+    v = np.moveaxis(np.asarray(rotvec, dtype=float), -1, 0)
+    return np.stack(exp_parts(*v), axis=-1)
 
 
 def log(q: np.ndarray) -> np.ndarray:
