@@ -29,6 +29,38 @@ def noise_covariance(sigma) -> np.ndarray:
     return np.diag([pos ** 2] * 3 + [rot ** 2] * 3)
 
 
+_METRIC = np.diag([1.0, 1.0, 1.0, -0.5, -0.5, -0.5])
+
+
+def metric_covariance(cov: np.ndarray) -> np.ndarray:
+    """
+    Covariance of the error metric from a 6×6 ROS-layout covariance (rotation enters as Σθ/4).
+
+    Parameters
+    ----------
+    cov : ndarray, shape (6, 6)
+        Position (m²) and rotation-vector (rad²) covariance.
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+
+    """
+    return _METRIC @ np.asarray(cov, dtype=float).reshape(6, 6) @ _METRIC
+
+
+def output_covariance(cov_b: np.ndarray, spec: ModelSpec) -> np.ndarray:
+    """Metric covariance of B's output (m×m): 6×6 full pose, 3×3 per marker otherwise."""
+    metric = metric_covariance(cov_b)
+    if spec.name == 'full_pose':
+        return metric
+    m = 3 * spec.n_markers
+    out = np.zeros((m, m))
+    for j in range(spec.n_markers):
+        out[3 * j:3 * j + 3, 3 * j:3 * j + 3] = metric[0:3, 0:3]
+    return out
+
+
 def whitening(cov: np.ndarray, spec: Optional[ModelSpec], device: str) -> np.ndarray:
     """
     L with LᵀL the inverse covariance of the error metric, for device 'a' (6×6) or 'b' (m×m).
@@ -36,14 +68,7 @@ def whitening(cov: np.ndarray, spec: Optional[ModelSpec], device: str) -> np.nda
     The rotation metric is about half the angle (Ikits §3.2), so a rotation covariance Σθ
     enters as Σθ/4 (and position-rotation cross terms as -1/2).
     """
-    cov = np.asarray(cov, dtype=float).reshape(6, 6)
-    T = np.diag([1.0, 1.0, 1.0, -0.5, -0.5, -0.5])
-    metric = T @ cov @ T
-    if device == 'b' and spec.name != 'full_pose':
-        blocks = [metric[0:3, 0:3]] * spec.n_markers
-        metric = np.zeros((3 * len(blocks),) * 2)
-        for j, b in enumerate(blocks):
-            metric[3 * j:3 * j + 3, 3 * j:3 * j + 3] = b
+    metric = metric_covariance(cov) if device == 'a' else output_covariance(cov, spec)
     try:
         return np.linalg.inv(np.linalg.cholesky(metric))
     except np.linalg.LinAlgError as e:

@@ -16,108 +16,11 @@ from typing import Optional
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import noise_covariance
+from coreg_ros.core.calibrate import noise_covariance, output_covariance
 from coreg_ros.core.models import SPECS, ModelSpec
 from coreg_ros.core.settings import Settings
+from coreg_ros.core.trajectory import Trajectory
 from coreg_ros.core.types import Pairs, PoseStream
-
-#: Half-width of the finite-difference window for velocities, s (at least two A samples).
-VELOCITY_HALF_WINDOW = 0.04
-
-_METRIC = np.diag([1.0, 1.0, 1.0, -0.5, -0.5, -0.5])
-
-
-def metric_covariance(cov: np.ndarray) -> np.ndarray:
-    """
-    Covariance of the error metric from a 6×6 ROS-layout covariance (rotation enters as Σθ/4).
-
-    Parameters
-    ----------
-    cov : ndarray, shape (6, 6)
-        Position (m²) and rotation-vector (rad²) covariance.
-
-    Returns
-    -------
-    ndarray, shape (6, 6)
-
-    """
-    return _METRIC @ np.asarray(cov, dtype=float).reshape(6, 6) @ _METRIC
-
-
-def output_covariance(cov_b: np.ndarray, spec: ModelSpec) -> np.ndarray:
-    """Metric covariance of B's output (m×m): 6×6 full pose, 3×3 per marker otherwise."""
-    metric = metric_covariance(cov_b)
-    if spec.name == 'full_pose':
-        return metric
-    m = 3 * spec.n_markers
-    out = np.zeros((m, m))
-    for j in range(spec.n_markers):
-        out[3 * j:3 * j + 3, 3 * j:3 * j + 3] = metric[0:3, 0:3]
-    return out
-
-
-class Trajectory:
-    """
-    Device A's tool pose as a function of time, sampled; linear / normalised-lerp interpolation.
-
-    Parameters
-    ----------
-    t : ndarray, shape (K,)
-        Sample times, s (strictly increasing), on the pairs' time axis.
-    position : ndarray, shape (K, 3)
-        Tool position in A's base frame, m.
-    quat_wxyz : ndarray, shape (K, 4)
-        Tool orientation in A's base frame, (w, x, y, z).
-
-    """
-
-    def __init__(self, t: np.ndarray, position: np.ndarray, quat_wxyz: np.ndarray):
-        order = np.argsort(t, kind='stable')
-        t = np.asarray(t, dtype=float)[order]
-        keep = np.concatenate([[True], np.diff(t) > 0])
-        self.t = t[keep]
-        self.position = np.asarray(position, dtype=float)[order][keep]
-        q = np.asarray(quat_wxyz, dtype=float)[order][keep].copy()
-        # continuous sign along the trajectory, so that neighbours interpolate the short way
-        dots = np.einsum('ij,ij->i', q[1:], q[:-1])
-        flips = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
-        self.quat = q * flips[:, None]
-
-    def __len__(self) -> int:
-        return int(self.t.shape[0])
-
-    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """
-        Pose at times t (s), shapes (n, 3) and (n, 4); linear extrapolation beyond the ends.
-
-        Orientation by normalised lerp between neighbours (equal to slerp to O(θ³) for the
-        small angles between successive samples).
-        """
-        t = np.asarray(t, dtype=float)
-        k = np.clip(np.searchsorted(self.t, t, side='right') - 1, 0, len(self) - 2)
-        span = self.t[k + 1] - self.t[k]
-        a = ((t - self.t[k]) / span)[:, None]
-        pos = self.position[k] + a * (self.position[k + 1] - self.position[k])
-        q = self.quat[k] + a * (self.quat[k + 1] - self.quat[k])
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
-        return pos, quat.canonical(q)
-
-    def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW):
-        """
-        Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
-
-        ``ω = Log(q(t+h) ⊗ q(t-h)*) / 2h``: the rotation acts on the left, in A's base frame,
-        as the input perturbation of the models does.
-        """
-        t = np.asarray(t, dtype=float)
-        if len(self) > 1:
-            step = float(np.median(np.diff(self.t)))
-            half = max(half, 1.5 * step)
-        p1, q1 = self.pose(t + half)
-        p0, q0 = self.pose(t - half)
-        v = (p1 - p0) / (2.0 * half)
-        w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
-        return v, w
 
 
 @dataclass(eq=False)

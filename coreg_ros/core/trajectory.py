@@ -1,0 +1,80 @@
+"""
+A device's sampled pose as a function of time: interpolation and velocity.
+
+Used where a pose is needed between samples or its rate of change is needed: the time-offset
+estimation of the calibration (A's interpolated pose moves with its velocity) and the gap
+diagnosis. Time is float seconds on a caller-chosen axis (e.g. from the first paired stamp);
+pairing itself never uses float seconds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from coreg_ros.core import quaternion as quat
+
+#: Half-width of the finite-difference window for velocities, s (at least two A samples).
+VELOCITY_HALF_WINDOW = 0.04
+
+class Trajectory:
+    """
+    Device A's tool pose as a function of time, sampled; linear / normalised-lerp interpolation.
+
+    Parameters
+    ----------
+    t : ndarray, shape (K,)
+        Sample times, s (strictly increasing), on the pairs' time axis.
+    position : ndarray, shape (K, 3)
+        Tool position in A's base frame, m.
+    quat_wxyz : ndarray, shape (K, 4)
+        Tool orientation in A's base frame, (w, x, y, z).
+
+    """
+
+    def __init__(self, t: np.ndarray, position: np.ndarray, quat_wxyz: np.ndarray):
+        order = np.argsort(t, kind='stable')
+        t = np.asarray(t, dtype=float)[order]
+        keep = np.concatenate([[True], np.diff(t) > 0])
+        self.t = t[keep]
+        self.position = np.asarray(position, dtype=float)[order][keep]
+        q = np.asarray(quat_wxyz, dtype=float)[order][keep].copy()
+        # continuous sign along the trajectory, so that neighbours interpolate the short way
+        dots = np.einsum('ij,ij->i', q[1:], q[:-1])
+        flips = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
+        self.quat = q * flips[:, None]
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Pose at times t (s), shapes (n, 3) and (n, 4); linear extrapolation beyond the ends.
+
+        Orientation by normalised lerp between neighbours (equal to slerp to O(θ³) for the
+        small angles between successive samples).
+        """
+        t = np.asarray(t, dtype=float)
+        k = np.clip(np.searchsorted(self.t, t, side='right') - 1, 0, len(self) - 2)
+        span = self.t[k + 1] - self.t[k]
+        a = ((t - self.t[k]) / span)[:, None]
+        pos = self.position[k] + a * (self.position[k + 1] - self.position[k])
+        q = self.quat[k] + a * (self.quat[k + 1] - self.quat[k])
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        return pos, quat.canonical(q)
+
+    def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW):
+        """
+        Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
+
+        ``ω = Log(q(t+h) ⊗ q(t-h)*) / 2h``: the rotation acts on the left, in A's base frame,
+        as the input perturbation of the models does.
+        """
+        t = np.asarray(t, dtype=float)
+        if len(self) > 1:
+            step = float(np.median(np.diff(self.t)))
+            half = max(half, 1.5 * step)
+        p1, q1 = self.pose(t + half)
+        p0, q0 = self.pose(t - half)
+        v = (p1 - p0) / (2.0 * half)
+        w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
+        return v, w
