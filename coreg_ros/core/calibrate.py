@@ -7,6 +7,7 @@ so that both give the same numbers from the same pairs.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Optional
 
 import numpy as np
@@ -14,10 +15,11 @@ from scipy import stats
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.covariance import Prior, result_poses
-from coreg_ros.core.errors import InputError, TooFewPairsError
+from coreg_ros.core.errors import InconsistentDataError, InputError, TooFewPairsError
 from coreg_ros.core.estimator import Problem, Solution, solve_ols, solve_tls
 from coreg_ros.core.initialize import initialize
-from coreg_ros.core.models import SPECS, ModelSpec
+from coreg_ros.core.linearized import PairData, normalised_squares
+from coreg_ros.core.models import SPECS, ModelSpec, Parameters
 from coreg_ros.core.observability import check_motion, check_observability
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
@@ -114,24 +116,121 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
     return pos_a, quat_a, pos_b, quat_b, scale
 
 
+#: Chance that the robust fit rejects a pair that fits the stated noise (per pair).
+OUTLIER_ALPHA = 1e-4
+#: Largest share of the pairs the robust fit may reject; beyond it the data do not fit.
+MAX_REJECTED_SHARE = 0.25
+#: Rounds of rejection and refit (the set of inliers settles in two or three).
+MAX_ROUNDS = 10
+
+
+class _Fitter:
+    """One problem's data and noise; fits any subset of the pairs from any start."""
+
+    def __init__(self, pairs: Pairs, spec: ModelSpec, settings: Settings,
+                 prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray):
+        self.spec, self.settings = spec, settings
+        (self.pos_a, self.quat_a, self.pos_b, self.quat_b,
+         self.scale) = _validated(pairs, spec, settings)
+        self.whiten_a = whitening(cov_a, None, 'a')
+        self.whiten_b = whitening(cov_b, spec, 'b')
+        self.priors = prior.terms(spec) if prior is not None else []
+        self.data = PairData(self.pos_a, self.quat_a, self.pos_b, self.quat_b,
+                             metric_covariance(cov_a), output_covariance(cov_b, spec),
+                             self.scale, settings.method == 'tls')
+
+    def solve(self, keep: np.ndarray, start: Optional[Parameters],
+              warm: bool = False) -> Solution:
+        """
+        Fit the pairs in ``keep`` from ``start`` (closed form when None).
+
+        OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) goes to TLS
+        directly.
+        """
+        def sub(x):
+            return x if x is None or keep.all() else x[keep]
+
+        settings = self.settings
+        n_keep = int(keep.sum())
+        min_pairs = max(int(settings.min_pairs), self.spec.n_params // self.spec.n_res + 2)
+        if n_keep < min_pairs:
+            raise TooFewPairsError(
+                f'only {n_keep} pairs are left after rejecting outliers (need at least '
+                f'{min_pairs}); record longer, or check the noise (sigma_b) and the units')
+        quat_a = sub(self.quat_a)
+        problem = Problem(self.spec, sub(self.pos_a), quat_a, sub(self.pos_b),
+                          sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
+                          self.priors)
+        tls = settings.method == 'tls'
+        if start is None:
+            start = initialize(self.spec, problem.pos_a, quat_a, problem.pos_b, problem.quat_b)
+        if not (tls and warm):
+            sol = solve_ols(problem, start, max_iterations=settings.max_iterations)
+            check_observability(sol.info, sol.params, quat_a)
+            start = sol.params
+        if tls:
+            sol = solve_tls(problem, start, max_iterations=settings.max_iterations)
+            check_observability(sol.info, sol.params, quat_a)
+        return sol
+
+    def reject_outliers(self, sol: Solution) -> tuple[np.ndarray, Solution]:
+        """
+        Reject pairs far outside the noise, refitting on the rest until the set settles.
+
+        A pair is rejected when ``d² > s · χ²_m(1 - OUTLIER_ALPHA)`` with d² its normalised
+        squared residual at the current fit (``linearized.normalised_squares``) and
+        ``s = max(1, median(d²) / median(χ²_m))``: the stated noise, or the typical scatter of
+        the inliers if that is larger (so that early rounds, fitted with the outliers in,
+        keep the inliers, and a recording whose noise is understated throughout is judged
+        by the fit verdict, not cut down). Rejected pairs are tested again each round.
+        """
+        m = self.spec.n_res
+        n = len(self.pos_a)
+        limit = float(stats.chi2.isf(OUTLIER_ALPHA, m))
+        median = float(stats.chi2.median(m))
+        keep = np.ones(n, dtype=bool)
+        for _ in range(MAX_ROUNDS):
+            d2 = normalised_squares(sol.params, self.data)
+            scale = max(1.0, float(np.median(d2[keep])) / median)
+            new = d2 <= scale * limit
+            if np.array_equal(new, keep):
+                break
+            share = 1.0 - new.mean()
+            if share > MAX_REJECTED_SHARE:
+                raise InconsistentDataError(
+                    f'{share:.0%} of the pairs lie far outside the stated noise: the data are '
+                    f'not the model plus a few outliers; check the units and the noise '
+                    f'(sigma_a, sigma_b) and run coreg diagnose')
+            keep = new
+            sol = self.solve(keep, sol.params, warm=True)
+        return keep, sol
+
+
 def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional[Prior] = None,
-              cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None
-              ) -> CalibrationResult:
+              cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None,
+              start: Optional[Parameters] = None, warm: bool = False) -> CalibrationResult:
     """
     Estimate T0 = T_bbase_abase and T1 = T_atool_bmarker from paired samples.
 
     Closed-form start (no guess needed), OLS (Ikits B.1) refined by TLS (B.2) when
     ``settings.method == 'tls'``, a priori estimates (B.3), chi-square goodness of fit (B.4.1)
-    and posterior covariance (B.4.2) converted to the ROS layout.
+    and posterior covariance (B.4.2) converted to the ROS layout. With ``settings.robust``,
+    pairs far outside the noise are rejected and the fit is repeated on the rest.
 
     Parameters
     ----------
     pairs : Pairs
     settings : Settings
-        Model, method, noise (``sigma_a``, ``sigma_b``), iteration limit, minimum pairs.
+        Model, method, noise (``sigma_a``, ``sigma_b``), iteration limit, minimum pairs,
+        robust.
     prior : Prior, optional
     cov_a, cov_b : ndarray, shape (6, 6), optional
         Full noise covariances (ROS layout) overriding ``sigma_a`` / ``sigma_b``.
+    start : Parameters, optional
+        A starting φ instead of the closed form.
+    warm : bool
+        ``start`` is a fit of nearly the same pairs (e.g. at a nearby time offset): TLS starts
+        from it without an OLS pass.
 
     Returns
     -------
@@ -140,25 +239,22 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
 
     Raises
     ------
-    TooFewPairsError, InputError, UnobservableError
+    TooFewPairsError, InputError, UnobservableError, InconsistentDataError
 
     """
     settings = settings or Settings()
     spec = SPECS[settings.model]
-    pos_a, quat_a, pos_b, quat_b, scale = _validated(pairs, spec, settings)
     cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
     cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
-    problem = Problem(spec, pos_a, quat_a, pos_b, quat_b, whitening(cov_b, spec, 'b'),
-                      whitening(cov_a, None, 'a'), scale,
-                      prior.terms(spec) if prior is not None else [])
-    check_motion(quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
-    start = initialize(spec, pos_a, quat_a, pos_b, quat_b)
-    sol = solve_ols(problem, start, max_iterations=settings.max_iterations)
-    check_observability(sol.info, sol.params, quat_a)
-    if settings.method == 'tls':
-        sol = solve_tls(problem, sol.params, max_iterations=settings.max_iterations)
-        check_observability(sol.info, sol.params, quat_a)
-    return _result(sol, spec, settings, len(pairs))
+    fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b)
+    check_motion(fitter.quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
+    keep = np.ones(len(pairs), dtype=bool)
+    sol = fitter.solve(keep, start, warm and start is not None)
+    if settings.robust:
+        keep, sol = fitter.reject_outliers(sol)
+    result = _result(sol, spec, settings, len(pairs))
+    return replace(result, inliers=keep,
+                   rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])
 
 
 def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int) -> CalibrationResult:
@@ -173,4 +269,5 @@ def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int) -> Calib
         method=settings.method, n_pairs=n, base_to_base=t0, tool_to_marker=t1,
         markers=sol.params.markers.copy(), params=sol.params.phi.copy(), param_cov=sol.cov,
         chi2=float(sol.chi2), dof=int(dof), p_value=p_value, residuals=sol.residuals,
-        iterations=sol.iterations, cov_joint=joint, input_residuals=sol.input_residuals)
+        iterations=sol.iterations, cov_joint=joint, input_residuals=sol.input_residuals,
+        charts=tuple(sol.params.charts))

@@ -111,17 +111,31 @@ class Prior:
         return out
 
 
+def constrained_axes(pose: UncertainPose, spec: ModelSpec, which: int) -> np.ndarray:
+    """
+    Return the axes (of 0..5) a prior pose constrains: finite variance, estimated by the model.
+
+    An infinite variance marks an axis the prior says nothing about (a partial prior, e.g. a
+    CAD position of T1 whose orientation is unknown).
+    """
+    if pose.covariance is None:
+        raise InputError('a prior needs a covariance; give its 6×6 covariance or sigma per axis')
+    cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
+    axes = [i for i in range(6) if np.isfinite(cov[i, i]) and cov[i, i] > 0]
+    if which == 1 and not spec.has_q1:
+        axes = [i for i in axes if i < 3]
+    return np.asarray(axes, dtype=int)
+
+
 def _pose_prior(pose: UncertainPose, spec: ModelSpec, which: int):
     """Residual rows ``L [p - p̂; δθ]`` with ``q = Exp(δθ) ⊗ q̂`` (eqs. 54-56)."""
-    if pose.covariance is None:
-        raise InputError('a prior needs a covariance; give its 6×6 covariance')
+    keep = constrained_axes(pose, spec, which)
     cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
-    with_rotation = which == 0 or spec.has_q1
-    keep = slice(0, 6) if with_rotation else slice(0, 3)
     try:
-        L = np.linalg.inv(np.linalg.cholesky(cov[keep, keep]))
+        L = np.linalg.inv(np.linalg.cholesky(cov[np.ix_(keep, keep)]))
     except np.linalg.LinAlgError as e:
         raise InputError('prior covariance is not positive definite; fix it') from e
+    with_rotation = bool((keep >= 3).any())
     q_hat = quat.validate_quaternions(pose.quat_wxyz, 'prior orientation')
     p_slice = slice(0, 3) if which == 0 else spec.marker_slice(0)
 

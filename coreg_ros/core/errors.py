@@ -38,3 +38,7 @@ class BagError(CoregError):
 
 class ConfigError(CoregError):
     """A configuration value or command-line option is invalid."""
+
+
+class InconsistentDataError(CoregError):
+    """The data are not the model plus a few outliers (too many pairs far outside the noise)."""

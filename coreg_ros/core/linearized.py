@@ -78,8 +78,8 @@ class Chunk:
     j_phi : ndarray, shape (n, m, P)
     j_x : ndarray, shape (n, m, 6)
         ∂e/∂x over (p_A, δ_A), δ_A a rotation of A's tool in A's base frame.
-    weight : ndarray, shape (n, m, m)
-        Σ_eff⁻¹.
+    cov : ndarray, shape (n, m, m) or (m, m)
+        Σ_eff (one matrix for all pairs when A's noise does not enter).
 
     """
 
@@ -87,7 +87,13 @@ class Chunk:
     e: np.ndarray
     j_phi: np.ndarray
     j_x: np.ndarray
-    weight: np.ndarray
+    cov: np.ndarray
+
+    def weighted(self, rhs: np.ndarray) -> np.ndarray:
+        """Σ_eff⁻¹ rhs for rhs of shape (n, m, k): a batched solve, not an inverse."""
+        if self.cov.ndim == 2:
+            return np.einsum('ij,njk->nik', np.linalg.inv(self.cov), rhs)
+        return np.linalg.solve(self.cov, rhs)
 
 
 def chunks(params: Parameters, data: PairData, chunk: int = CHUNK) -> Iterator[Chunk]:
@@ -98,13 +104,13 @@ def chunks(params: Parameters, data: PairData, chunk: int = CHUNK) -> Iterator[C
         quat_b = None if data.quat_b is None else data.quat_b[sl]
         e, j_phi, j_x = linearize(params, data.pos_a[sl], data.quat_a[sl], data.pos_b[sl],
                                   quat_b, with_input=True)
-        cov = np.broadcast_to(data.cov_b, (e.shape[0],) + data.cov_b.shape).copy()
+        cov = data.cov_b
         if data.tls:
-            carried = j_x @ data.cov_a @ np.swapaxes(j_x, 1, 2)
+            cov = j_x @ data.cov_a @ np.swapaxes(j_x, 1, 2)
             if data.a_scale is not None:
-                carried *= data.a_scale[sl, None, None]
-            cov += carried
-        yield Chunk(sl, e, j_phi, j_x, np.linalg.inv(cov))
+                cov *= data.a_scale[sl, None, None]
+            cov += data.cov_b
+        yield Chunk(sl, e, j_phi, j_x, cov)
 
 
 def normalised_squares(params: Parameters, data: PairData) -> np.ndarray:
@@ -120,5 +126,5 @@ def normalised_squares(params: Parameters, data: PairData) -> np.ndarray:
     """
     out = np.empty(len(data))
     for ch in chunks(params, data):
-        out[ch.sl] = np.einsum('ni,nij,nj->n', ch.e, ch.weight, ch.e)
+        out[ch.sl] = np.einsum('ni,ni->n', ch.e, ch.weighted(ch.e[:, :, None])[:, :, 0])
     return out

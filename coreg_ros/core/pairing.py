@@ -184,10 +184,20 @@ def _lerp(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, alpha: np.ndarray)
     return out
 
 
+def validated_streams(stream_a: PoseStream, markers: list, with_orientation_b: bool):
+    """Validate A and the B stream(s) as pairing needs them: (A, [B or markers 1-3])."""
+    a = validate_stream(stream_a, 'stream_a')
+    if len(markers) == 3:
+        return a, [validate_stream(s, f'streams_b[{k}]', orientation=False)
+                   for k, s in enumerate(markers)]
+    return a, [validate_stream(markers[0], 'stream_b', orientation=with_orientation_b)]
+
+
 def pair_streams(stream_a: PoseStream,
                  streams_b: Union[PoseStream, Sequence[PoseStream]], *,
-                 max_gap_ns: int, offset_ns: int = 0,
-                 with_orientation_b: bool = True) -> tuple[Pairs, PairingReport]:
+                 max_gap_ns: int, offset_ns: int = 0, drift: float = 0.0,
+                 drift_ref_ns: int = 0, with_orientation_b: bool = True,
+                 validated: bool = False) -> tuple[Pairs, PairingReport]:
     """
     Pair device A (input) with device B (output) by interpolating A at B's stamps.
 
@@ -209,9 +219,17 @@ def pair_streams(stream_a: PoseStream,
         Largest distance (ns) of each bracketing sample from the interpolation time.
     offset_ns : int
         B's clock minus A's clock (ns), e.g. a known latency of B.
+    drift : float
+        Clock drift κ (dimensionless, ppm × 1e-6): the offset at B stamp t is
+        ``offset_ns + κ (t - drift_ref_ns)``, rounded to whole nanoseconds.
+    drift_ref_ns : int
+        B stamp at which the offset equals ``offset_ns``.
     with_orientation_b : bool
         False for the position-only model: B's orientations are ignored (neither checked nor
         returned) and ``Pairs.quat_b`` is None.
+    validated : bool
+        The streams were returned by ``validate_stream`` already (pairing them again at
+        another offset need not check them again).
 
     Returns
     -------
@@ -253,16 +271,17 @@ def pair_streams(stream_a: PoseStream,
                              f'{len(markers)}; pass a PoseStream or [marker1, marker2, '
                              f'marker3]')
     three = len(markers) == 3
-    a = validate_stream(stream_a, 'stream_a')
-    if three:
-        bs = [validate_stream(s, f'streams_b[{k}]', orientation=False)
-              for k, s in enumerate(markers)]
+    if validated:
+        a, bs = stream_a, markers
     else:
-        bs = [validate_stream(markers[0], 'stream_b', orientation=with_orientation_b)]
+        a, bs = validated_streams(stream_a, markers, with_orientation_b)
     b = bs[0]
     n_a, n_b = len(a), len(b)
 
     t_query = b.stamps - np.int64(offset_ns)
+    if drift:
+        since = (b.stamps - np.int64(_as_int(drift_ref_ns, 'drift_ref_ns'))).astype(float)
+        t_query = t_query - np.round(float(drift) * since).astype(np.int64)
     lo, hi, alpha, ok, before, after = _bracket(a.stamps, t_query, max_gap_ns)
     gap = ~ok & ~before & ~after
     # Marker 2 and 3 at marker 1's stamps (same clock, same gap rule).
@@ -309,4 +328,4 @@ def pair_streams(stream_a: PoseStream,
     return pairs, report
 
 
-__all__ = ['UNPAIRED_REASONS', 'pair_streams', 'validate_stream']
+__all__ = ['UNPAIRED_REASONS', 'pair_streams', 'validate_stream', 'validated_streams']

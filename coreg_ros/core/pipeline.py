@@ -1,36 +1,90 @@
 """
-Streams in, calibration out: pairing by timestamp followed by the estimator.
+Streams in, calibration out: pairing by timestamp, the clock offset, the estimator, the verdict.
 
 The live node and the offline ``coreg calibrate`` both call ``calibrate_streams`` on the raw
 samples they hold, so they pair and estimate identically.
+
+With ``settings.estimate_time_offset`` the offset τ (and, if asked, the drift κ) is estimated
+jointly with T0 and T1 (``timing``): candidates from the cross-correlation of the devices'
+angular speeds and the given value are each fitted on a subsample of B's samples; the best is
+refined by Gauss-Newton steps on τ with φ eliminated, re-pairing at every step, first on the
+subsample and then on all samples, until a step is below ``LINEAR_STEP_S`` (where the pairs are
+linear in τ to well below the noise); that last step is applied to τ and φ together, and the
+covariance of φ is marginalised over τ.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Optional, Union
 
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import Prior
-from coreg_ros.core.errors import TooFewPairsError
-from coreg_ros.core.pairing import pair_streams
+import numpy as np
+from scipy import stats
+
+from coreg_ros.core.calibrate import (
+    calibrate,
+    metric_covariance,
+    noise_covariance,
+    output_covariance,
+)
+from coreg_ros.core.covariance import Prior, result_poses, tangent_map
+from coreg_ros.core.errors import CoregError, TooFewPairsError
+from coreg_ros.core.linearized import PairData
+from coreg_ros.core.models import SPECS, Parameters
+from coreg_ros.core.pairing import pair_streams, validated_streams
 from coreg_ros.core.settings import Settings
-from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream
+from coreg_ros.core.timing import (
+    OffsetStep,
+    coarse_offsets,
+    offset_step,
+    query_seconds,
+    velocity_noise_cov,
+)
+from coreg_ros.core.trajectory import VELOCITY_HALF_WINDOW, Trajectory
+from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
+from coreg_ros.core.verdict import judge
+
+#: A step of τ below this (s) is applied without re-pairing (the pairs are linear in τ over
+#: it: ½ a δτ² is 0.5 µm at 1 m/s² acceleration).
+LINEAR_STEP_S = 1e-3
+#: B samples of the subsample on which the offset candidates are compared and refined.
+SUBSAMPLE_B = 4000
+#: Gauss-Newton rounds on τ (each re-pairs and refits).
+MAX_ROUNDS = 8
+#: Candidates refined after their first round.
+REFINED_CANDIDATES = 2
+#: Iteration limit of the fits that compare candidates.
+TRIAL_ITERATIONS = 20
+#: Candidates closer than this (s) are one.
+SAME_CANDIDATE_S = 2e-3
+
+
+def _b_list(streams_b: Union[PoseStream, Sequence[PoseStream]]) -> list:
+    return [streams_b] if isinstance(streams_b, PoseStream) else list(streams_b)
 
 
 def pair_for(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
-             settings: Settings):
-    """Pair the streams with the settings' gap, offset and model; returns (Pairs, report)."""
+             settings: Settings, timing: Optional[TimeOffset] = None,
+             validated: bool = False):
+    """
+    Pair the streams with the settings' gap and model; returns (Pairs, report).
+
+    At ``timing`` (offset and drift) when given, else at ``settings.time_offset``.
+    """
+    timing = timing or TimeOffset(settings.time_offset)
     return pair_streams(stream_a, streams_b, max_gap_ns=settings.max_gap_ns,
-                        offset_ns=settings.time_offset_ns,
-                        with_orientation_b=settings.model == 'full_pose')
+                        offset_ns=timing.offset_ns(), drift=timing.drift,
+                        drift_ref_ns=timing.reference_ns,
+                        with_orientation_b=settings.model == 'full_pose', validated=validated)
 
 
 def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
-                      settings: Settings, prior: Optional[Prior] = None
+                      settings: Settings, prior: Optional[Prior] = None,
+                      frames: Optional[tuple] = None
                       ) -> tuple[CalibrationResult, PairingReport]:
     """
-    Pair device A and device B samples and calibrate.
+    Pair device A and device B samples, estimate the clock offset (if asked), calibrate, judge.
 
     Parameters
     ----------
@@ -40,10 +94,15 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         Device B: marker pose(s) in B's base frame (three streams for ``three_marker``).
     settings : Settings
     prior : Prior, optional
+    frames : (str, str), optional
+        The configured base frames of A and B, to recognise swapped devices from the
+        messages' frame ids when the fit is bad.
 
     Returns
     -------
     result : CalibrationResult
+        With ``time_offset``, ``rejected_stamps``, ``fit_consistent`` and ``verdict``;
+        ``success`` only if the estimator converged and the fit matches the stated noise.
     report : PairingReport
 
     Raises
@@ -52,8 +111,205 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         With the pairing counts, so the user sees why samples were not paired.
 
     """
-    pairs, report = pair_for(stream_a, streams_b, settings)
+    streams_b = _b_list(streams_b)
+    if settings.estimate_time_offset:
+        result, report = _spatiotemporal(stream_a, streams_b, settings, prior)
+    else:
+        result, report = _fixed(stream_a, streams_b, settings, prior,
+                                TimeOffset(settings.time_offset, message='given'))
+    return judge(result, stream_a, streams_b, settings, prior, frames), report
+
+
+def _fixed(stream_a, streams_b, settings, prior, timing: TimeOffset):
+    pairs, report = pair_for(stream_a, streams_b, settings, timing)
     try:
-        return calibrate(pairs, settings, prior), report
+        result = calibrate(pairs, settings, prior)
     except TooFewPairsError as e:
         raise TooFewPairsError(f'{e} ({report.summary()})') from e
+    return replace(result, time_offset=timing), report
+
+
+@dataclass
+class _Context:
+    """What every round of the offset search needs: the validated streams and the noise."""
+
+    stream_a: PoseStream
+    streams_b: list
+    settings: Settings
+    prior: Optional[Prior]
+    trajectory: Trajectory
+    origin_ns: int
+    reference_ns: int
+    half: float
+    cov_a: np.ndarray
+    cov_b: np.ndarray
+
+    @classmethod
+    def build(cls, stream_a, streams_b, settings, prior):
+        spec = SPECS[settings.model]
+        a, bs = validated_streams(stream_a, streams_b, settings.model == 'full_pose')
+        origin = int(a.stamps[0])
+        t = (a.stamps - np.int64(origin)).astype(float) * 1e-9
+        step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        ref = (int(bs[0].stamps[0]) + int(bs[0].stamps[-1])) // 2
+        return cls(a, bs, settings, prior, Trajectory(t, a.position, a.quat_wxyz), origin, ref,
+                   max(VELOCITY_HALF_WINDOW, 1.5 * step),
+                   metric_covariance(noise_covariance(settings.sigma_a)),
+                   output_covariance(noise_covariance(settings.sigma_b), spec))
+
+    def timing(self, tau: float, kappa: Optional[float]) -> TimeOffset:
+        return TimeOffset(tau, drift_ppm=None if kappa is None else kappa * 1e6,
+                          reference_ns=self.reference_ns)
+
+
+@dataclass
+class _Round:
+    """The state after a round: the fit at (τ, κ) and the step it proposes."""
+
+    result: CalibrationResult
+    report: PairingReport
+    pairs: Pairs
+    params: Parameters
+    step: OffsetStep
+    tau: float
+    kappa: Optional[float]
+
+    def score(self) -> float:
+        """Trimmed cost per pair: χ² of the inliers plus the rejection limit per outlier."""
+        r = self.result
+        limit = float(stats.chi2.isf(1e-4, r.residuals.shape[1]))
+        return (r.chi2 + limit * r.n_rejected) / max(r.n_pairs, 1)
+
+
+def _subsampled(streams_b: list, target: int) -> list:
+    """Every k-th sample of B (marker 1 for three markers) so that about ``target`` remain."""
+    first = streams_b[0]
+    k = max(1, len(first) // target)
+    if k == 1:
+        return streams_b
+    sub = PoseStream(first.stamps[::k], first.position[::k], first.quat_wxyz[::k],
+                     first.frame_id, None if first.receive_stamps is None
+                     else first.receive_stamps[::k])
+    return [sub] + streams_b[1:]
+
+
+def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
+           start: Optional[Parameters]) -> _Round:
+    """Pair at (τ, κ), fit (from ``start`` if given) and compute the offset step."""
+    settings = ctx.settings
+    timing = ctx.timing(tau, kappa)
+    pairs, report = pair_for(ctx.stream_a, streams_b, settings, timing, validated=True)
+    try:
+        result = calibrate(pairs, settings, ctx.prior, start=start, warm=start is not None)
+    except TooFewPairsError as e:
+        raise TooFewPairsError(f'{e} ({report.summary()})') from e
+    spec = SPECS[settings.model]
+    params = Parameters(spec, result.params, list(result.charts))
+    keep = result.inliers
+
+    def sub(x):
+        return None if x is None else np.asarray(x)[keep]
+
+    data = PairData(sub(pairs.pos_a), sub(pairs.quat_a), sub(pairs.pos_b), sub(pairs.quat_b),
+                    ctx.cov_a, ctx.cov_b, sub(pairs.a_var_scale), settings.method == 'tls')
+    stamps = pairs.stamps[keep]
+    t_a = query_seconds(stamps, tau, 0.0 if kappa is None else kappa, ctx.reference_ns,
+                        ctx.origin_ns)
+    v, w = ctx.trajectory.velocity(t_a, ctx.half)
+    since = None if kappa is None else (stamps - np.int64(ctx.reference_ns)).astype(
+        float) * 1e-9
+    step = offset_step(params, data, np.hstack([v, w]), since, result.param_cov,
+                       velocity_noise_cov(ctx.cov_a, ctx.half))
+    return _Round(result, report, pairs, params, step, tau, kappa)
+
+
+def _step_is_linear(rnd: _Round, span_s: float) -> bool:
+    d = rnd.step.delta
+    shift = abs(d[0]) + (abs(d[1]) * span_s if d.size > 1 else 0.0)
+    return shift < LINEAR_STEP_S
+
+
+def _refine(ctx: _Context, streams_b: list, rnd: _Round) -> _Round:
+    """Gauss-Newton rounds on (τ, κ) from ``rnd`` until the step is linear (or τ is lost)."""
+    span = 0.5 * float(streams_b[0].stamps[-1] - streams_b[0].stamps[0]) * 1e-9
+    kappa = rnd.kappa
+    for _ in range(MAX_ROUNDS - 1):
+        if rnd.step.cov is None or not rnd.step.determined()[0] or _step_is_linear(rnd, span):
+            break
+        d = rnd.step.delta
+        kappa = None if kappa is None else kappa + float(d[1])
+        rnd = _round(ctx, streams_b, rnd.tau + float(d[0]), kappa, rnd.params)
+    return rnd
+
+
+def _candidates(ctx: _Context) -> list:
+    """Return the given τ, then the coarse search's peaks, without near-duplicates."""
+    angular = ctx.settings.model != 'position_only'
+    found = [tau for tau, _ in coarse_offsets(ctx.stream_a, ctx.streams_b, angular=angular)]
+    out = []
+    for tau in [float(ctx.settings.time_offset)] + found:
+        if all(abs(tau - t) > SAME_CANDIDATE_S for t in out):
+            out.append(tau)
+    return out
+
+
+def _spatiotemporal(stream_a, streams_b, settings, prior):
+    ctx = _Context.build(stream_a, streams_b, settings, prior)
+    kappa0 = 0.0 if settings.estimate_clock_drift else None
+    sub_b = _subsampled(ctx.streams_b, SUBSAMPLE_B)
+    # candidates are compared by OLS with few iterations: a wrong one is far off either way
+    trial = replace(ctx, settings=settings.updated(
+        method='ols', max_iterations=min(int(settings.max_iterations), TRIAL_ITERATIONS)))
+    # one round per candidate, then the best few refined: a wrong lag is far off at once
+    firsts = []
+    for tau in _candidates(ctx):
+        try:
+            firsts.append(_round(trial, sub_b, tau, kappa0, None))
+        except CoregError:
+            continue
+    firsts.sort(key=_Round.score)
+    best = None
+    for first in firsts[:REFINED_CANDIDATES]:
+        try:
+            rnd = _refine(trial, sub_b, first)
+        except CoregError:
+            continue
+        if best is None or rnd.score() < best.score():
+            best = rnd
+    given = float(settings.time_offset)
+    if best is None:
+        # no candidate fits: the fit at the given offset says why, in its own words
+        result, report = _fixed(stream_a, streams_b, settings, prior, TimeOffset(
+            given, message='not estimated: no offset within the overlap gave a fit'))
+        return result, report
+    full = _refine(ctx, ctx.streams_b,
+                   _round(ctx, ctx.streams_b, best.tau, best.kappa, best.params))
+    ok, why = full.step.determined()
+    if not ok:
+        return _fixed(stream_a, streams_b, settings, prior, TimeOffset(
+            given, message=f'not estimated ({why}); kept the given {given:g} s'))
+    return _final(full, ctx), full.report
+
+
+def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
+    """Apply the last (linear) step to τ and φ; marginalise φ's covariance over τ."""
+    step, result = rnd.step, rnd.result
+    d = step.delta
+    params = rnd.params.stepped(step.dphi @ d)
+    cov = step.marginal_cov(result.param_cov)
+    t0, t1, joint = result_poses(params, cov)
+    T, _ = tangent_map(params)
+    cross = T @ (step.dphi @ step.cov)
+    kappa = None if rnd.kappa is None else rnd.kappa + float(d[1])
+    drift_sigma = None if kappa is None else float(np.sqrt(step.cov[1, 1])) * 1e6
+    timing = TimeOffset(rnd.tau + float(d[0]), step.sigma, True,
+                        drift_ppm=None if kappa is None else kappa * 1e6,
+                        drift_sigma_ppm=drift_sigma, reference_ns=ctx.reference_ns,
+                        message='estimated jointly with the transforms', cross_cov=cross,
+                        cov=step.cov)
+    chi2 = max(0.0, result.chi2 - float(d @ np.linalg.solve(step.cov, d)))
+    dof = result.dof - d.size
+    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    return replace(result, base_to_base=t0, tool_to_marker=t1, markers=params.markers.copy(),
+                   params=params.phi.copy(), param_cov=cov, cov_joint=joint, chi2=chi2,
+                   dof=dof, p_value=p_value, time_offset=timing)

@@ -12,6 +12,8 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+import numpy as np
+
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import METHODS, MODELS
 
@@ -43,7 +45,15 @@ class Settings:
         Largest distance in time (s) from a B stamp to each of the two A samples it is
         interpolated between.
     time_offset : float
-        B's clock minus A's clock, s: A is interpolated at ``t_B - time_offset``.
+        B's clock minus A's clock, s: A is interpolated at ``t_B - time_offset``. The fixed
+        value, or the starting guess when ``estimate_time_offset``.
+    estimate_time_offset : bool
+        Estimate the offset jointly with T0 and T1 (coarse search over the streams' overlap,
+        then least squares); kept at ``time_offset`` when the motion cannot determine it.
+    estimate_clock_drift : bool
+        Also estimate a linear clock drift κ (τ(t) = τ0 + κ (t - t_mid)).
+    robust : bool
+        Reject pairs far outside the stated noise (outliers) before the final fit.
     min_pairs : int
         Fewest pairs a calibration accepts.
     max_iterations : int
@@ -59,6 +69,9 @@ class Settings:
     sigma_b: tuple = (0.0005, 0.002)
     max_gap: float = 0.05
     time_offset: float = 0.0
+    estimate_time_offset: bool = True
+    estimate_clock_drift: bool = False
+    robust: bool = True
     min_pairs: int = 30
     max_iterations: int = 100
 
@@ -85,6 +98,10 @@ class Settings:
                 raise ConfigError(
                     f'model {self.model} needs {needed} device B topic(s), got {len(topics)}: '
                     f'give --topic-b {"T1 T2 T3" if needed == 3 else "T"}')
+        for name in ('estimate_time_offset', 'estimate_clock_drift', 'robust'):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')
+            object.__setattr__(self, name, bool(getattr(self, name)))
         if not self.max_gap > 0:
             raise ConfigError(f'max_gap must be > 0 s, got {self.max_gap}')
         if int(self.min_pairs) < 3:

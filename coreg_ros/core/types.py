@@ -118,6 +118,67 @@ class PairingReport:
 
 
 @dataclass(frozen=True)
+class TimeOffset:
+    """
+    B's clock minus A's clock as used for the pairs of a calibration.
+
+    Attributes
+    ----------
+    value_s : float
+        τ0, s (at ``reference_ns`` when a drift is estimated).
+    sigma_s : float or None
+        Posterior σ of τ0, s (None when not estimated).
+    estimated : bool
+        False when τ was given (``--time-offset S``) or the motion could not determine it.
+    drift_ppm, drift_sigma_ppm : float or None
+        κ and its σ, parts per million (only when the drift was estimated).
+    reference_ns : int
+        t_mid, the B stamp at which τ(t) = τ0 (ns, B's clock).
+    message : str
+        Why τ was not estimated, or how it was found.
+    cross_cov : ndarray, shape (12, k), optional
+        Covariance of (T0, T1) in the ROS layout with (τ0[, κ]) (s, dimensionless).
+    cov : ndarray, shape (k, k), optional
+        Covariance of (τ0[, κ]).
+
+    """
+
+    value_s: float
+    sigma_s: Optional[float] = None
+    estimated: bool = False
+    drift_ppm: Optional[float] = None
+    drift_sigma_ppm: Optional[float] = None
+    reference_ns: int = 0
+    message: str = ''
+    cross_cov: Optional[np.ndarray] = None
+    cov: Optional[np.ndarray] = None
+
+    @property
+    def drift(self) -> float:
+        """κ, dimensionless (0 when not estimated)."""
+        return 0.0 if self.drift_ppm is None else self.drift_ppm * 1e-6
+
+    def offset_ns(self) -> int:
+        """τ0 in integer nanoseconds (for pairing)."""
+        return int(round(self.value_s * 1e9))
+
+    def as_dict(self) -> dict:
+        """``{"value_s", "sigma_s", "estimated", "message"}``."""
+        return {'value_s': float(self.value_s),
+                'sigma_s': None if self.sigma_s is None else float(self.sigma_s),
+                'estimated': bool(self.estimated), 'message': self.message}
+
+    def drift_dict(self) -> Optional[dict]:
+        """``{"value_ppm", "sigma_ppm", "reference_ns"}`` or None when no drift was estimated."""
+        if self.drift_ppm is None:
+            return None
+        return {'value_ppm': float(self.drift_ppm),
+                'sigma_ppm': None if self.drift_sigma_ppm is None else float(
+                    self.drift_sigma_ppm),
+                'reference_ns': int(self.reference_ns)}
+
+
+@dataclass(frozen=True)
 class UncertainPose:
     """
     A pose with its covariance.
@@ -178,6 +239,22 @@ class CalibrationResult:
         Joint covariance of (T0, T1) in the ROS layout, for propagation.
     input_residuals : ndarray, shape (N, 6), optional
         Whitened input residuals (TLS only): adjusted minus measured A, (position, rotation).
+    charts : tuple of (int, float)
+        Charts of the reduced quaternions of ``params`` (``models.Parameters``).
+    inliers : ndarray of bool, shape (N_pairs,), optional
+        Which of the pairs given the fit used (all unless the robust fit rejected some);
+        ``residuals`` and ``input_residuals`` are those of the inliers.
+    rejected_stamps : ndarray of int64, optional
+        B stamps (ns) of the rejected pairs.
+    time_offset : TimeOffset, optional
+        The clock offset the pairs were made with (estimated or given).
+    fit_consistent : bool, optional
+        False when the fit does not match the stated noise (p below
+        ``verdict.CONSISTENT_P``); None until judged.
+    verdict : str
+        Why the fit is inconsistent and what to do (empty when consistent).
+    prior_check : dict, optional
+        ``{"chi2", "dof", "p_value", "consistent"}`` of the prior's own residual rows.
 
     """
 
@@ -199,3 +276,15 @@ class CalibrationResult:
     iterations: int
     cov_joint: Optional[np.ndarray] = None
     input_residuals: Optional[np.ndarray] = None
+    charts: tuple = ()
+    inliers: Optional[np.ndarray] = None
+    rejected_stamps: Optional[np.ndarray] = None
+    time_offset: Optional[TimeOffset] = None
+    fit_consistent: Optional[bool] = None
+    verdict: str = ''
+    prior_check: Optional[dict] = None
+
+    @property
+    def n_rejected(self) -> int:
+        """Pairs the robust fit rejected."""
+        return 0 if self.rejected_stamps is None else int(len(self.rejected_stamps))

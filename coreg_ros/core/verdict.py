@@ -1,0 +1,132 @@
+"""
+Does the fit match the stated noise? The verdict users and scripts act on, with likely causes.
+
+A fit whose chi-square is improbable under the stated noise (p below ``CONSISTENT_P``, Ikits
+B.4.1) is not a success: its covariance is too small, and something the model does not know
+about is in the data. The verdict names the causes it can see cheaply (positions in different
+units, devices swapped according to the messages' frame ids, a prior that disagrees) and points
+to ``coreg diagnose`` for the rest. Only the upper tail counts: noise stated too large makes
+the covariance conservative, not wrong in the dangerous direction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Optional
+
+import numpy as np
+from scipy import stats
+
+from coreg_ros.core.covariance import Prior, constrained_axes
+from coreg_ros.core.models import SPECS
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import CalibrationResult, PoseStream
+from coreg_ros.core.uncertainty import pose_error
+
+#: A fit (or a prior) with a p-value below this does not match the stated noise.
+CONSISTENT_P = 1e-3
+
+
+def _spread(position: np.ndarray) -> float:
+    p = np.asarray(position, dtype=float).reshape(-1, 3)
+    return float(np.median(np.linalg.norm(p - np.median(p, axis=0), axis=1)))
+
+
+def unit_mismatch(stream_a: PoseStream, stream_b: PoseStream) -> Optional[str]:
+    """Name a unit mismatch if the position spreads differ by ~1000 (mm) or ~100 (cm)."""
+    sa, sb = _spread(stream_a.position), _spread(stream_b.position)
+    if not (sa > 0 and sb > 0):
+        return None
+    for big, small, r in (('B', 'A', sb / sa), ('A', 'B', sa / sb)):
+        unit = 'mm' if 300.0 < r < 3000.0 else 'cm' if 50.0 < r <= 300.0 else None
+        if unit:
+            return (f"device {big}'s positions spread {r:.0f}× more than device {small}'s: "
+                    f'{big} is likely in {unit} (convert it to metres, e.g. coreg convert '
+                    f'--units-{big.lower()} {unit})')
+    return None
+
+
+def swapped_frames(stream_a: PoseStream, stream_b: PoseStream,
+                   frames: Optional[Sequence[str]]) -> Optional[str]:
+    """Name swapped devices: the frame ids are the configured base frames the other way round."""
+    if not frames or not all(frames):
+        return None
+    base_a, base_b = frames
+    if stream_a.frame_id == base_b and stream_b.frame_id == base_a and base_a != base_b:
+        return (f'the messages on topic A are in frame {base_b!r} and those on topic B in '
+                f'{base_a!r}, the configured base frames the other way round: the devices are '
+                f'swapped (exchange topic_a and topic_b)')
+    return None
+
+
+def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
+    """
+    Test a prior against the data: ``d = x̂ - x_prior`` has covariance ``C_prior - C_post``.
+
+    Returns
+    -------
+    dict or None
+        ``{"chi2", "dof", "p_value", "consistent"}``; None if there is no posterior covariance.
+
+    """
+    if result.cov_joint is None:
+        return None
+    spec = SPECS[result.model]
+    diffs, covs, idx = [], [], []
+    for which, pose, est in ((0, prior.base_to_base, result.base_to_base),
+                             (1, prior.tool_to_marker, result.tool_to_marker)):
+        if pose is None:
+            continue
+        axes = constrained_axes(pose, spec, which)
+        d = -pose_error(pose.position, pose.quat_wxyz, est.position, est.quat_wxyz)
+        cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
+        diffs.append(d[axes])
+        covs.append(cov[np.ix_(axes, axes)])
+        idx.extend(6 * which + axes)
+    d = np.concatenate(diffs)
+    c_prior = np.zeros((d.size, d.size))
+    k = 0
+    for c in covs:
+        c_prior[k:k + len(c), k:k + len(c)] = c
+        k += len(c)
+    D = c_prior - result.cov_joint[np.ix_(idx, idx)]
+    lam, U = np.linalg.eigh(0.5 * (D + D.T))
+    keep = lam > 1e-9 * max(float(lam.max()), 0.0)
+    if not keep.any():
+        return None
+    chi2 = float(np.sum((U[:, keep].T @ d) ** 2 / lam[keep]))
+    dof = int(keep.sum())
+    p = float(stats.chi2.sf(chi2, dof))
+    return {'chi2': chi2, 'dof': dof, 'p_value': p, 'consistent': p >= CONSISTENT_P}
+
+
+def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[PoseStream],
+          settings: Settings, prior: Optional[Prior] = None,
+          frames: Optional[Sequence[str]] = None) -> CalibrationResult:
+    """
+    Return the result with ``fit_consistent``, ``verdict``, ``prior_check`` and ``success`` set.
+
+    ``success`` stays True only if the estimator converged, the fit matches the stated noise
+    and the prior (if any) agrees with the data.
+    """
+    checks = prior_check(result, prior) if prior is not None else None
+    p = float(result.p_value)
+    reasons = []
+    if np.isfinite(p) and p < CONSISTENT_P:
+        causes = [c for c in (unit_mismatch(stream_a, streams_b[0]),
+                              swapped_frames(stream_a, streams_b[0], frames)) if c]
+        ratio = result.chi2 / result.dof if result.dof > 0 else float('nan')
+        reasons.append(
+            f'the fit does not match the stated noise (chi2/dof {ratio:.3g}, p = {p:.2g}): '
+            + ('; '.join(causes) if causes else
+               'the noise is understated, or the data hold an effect the model lacks'))
+    if checks is not None and not checks['consistent']:
+        reasons.append(
+            f"the prior disagrees with the data (chi2 {checks['chi2']:.1f} for "
+            f"{checks['dof']} dof, p = {checks['p_value']:.2g}): the calibration changed since, "
+            f'or the prior covariance is too small; recalibrate without --prior')
+    consistent = not reasons
+    verdict = '' if consistent else '; '.join(reasons) + '; run coreg diagnose for details'
+    return replace(result, fit_consistent=consistent, verdict=verdict, prior_check=checks,
+                   success=bool(result.success and consistent))
