@@ -231,11 +231,15 @@ def test_pair_streams_bad_arguments(rec):
 
 def test_pipeline_too_few_pairs_reports_why(rec):
     a, b = rec.stream_a, rec.streams_b[0]
-    # B recorded entirely after A: nothing pairs
+    # B stamped 10 s late with the offset fixed at 0: nothing pairs
     late = replace(b, stamps=b.stamps + 10 * 10**9)
-    msg = raises(TooFewPairsError, lambda: calibrate_streams(a, late, Settings()),
+    fixed = Settings(estimate_time_offset=False)
+    msg = raises(TooFewPairsError, lambda: calibrate_streams(a, late, fixed),
                  'only 0 pairs', 'after_last_a')
     assert 'unpaired B' in msg
+    # estimated (the default), the coarse search finds the 10 s
+    result, _ = calibrate_streams(a, late, Settings())
+    assert abs(result.time_offset.value_s - 10.0) < 3 * result.time_offset.sigma_s + 1e-6
 
 
 def test_pipeline_bad_stream_is_an_input_error(rec):

@@ -18,6 +18,9 @@ from coreg_ros.core.errors import CoregError
 from coreg_ros.core.types import METHODS, MODELS
 
 PROG = 'coreg'
+#: Exit code of ``coreg calibrate`` when the estimator converged but the fit does not match
+#: the stated noise (or the prior disagrees): the result is printed and written, flagged.
+EXIT_INCONSISTENT = 3
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -43,9 +46,23 @@ def add_calibration_options(p: argparse.ArgumentParser) -> None:
                    help='device B noise std: position m, rotation rad')
     p.add_argument('--max-gap', type=positive, metavar='S',
                    help='largest time from a B stamp to the A samples it is paired with, s')
-    p.add_argument('--time-offset', type=finite, metavar='S',
-                   help="B's clock minus A's clock, s (default 0)")
+    p.add_argument('--time-offset', type=offset_or_auto, metavar='auto|S',
+                   help="B's clock minus A's clock: auto (default) estimates it jointly with "
+                        "the transforms (starting from the config's time_offset); a number "
+                        '(s) fixes it')
+    p.add_argument('--clock-drift', choices=('auto', 'off'),
+                   help='auto also estimates a linear clock drift (ppm); default off')
+    p.add_argument('--robust', choices=('on', 'off'),
+                   help='on (default) rejects pairs far outside the stated noise before the '
+                        'final fit; off is plain least squares')
     p.add_argument('--min-pairs', type=int, help='fewest pairs accepted (default 30)')
+
+
+def offset_or_auto(text: str):
+    """``auto`` or a finite number of seconds (argparse type of --time-offset)."""
+    if text.strip().lower() == 'auto':
+        return 'auto'
+    return finite(text)
 
 
 def settings_from_args(args):
@@ -62,11 +79,18 @@ def settings_from_args(args):
         from coreg_ros.core.settings import DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
         topic_b = DEFAULT_TOPICS_B_THREE_MARKER if args.model == 'three_marker' \
             else DEFAULT_TOPIC_B
+    offset = getattr(args, 'time_offset', None)
+    drift = getattr(args, 'clock_drift', None)
+    robust = getattr(args, 'robust', None)
     return settings.updated(
         topic_a=args.topic_a, topic_b=topic_b, model=args.model, method=args.method,
         sigma_a=tuple(args.sigma_a) if args.sigma_a else None,
         sigma_b=tuple(args.sigma_b) if args.sigma_b else None,
-        max_gap=args.max_gap, time_offset=args.time_offset, min_pairs=args.min_pairs)
+        max_gap=args.max_gap, min_pairs=args.min_pairs,
+        time_offset=None if offset in (None, 'auto') else offset,
+        estimate_time_offset=None if offset is None else offset == 'auto',
+        estimate_clock_drift=None if drift is None else drift == 'auto',
+        robust=None if robust is None else robust == 'on')
 
 
 def cmd_calibrate(args) -> int:
@@ -78,16 +102,18 @@ def cmd_calibrate(args) -> int:
     from coreg_ros.cli.files import write_json
     from coreg_ros.cli.text import format_result
     from coreg_ros.core.pipeline import calibrate_streams
-    from coreg_ros.core.result_io import result_to_dict
+    from coreg_ros.core.result_io import load_prior, result_to_dict
     from coreg_ros.report.calibration_report import points_from_flat
 
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
     out = sys.stderr if args.json == '-' else sys.stdout
     settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
+    prior = load_prior(args.prior) if args.prior else None
     streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
     stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
-    result, report = calibrate_streams(stream_a, streams_b, settings)
+    result, report = calibrate_streams(stream_a, streams_b, settings, prior,
+                                       frames=config_frames(args))
     check = direction_guard(args, stream_a, streams_b, settings, result)
     wrong_way = check is not None and check.flagged
     print(f'{PROG} calibrate: {args.bag}', file=out)
@@ -116,7 +142,19 @@ def cmd_calibrate(args) -> int:
             result, args.report, report=report, points=points,
             points_frame=args.points_frame, title=f'{PROG} calibrate {args.bag}')
         print(f'report written to {page}', file=out)
-    return 0 if result.success and not wrong_way else 1
+    if wrong_way or not (result.success or result.fit_consistent is False):
+        return 1
+    return 0 if result.success else EXIT_INCONSISTENT
+
+
+def config_frames(args) -> Optional[tuple]:
+    """(frame_base_a, frame_base_b) from --config, if it names them (to spot swapped devices)."""
+    if not getattr(args, 'config', None):
+        return None
+    from coreg_ros.cli.files import load_parameters
+    values = load_parameters(args.config)
+    frames = (values.get('frame_base_a'), values.get('frame_base_b'))
+    return frames if all(isinstance(f, str) and f for f in frames) else None
 
 
 def cmd_simulate(args) -> int:
@@ -162,6 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT',
                    help='also write the result as JSON (atomically); - for stdout')
+    p.add_argument('--prior', metavar='FILE',
+                   help="a previous result (--json output or the node's result.yaml) or a "
+                        'partial prior (base_to_base / tool_to_marker with sigma per axis) '
+                        'that this recording refines (Ikits B.3)')
     p.add_argument('--no-direction-check', action='store_true',
                    help='do not check, after a bad fit, whether a stream should be inverted')
     p.add_argument('--report', metavar='DIR',

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.types import CalibrationResult, PairingReport, UncertainPose
+from coreg_ros.core.types import CalibrationResult, PairingReport, TimeOffset, UncertainPose
 
 
 def fit_verdict(p_value: float) -> str:
@@ -18,6 +18,17 @@ def fit_verdict(p_value: float) -> str:
     if p_value > 0.999:
         return 'residuals are smaller than the stated noise: the noise is overstated'
     return 'consistent with the stated noise'
+
+
+def format_time_offset(timing: TimeOffset) -> str:
+    """One line on the clock offset (and drift) the pairs were made with."""
+    if not timing.estimated:
+        return f'time offset: {timing.value_s * 1e3:.3f} ms ({timing.message or "given"})'
+    line = (f'time offset: {timing.value_s * 1e3:.3f} ± {timing.sigma_s * 1e3:.3f} ms '
+            f"(B's clock minus A's; estimated jointly with the transforms)")
+    if timing.drift_ppm is not None:
+        line += f', clock drift {timing.drift_ppm:.2f} ± {timing.drift_sigma_ppm:.2f} ppm'
+    return line
 
 
 def format_pose(name: str, meaning: str, pose: UncertainPose, rotation_known: bool = True) -> str:
@@ -46,13 +57,28 @@ def format_pose(name: str, meaning: str, pose: UncertainPose, rotation_known: bo
 
 def format_result(result: CalibrationResult, report: PairingReport | None = None) -> str:
     """Render the full report a person reads after ``coreg calibrate``."""
-    out = [f'model {result.model}, method {result.method.upper()}: '
-           f'{"success" if result.success else "FAILED"}: {result.message}']
+    state = 'success' if result.success else (
+        'INCONSISTENT (converged, but the data contradict the fit)'
+        if result.fit_consistent is False and result.status > 0 else 'FAILED')
+    out = [f'model {result.model}, method {result.method.upper()}: {state}: {result.message}']
     if report is not None:
         out.append(f'pairing: {report.summary()}')
     ratio = result.chi2 / result.dof if result.dof > 0 else float('nan')
     out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, chi2/dof = {ratio:.3f}, '
                f'p = {result.p_value:.3g}: {fit_verdict(result.p_value)}')
+    if result.verdict:
+        out.append(f'verdict: {result.verdict}')
+    if result.time_offset is not None:
+        out.append(format_time_offset(result.time_offset))
+    if result.n_rejected:
+        share = result.n_rejected / max(result.n_pairs, 1)
+        out.append(f'outliers: {result.n_rejected} of {result.n_pairs} pairs rejected '
+                   f'({share:.2%}), far outside the stated noise')
+    if result.prior_check is not None:
+        pc = result.prior_check
+        out.append(f"prior: chi2 = {pc['chi2']:.2f} for {pc['dof']} dof, p = "
+                   f"{pc['p_value']:.3g}: {'agrees' if pc['consistent'] else 'DISAGREES'} "
+                   f'with the data')
     out.append(format_pose('base_to_base', "pose of device A's base frame in device B's base "
                            'frame', result.base_to_base))
     out.append(format_pose('tool_to_marker', "pose of device B's marker in device A's tool "

@@ -132,6 +132,7 @@ class _Fitter:
         self.spec, self.settings = spec, settings
         (self.pos_a, self.quat_a, self.pos_b, self.quat_b,
          self.scale) = _validated(pairs, spec, settings)
+        self.stamps = np.asarray(pairs.stamps, dtype=np.int64)
         self.whiten_a = whitening(cov_a, None, 'a')
         self.whiten_b = whitening(cov_b, spec, 'b')
         self.priors = prior.terms(spec) if prior is not None else []
@@ -195,15 +196,34 @@ class _Fitter:
             new = d2 <= scale * limit
             if np.array_equal(new, keep):
                 break
-            share = 1.0 - new.mean()
-            if share > MAX_REJECTED_SHARE:
-                raise InconsistentDataError(
-                    f'{share:.0%} of the pairs lie far outside the stated noise: the data are '
-                    f'not the model plus a few outliers; check the units and the noise '
-                    f'(sigma_a, sigma_b) and run coreg diagnose')
+            self._refuse_if_mostly_outside(~new)
             keep = new
             sol = self.solve(keep, sol.params, warm=True)
+        # judged at the settled fit: the share far outside the *stated* noise
+        self._refuse_if_mostly_outside(d2 > limit)
         return keep, sol
+
+    def _refuse_if_mostly_outside(self, outside: np.ndarray) -> None:
+        share = float(outside.mean())
+        if share > MAX_REJECTED_SHARE:
+            raise InconsistentDataError(
+                f'{share:.0%} of the pairs lie far outside the stated noise: the data are '
+                f'not the model plus a few outliers{_where(outside, self.stamps)}; check the '
+                f'units and the noise (sigma_a, sigma_b) and run coreg diagnose')
+
+
+def _where(rejected: np.ndarray, stamps: np.ndarray) -> str:
+    """Say so when the rejected pairs form one block in time (a clock step, a moved device)."""
+    idx = np.flatnonzero(rejected)
+    if idx.size < 10:
+        return ''
+    lo, hi = int(idx[0]), int(idx[-1])
+    if rejected[lo:hi + 1].mean() < 0.9 or hi - lo + 1 > 0.9 * rejected.size:
+        return ''
+    t = (stamps - stamps[0]).astype(float) * 1e-9
+    return (f': they form one block from {t[lo]:.2f} s to {t[hi]:.2f} s into the recording, '
+            f'where the data change (a clock step, or a device or marker moved); split the '
+            f'recording there')
 
 
 def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional[Prior] = None,

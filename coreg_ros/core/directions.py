@@ -19,15 +19,19 @@ import numpy as np
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.errors import CoregError
+from coreg_ros.core.pairing import validated_streams
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
-from coreg_ros.core.types import Pairs, PoseStream
+from coreg_ros.core.timing import coarse_offsets
+from coreg_ros.core.types import Pairs, PoseStream, TimeOffset
 
 #: Largest number of pairs each trial fit uses (evenly spread over the recording).
 MAX_PAIRS = 3000
 #: Iteration limit of each trial fit: a right combination converges in a few iterations, a
 #: wrong one is far off either way (its chi2 is then an upper bound, which only widens the gap).
 MAX_ITERATIONS = 20
+#: Offsets of the coarse search tried with every direction.
+OFFSET_CANDIDATES = 3
 #: A combination must fit this many times better (chi2/dof) than the data as given to be
 #: reported as the right direction.
 DEFAULT_THRESHOLD = 10.0
@@ -277,7 +281,7 @@ def check_pair_directions(pairs: Pairs, settings: Settings, *, max_pairs: int = 
 
     """
     pairs = subsample(pairs, int(max_pairs))
-    ols = settings.updated(method='ols',
+    ols = settings.updated(method='ols', robust=False,
                            max_iterations=min(int(settings.max_iterations), MAX_ITERATIONS))
     combos = [(False, False), (True, False)]
     if settings.model == 'full_pose':
@@ -341,6 +345,28 @@ def check_directions(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence
         If the streams cannot be paired (as ``calibrate_streams``).
 
     """
-    if pairs is None:
-        pairs, _ = pair_for(stream_a, streams_b, settings)
-    return check_pair_directions(pairs, settings, max_pairs=max_pairs, threshold=threshold)
+    if pairs is not None or not settings.estimate_time_offset:
+        if pairs is None:
+            pairs, _ = pair_for(stream_a, streams_b, settings)
+        return check_pair_directions(pairs, settings, max_pairs=max_pairs, threshold=threshold)
+    # Offsets and directions together: the speeds the coarse search correlates do not change
+    # when a stream is inverted, so its candidates serve every direction; each direction is
+    # judged at its best candidate (a wrong direction may fit better than the right one at a
+    # wrong offset).
+    markers = [streams_b] if isinstance(streams_b, PoseStream) else list(streams_b)
+    a, bs = validated_streams(stream_a, markers, settings.model == 'full_pose')
+    offsets = [float(settings.time_offset)] + [
+        tau for tau, _ in coarse_offsets(a, bs, angular=settings.model != 'position_only')]
+    reports, error = [], None
+    for tau in offsets[:1 + OFFSET_CANDIDATES]:
+        try:
+            pairs, _ = pair_for(a, bs, settings, TimeOffset(tau), validated=True)
+            reports.append(check_pair_directions(pairs, settings, max_pairs=max_pairs,
+                                                 threshold=threshold))
+        except CoregError as e:
+            error = e
+    if not reports:
+        raise error
+    fits = tuple(min((r.fits[i] for r in reports), key=lambda f: f.chi2_dof)
+                 for i in range(len(reports[0].fits)))
+    return DirectionReport(fits=fits, threshold=float(threshold))

@@ -175,10 +175,8 @@ class _Round:
     kappa: Optional[float]
 
     def score(self) -> float:
-        """Trimmed cost per pair: χ² of the inliers plus the rejection limit per outlier."""
-        r = self.result
-        limit = float(stats.chi2.isf(1e-4, r.residuals.shape[1]))
-        return (r.chi2 + limit * r.n_rejected) / max(r.n_pairs, 1)
+        """χ² per pair (candidates are fitted without rejection)."""
+        return self.result.chi2 / max(self.result.n_pairs, 1)
 
 
 def _subsampled(streams_b: list, target: int) -> list:
@@ -257,9 +255,11 @@ def _spatiotemporal(stream_a, streams_b, settings, prior):
     ctx = _Context.build(stream_a, streams_b, settings, prior)
     kappa0 = 0.0 if settings.estimate_clock_drift else None
     sub_b = _subsampled(ctx.streams_b, SUBSAMPLE_B)
-    # candidates are compared by OLS with few iterations: a wrong one is far off either way
+    # candidates are compared by plain OLS with few iterations: a wrong one is far off either
+    # way, and near the right one the pairs do not fit the noise yet (no refusal, no rejection)
     trial = replace(ctx, settings=settings.updated(
-        method='ols', max_iterations=min(int(settings.max_iterations), TRIAL_ITERATIONS)))
+        method='ols', robust=False,
+        max_iterations=min(int(settings.max_iterations), TRIAL_ITERATIONS)))
     # one round per candidate, then the best few refined: a wrong lag is far off at once
     firsts = []
     for tau in _candidates(ctx):

@@ -4,7 +4,13 @@ Plain-dict form of calibration results (the ``--json`` output and the node's sto
 Layout (relied upon by checks)::
 
     {"success", "status", "message", "method", "model", "n_pairs", "chi2", "dof", "p_value",
-     "iterations",
+     "iterations", "fit_consistent", "verdict",
+     "time_offset": {"value_s", "sigma_s", "estimated", "message"},
+     "clock_drift": {"value_ppm", "sigma_ppm", "reference_ns"} (only when estimated),
+     "rejected_pairs": {"count", "share", "stamps_ns"},
+     "rescaled_covariance": {"factor", "base_to_base", "tool_to_marker"} (inconsistent fits:
+                            the covariances multiplied by chi2/dof),
+     "prior_check": {"chi2", "dof", "p_value", "consistent"} (with a prior),
      "base_to_base": {"position": [x, y, z], "orientation": {"w", "x", "y", "z"},
                       "covariance": [36 numbers, ROS row-major layout]},
      "tool_to_marker": {same},
@@ -22,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from coreg_ros.core.covariance import Prior
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import CalibrationResult, UncertainPose
 
@@ -55,7 +62,7 @@ def result_to_dict(result: CalibrationResult) -> dict:
         v = float(v)
         return v if math.isfinite(v) else None
 
-    return {
+    out = {
         'success': bool(result.success),
         'status': int(result.status),
         'message': result.message,
@@ -69,4 +76,94 @@ def result_to_dict(result: CalibrationResult) -> dict:
         'base_to_base': pose_to_dict(result.base_to_base),
         'tool_to_marker': pose_to_dict(result.tool_to_marker),
         'markers': [[float(v) for v in m] for m in np.atleast_2d(result.markers)],
+        'fit_consistent': result.fit_consistent,
+        'verdict': result.verdict,
     }
+    if result.time_offset is not None:
+        out['time_offset'] = result.time_offset.as_dict()
+        if result.time_offset.drift_dict() is not None:
+            out['clock_drift'] = result.time_offset.drift_dict()
+    stamps = [] if result.rejected_stamps is None else [int(t) for t in result.rejected_stamps]
+    out['rejected_pairs'] = {'count': len(stamps),
+                             'share': len(stamps) / result.n_pairs if result.n_pairs else 0.0,
+                             'stamps_ns': stamps}
+    if result.fit_consistent is False and result.dof > 0:
+        factor = max(1.0, float(result.chi2) / result.dof)
+        out['rescaled_covariance'] = {
+            'factor': factor,
+            **{name: None if pose.covariance is None else
+               [float(v) * factor for v in np.ravel(pose.covariance)]
+               for name, pose in (('base_to_base', result.base_to_base),
+                                  ('tool_to_marker', result.tool_to_marker))}}
+    if result.prior_check is not None:
+        out['prior_check'] = dict(result.prior_check)
+    return out
+
+
+def prior_from_dict(doc: Mapping[str, Any]) -> Prior:
+    """
+    Build a prior (Ikits B.3) from a previous result or a partial prior written by hand.
+
+    Accepted layouts: ``result_to_dict`` output (``coreg calibrate --json``), the node's
+    ``result.yaml`` (the same under ``result``), or a mapping with ``base_to_base`` and/or
+    ``tool_to_marker``, each ``{"position", "orientation", and "covariance" (36 numbers) or
+    "sigma" (6 numbers: x y z m, rotation about x y z rad)}``. A ``sigma`` entry of null (or
+    .inf) leaves that axis free: e.g. T1's position from CAD with its orientation unknown.
+    """
+    if isinstance(doc, Mapping) and isinstance(doc.get('result'), Mapping):
+        doc = doc['result']
+    if not isinstance(doc, Mapping):
+        raise InputError('the prior file holds no mapping; give a coreg calibrate --json '
+                         'result, a node result.yaml, or base_to_base/tool_to_marker entries')
+    poses = {}
+    for key in ('base_to_base', 'tool_to_marker'):
+        entry = doc.get(key)
+        if entry is None:
+            continue
+        if not isinstance(entry, Mapping):
+            raise InputError(f'prior {key} must be a mapping with position, orientation and '
+                             f'covariance or sigma')
+        entry = dict(entry)
+        entry.setdefault('orientation', {'w': 1.0, 'x': 0.0, 'y': 0.0, 'z': 0.0})
+        sigma = entry.pop('sigma', None)
+        pose = pose_from_dict(entry)
+        if sigma is not None:
+            try:
+                sd = np.array([np.inf if v is None else float(v) for v in sigma], dtype=float)
+            except (TypeError, ValueError) as e:
+                raise InputError(f'prior {key} sigma must be 6 numbers (or null for a free '
+                                 f'axis), got {sigma!r}') from e
+            if sd.shape != (6,) or not (sd > 0).all():
+                raise InputError(f'prior {key} sigma must be 6 positive numbers (x y z m, '
+                                 f'rotation rad), or null for a free axis; got {sigma!r}')
+            pose = UncertainPose(pose.position, pose.quat_wxyz, np.diag(sd ** 2))
+        elif pose.covariance is None:
+            raise InputError(f'prior {key} has no covariance; give "covariance" (36 numbers) '
+                             f'or "sigma" (6 numbers)')
+        else:
+            cov = np.array(pose.covariance, dtype=float)
+            unknown = np.diag(cov) < 0  # the "not estimated" mark of published results
+            cov[unknown, :] = 0.0
+            cov[:, unknown] = 0.0
+            cov[unknown, unknown] = np.inf
+            pose = UncertainPose(pose.position, pose.quat_wxyz, cov)
+        poses[key] = pose
+    if not poses:
+        raise InputError('the prior file has neither base_to_base nor tool_to_marker; give a '
+                         'previous result or a partial prior')
+    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'))
+
+
+def load_prior(path) -> Prior:
+    """Read a prior from a JSON or YAML file (``prior_from_dict``); one-line errors."""
+    import yaml
+
+    try:
+        with open(path, encoding='utf-8') as f:
+            doc = yaml.safe_load(f)
+    except OSError as e:
+        raise InputError(f'cannot read the prior file {path}: {e.strerror}') from e
+    except yaml.YAMLError as e:
+        raise InputError(f'the prior file {path} is neither JSON nor YAML ({e}); give a '
+                         f'coreg calibrate --json result or a node result.yaml') from e
+    return prior_from_dict(doc)

@@ -107,6 +107,8 @@ def _windowed_correlation(a: np.ndarray, b: np.ndarray, min_overlap: int):
     lags : ndarray of int, shape (La + Lb - 1,)
     r : ndarray, shape (La + Lb - 1,)
         -inf where the overlap is shorter than ``min_overlap``.
+    overlap : ndarray, shape (La + Lb - 1,)
+        Overlap as a share of the shorter signal.
 
     """
     la, lb = len(a), len(b)
@@ -127,7 +129,7 @@ def _windowed_correlation(a: np.ndarray, b: np.ndarray, min_overlap: int):
     with np.errstate(invalid='ignore', divide='ignore'):
         r = (n * sab - sa * sb) / np.sqrt(np.where(var > 0, var, np.nan))
     r = np.where((n >= min_overlap) & np.isfinite(r), r, -np.inf)
-    return lags, r
+    return lags, r, n / min(la, lb)
 
 
 def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
@@ -163,12 +165,14 @@ def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
     if len(a) < 8 or len(b) < 8 or np.std(a) == 0 or np.std(b) == 0:
         return []
     min_overlap = max(8, int(MIN_OVERLAP_SHARE * min(len(a), len(b))))
-    lags, r = _windowed_correlation(a - a.mean(), b - b.mean(), min_overlap)
+    lags, r, overlap = _windowed_correlation(a - a.mean(), b - b.mean(), min_overlap)
     inner = (r[1:-1] >= r[:-2]) & (r[1:-1] > r[2:]) & np.isfinite(r[1:-1])
     peaks = np.flatnonzero(inner) + 1
     if peaks.size == 0:
         return []
-    peaks = peaks[np.argsort(r[peaks])[::-1][:max_candidates]]
+    # a peak over a short overlap is a weaker witness: rank by r·√(overlap share)
+    strength = r[peaks] * np.sqrt(overlap[peaks])
+    peaks = peaks[np.argsort(strength)[::-1][:max_candidates]]
     base = float(int(streams_b[0].stamps[0]) - int(stream_a.stamps[0])) * 1e-9
     base += float(tb[0] - ta[0])
     out = []

@@ -162,6 +162,22 @@ class TimeOffset:
         """τ0 in integer nanoseconds (for pairing)."""
         return int(round(self.value_s * 1e9))
 
+    def offset_ns_at(self, stamp_b: int) -> int:
+        """τ(t) in integer nanoseconds at B stamp ``stamp_b`` (drift included)."""
+        return self.offset_ns() + int(round(self.drift * (int(stamp_b) - self.reference_ns)))
+
+    @classmethod
+    def from_dict(cls, offset: Optional[dict], drift: Optional[dict] = None
+                  ) -> Optional[TimeOffset]:
+        """Inverse of ``as_dict`` / ``drift_dict`` (None when ``offset`` is None)."""
+        if not offset:
+            return None
+        drift = drift or {}
+        return cls(float(offset.get('value_s', 0.0)), offset.get('sigma_s'),
+                   bool(offset.get('estimated', False)), drift.get('value_ppm'),
+                   drift.get('sigma_ppm'), int(drift.get('reference_ns', 0)),
+                   str(offset.get('message', '')))
+
     def as_dict(self) -> dict:
         """``{"value_s", "sigma_s", "estimated", "message"}``."""
         return {'value_s': float(self.value_s),

@@ -60,6 +60,18 @@ def swapped_frames(stream_a: PoseStream, stream_b: PoseStream,
     return None
 
 
+def roles_swapped(result: CalibrationResult, stream_a: PoseStream) -> Optional[str]:
+    """Name swapped roles of T0 and T1: a tool-to-marker lever far larger than A's workspace."""
+    lever = float(np.linalg.norm(result.tool_to_marker.position))
+    pos = np.asarray(stream_a.position, dtype=float)
+    extent = float(np.max(np.ptp(pos, axis=0))) if len(pos) else 0.0
+    if lever > 1.0 and lever > 5.0 * max(extent, 1e-9):
+        return (f'the tool-to-marker translation is {lever:.2f} m, {lever / max(extent, 1e-9):.0f}'
+                f"× the extent of A's motion: the streams are likely base-in-tool (T0 and T1 "
+                f'swap roles); invert both streams (coreg convert --invert-a --invert-b)')
+    return None
+
+
 def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
     """
     Test a prior against the data: ``d = x̂ - x_prior`` has covariance ``C_prior - C_post``.
@@ -128,5 +140,8 @@ def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[P
             f'or the prior covariance is too small; recalibrate without --prior')
     consistent = not reasons
     verdict = '' if consistent else '; '.join(reasons) + '; run coreg diagnose for details'
+    swapped = roles_swapped(result, stream_a)
+    if swapped:
+        verdict = '; '.join(v for v in (verdict, 'warning: ' + swapped) if v)
     return replace(result, fit_consistent=consistent, verdict=verdict, prior_check=checks,
                    success=bool(result.success and consistent))

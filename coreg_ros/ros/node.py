@@ -28,6 +28,8 @@ messages per second here, the single-threaded one 2 kHz at ~40 % of a core.)
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 import sys
 import threading
 import time
@@ -46,8 +48,8 @@ from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
 from coreg_ros.core.errors import CoregError
-from coreg_ros.core.pairing import pair_streams
-from coreg_ros.core.pipeline import calibrate_streams
+from coreg_ros.core.pipeline import calibrate_streams, pair_for
+from coreg_ros.core.result_io import load_prior
 from coreg_ros.core.settings import Settings
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import REASONS, StreamBuffer, reason_hint
@@ -197,9 +199,11 @@ class CoregNode(Node):
         t0 = time.monotonic()
         try:
             settings = self.current_settings()
+            prior = self._prior()
             streams = self.snapshot()
             result, report = calibrate_streams(
-                streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings)
+                streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings,
+                prior, frames=(self.config.frame_base_a, self.config.frame_base_b))
         except CoregError as e:
             response.success, response.message = False, str(e)
             self.get_logger().warning(f'calibrate refused: {e}')
@@ -211,13 +215,25 @@ class CoregNode(Node):
             return response
         seconds = time.monotonic() - t0
         chi2_dof = result.chi2 / result.dof if result.dof > 0 else float('nan')
+        timing = result.time_offset
         self._last = {'n_pairs': result.n_pairs, 'chi2_dof': chi2_dof,
                       'p_value': result.p_value, 'success': result.success,
-                      'seconds': seconds, 'pairing': report.summary()}
-        if not result.success:
+                      'seconds': seconds, 'pairing': report.summary(),
+                      'fit_consistent': result.fit_consistent,
+                      'rejected_pairs': result.n_rejected,
+                      'time_offset_s': None if timing is None else timing.value_s,
+                      'time_offset_sigma_s': None if timing is None else timing.sigma_s,
+                      'verdict': result.verdict}
+        inconsistent = result.fit_consistent is False and result.status > 0
+        publish_anyway = inconsistent and bool(
+            self.get_parameter('publish_inconsistent').value)
+        if not result.success and not publish_anyway:
             response.success = False
-            response.message = (f'no convergence after {result.iterations} iterations: '
-                                f'{result.message}; {report.summary()}')
+            response.message = (
+                f'not published: {result.verdict} ({report.summary()}); set '
+                f'publish_inconsistent:=true to publish it anyway' if inconsistent else
+                f'no convergence after {result.iterations} iterations: {result.message}; '
+                f'{report.summary()}')
             self.get_logger().warning(f'calibrate: {response.message}')
             return response
         self._publish_result(result.base_to_base, result.tool_to_marker)
@@ -231,14 +247,31 @@ class CoregNode(Node):
             stored = f'NOT stored ({e})'
         p0 = result.base_to_base.position
         p1 = result.tool_to_marker.position
-        response.success = True
+        response.success = not inconsistent
+        offset = '' if timing is None else (
+            f'time offset {timing.value_s * 1e3:.3f} ± {timing.sigma_s * 1e3:.3f} ms, '
+            if timing.estimated else f'time offset {timing.value_s * 1e3:.3f} ms (given), ')
         response.message = (
+            ('PUBLISHED ALTHOUGH INCONSISTENT: ' + result.verdict + '; ' if inconsistent
+             else '') +
             f'{result.n_pairs} pairs, {settings.method}/{settings.model}: chi2/dof '
-            f'{chi2_dof:.3g}, p {result.p_value:.3g}, {result.iterations} iterations, '
+            f'{chi2_dof:.3g}, p {result.p_value:.3g}, {offset}{result.n_rejected} rejected, '
+            f'{result.iterations} iterations, '
             f'{seconds:.2f} s; base_to_base p [{p0[0]:.4f}, {p0[1]:.4f}, {p0[2]:.4f}] m, '
             f'tool_to_marker p [{p1[0]:.4f}, {p1[1]:.4f}, {p1[2]:.4f}] m; {stored}')
         self.get_logger().info(f'calibrated: {response.message}')
         return response
+
+    def _prior(self):
+        """Return the prior of the next calibration: prior_file, else the stored result."""
+        path = str(self.get_parameter('prior_file').value).strip()
+        if path:
+            return load_prior(os.path.expanduser(path))
+        if bool(self.get_parameter('use_last_result_as_prior').value):
+            stored = Path(self.config.storage_dir) / persistence.RESULT_FILE
+            if stored.is_file():
+                return load_prior(stored)
+        return None
 
     def _on_reset(self, request, response):
         held = sum(len(b) for b in self.buffers.values())
@@ -352,10 +385,9 @@ class CoregNode(Node):
         settings = self.current_settings()
         streams = self.snapshot()
         try:
-            pairs, report = pair_streams(
-                streams[settings.topic_a], [streams[t] for t in settings.topic_b],
-                max_gap_ns=settings.max_gap_ns, offset_ns=settings.time_offset_ns,
-                with_orientation_b=settings.model == 'full_pose')
+            pairs, report = pair_for(streams[settings.topic_a],
+                                     [streams[t] for t in settings.topic_b], settings,
+                                     self.uncertainty.timing)
             state['n_paired'] = report.n_paired
             state['rate'] = report.n_paired / report.n_b if report.n_b else None
             state['summary'] = report.summary()
@@ -388,7 +420,9 @@ class CoregNode(Node):
                             value='n/a' if pairing['rate'] is None else f'{pairing["rate"]:.3f}'),
                    KeyValue(key='pairing', value=pairing['summary'])]
         last = self._last or {}
-        for key in ('n_pairs', 'chi2_dof', 'p_value', 'success', 'seconds'):
+        for key in ('n_pairs', 'chi2_dof', 'p_value', 'success', 'fit_consistent',
+                    'time_offset_s', 'time_offset_sigma_s', 'rejected_pairs', 'seconds',
+                    'verdict'):
             v = last.get(key)
             values.append(KeyValue(key=f'last calibration {key}',
                                    value='n/a' if v is None else

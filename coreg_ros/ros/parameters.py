@@ -56,10 +56,26 @@ PARAMETERS = (
            floats=_float_range(1e-6, 10.0))),
     ('time_offset', _DEFAULTS.time_offset,
      _desc("B's clock minus A's clock, s", floats=_float_range(-10.0, 10.0))),
+    ('estimate_time_offset', _DEFAULTS.estimate_time_offset,
+     _desc('estimate the clock offset jointly with the transforms (time_offset is the start); '
+           'false: use time_offset as given')),
+    ('estimate_clock_drift', _DEFAULTS.estimate_clock_drift,
+     _desc('also estimate a linear clock drift (ppm) with the offset')),
+    ('robust', _DEFAULTS.robust,
+     _desc('reject pairs far outside the stated noise (outliers) before the final fit')),
     ('min_pairs', _DEFAULTS.min_pairs,
      _desc('fewest pairs a calibration accepts', ints=_int_range(3, 1_000_000_000))),
     ('max_iterations', _DEFAULTS.max_iterations,
      _desc('iteration limit of the estimator', ints=_int_range(1, 100_000))),
+    ('prior_file', '',
+     _desc('a previous result (result.yaml or coreg calibrate --json) or a partial prior that '
+           'calibrations refine (Ikits B.3); empty: none')),
+    ('use_last_result_as_prior', False,
+     _desc("refine the node's own stored result (result.yaml in storage_dir) when no "
+           'prior_file is given')),
+    ('publish_inconsistent', False,
+     _desc('publish a calibration whose fit contradicts the stated noise (it is refused by '
+           'default: ~/calibrate answers success=false with the reason)')),
     ('buffer_capacity', 200_000,
      _desc('samples kept per topic; the oldest are dropped when full', read_only=True,
            ints=_int_range(10, 100_000_000))),
@@ -89,7 +105,8 @@ PARAMETERS = (
 
 #: Names of the calibration keys (those of Settings).
 CALIBRATION_KEYS = ('topic_a', 'topic_b', 'model', 'method', 'sigma_a', 'sigma_b', 'max_gap',
-                    'time_offset', 'min_pairs', 'max_iterations')
+                    'time_offset', 'estimate_time_offset', 'estimate_clock_drift', 'robust',
+                    'min_pairs', 'max_iterations')
 
 
 @dataclass(frozen=True)

@@ -52,7 +52,7 @@ from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream, pending_pairs
 from coreg_ros.core.result_io import result_to_dict
-from coreg_ros.core.types import CalibrationResult, Pairs, UncertainPose
+from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
 from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
 
 #: Samples of A and of each B topic looked at per tick (the newest ones).
@@ -216,6 +216,8 @@ class UncertaintyOutputs:
         self.pub_markers = node.create_publisher(MarkerArray, '~/uncertainty_markers',
                                                  MARKER_QOS)
         self.calibration: Optional[FusionCalibration] = None
+        #: the clock offset of the calibration: fusion pairs A and B as the calibration did
+        self.timing: Optional[TimeOffset] = None
         self._calibration_markers: list = []
         self._cursor: Optional[int] = None
         self._warned = -WARN_PERIOD
@@ -232,13 +234,15 @@ class UncertaintyOutputs:
     # --- calibration -----------------------------------------------------------------------
 
     def set_result(self, result: CalibrationResult) -> None:
-        """Use a fresh calibration (joint covariance with its cross terms)."""
+        """Use a fresh calibration (joint covariance with its cross terms) and its clock offset."""
+        self.timing = result.time_offset
         self.set_calibration(FusionCalibration.from_result(result))
 
     def set_stored(self, doc: dict, base_to_base: UncertainPose,
                    tool_to_marker: UncertainPose) -> None:
         """Use a stored calibration (``persistence.load_result``); cov_joint if it was stored."""
         r = doc.get('result', {})
+        self.timing = TimeOffset.from_dict(r.get('time_offset'), r.get('clock_drift'))
         joint = r.get('cov_joint')
         self.set_calibration(FusionCalibration.from_poses(
             base_to_base, tool_to_marker, r.get('model', 'full_pose'),
@@ -329,9 +333,12 @@ class UncertaintyOutputs:
         buffers = self.node.buffers
         stream_a = buffers[settings.topic_a].tail(A_WINDOW)
         streams_b = [buffers[t].tail(B_WINDOW) for t in settings.topic_b]
+        newest = streams_b[0].stamps
+        offset_ns = settings.time_offset_ns if self.timing is None or not len(newest) else \
+            self.timing.offset_ns_at(int(newest[-1]))
         pairs, self._cursor = pending_pairs(
             stream_a, streams_b if len(streams_b) == 3 else streams_b[0], self._cursor,
-            max_gap_ns=settings.max_gap_ns, offset_ns=settings.time_offset_ns,
+            max_gap_ns=settings.max_gap_ns, offset_ns=offset_ns,
             with_orientation_b=settings.model == 'full_pose')
         if len(pairs) == 0:
             return 0

@@ -312,7 +312,8 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
 
 def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagnosis:
     progress(0.0, 'calibrating')
-    result = calibrate(pairs, settings, cov_a=cov_a, cov_b=cov_b)
+    # the diagnosis models outliers itself: its base fit keeps every pair
+    result = calibrate(pairs, settings.updated(robust=False), cov_a=cov_a, cov_b=cov_b)
     data = prepare(pairs, settings, stream_a, cov_a, cov_b)
     spec = data.spec
     K = opts.n_folds
