@@ -165,6 +165,11 @@ def targets_table(rows: list, results: dict) -> tuple:
                                'pass' if m['passed'] else 'FAIL: ' + '; '.join(
                                    c['check'] for c in m['checks'] if not c['passed']),
                                m['passed']))
+    st = results.get('time_offset')
+    if isinstance(st, dict):
+        checks.append(('calibrate 100k: τ estimated / τ fixed (whole call)',
+                       f'≤ {st["goal_ratio"]:g}×', f'{st["ratio"]:.2f}×',
+                       st['ratio'] <= st['goal_ratio']))
     lines = ['| target | goal | measured | met |', '|---|---|---|---|']
     lines += [f'| {a} | {b} | {c} | {"yes" if d else "**no**"} |' for a, b, c, d in checks]
     return '\n'.join(lines), [dict(target=a, goal=b, measured=c, met=bool(d))
@@ -192,6 +197,13 @@ def other_table(results: dict) -> str:
                      f'{node["estimator_seconds"]} s) | success {node["success"]} |')
     elif node:
         lines.append(f'| node | – | {node} | – |')
+    st = results.get('time_offset')
+    if isinstance(st, dict):
+        lines.append(f'| calibrate, τ estimated vs fixed | {st["n_pairs"]:,} pairs '
+                     f'| {st["estimated_seconds"]:.2f} s vs {st["fixed_seconds"]:.2f} s '
+                     f'(×{st["ratio"]:.2f}, goal ≤ {st["goal_ratio"]:g}) '
+                     f'| τ {st["estimate_s"] * 1e3:.3f} ± {st["sigma_s"] * 1e3:.4f} ms '
+                     f'(true {st["true_offset_s"] * 1e3:g}) |')
     diag = results.get('diagnosis')
     if isinstance(diag, dict) and 'runtime' in diag:
         d = diag['runtime']
@@ -258,6 +270,8 @@ def main(argv=None) -> int:
             traceback.print_exc()
     results['estimators'] = rows
     log(f'[estimators] {time.perf_counter() - t:.1f} s')
+    from spatiotemporal_bench import bench_time_offset
+    _section(results, 'time_offset', bench_time_offset)
     if not args.no_profile and 100_000 in args.sizes:
         _section(results, 'tls_profile_100k', eb.profile_tls, 100_000)
     _section(results, 'pairing', bench_pairing)

@@ -22,6 +22,7 @@ from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream
 from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.result_io import pose_from_dict
 from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import TimeOffset
 from coreg_ros.ros.convert import msg_to_uncertain_pose, stamp_to_ns
 from coreg_ros.ros.tools import call_trigger, play_streams, wait_for_message, wait_for_result
 from coreg_ros.ros.uncertainty_outputs import AXIS_LENGTH, CONE_SEGMENTS, MARKER_QOS
@@ -235,7 +236,10 @@ def test_parameters_switch_outputs_and_restart_fuses_from_the_stored_result(ros_
                                          pose_from_dict(stored['tool_to_marker']),
                                          stored['model'], np.reshape(stored['cov_joint'],
                                                                      (12, 12)))
-    pairs, _ = pair_streams(live.streams[A], live.streams[B], max_gap_ns=SETTINGS.max_gap_ns)
+    # the node fuses at the clock offset its calibration estimated (stored with the result)
+    offset_ns = TimeOffset.from_dict(stored['time_offset']).offset_ns()
+    pairs, _ = pair_streams(live.streams[A], live.streams[B], max_gap_ns=SETTINGS.max_gap_ns,
+                            offset_ns=offset_ns)
     offline = fused_stream(calib, pairs, SETTINGS.sigma_a, SETTINGS.sigma_b)
     where = {int(s): i for i, s in enumerate(offline.stamps)}
     for m in fused.msgs:

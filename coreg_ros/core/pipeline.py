@@ -49,7 +49,7 @@ from coreg_ros.core.verdict import judge
 #: it: ½ a δτ² is 0.5 µm at 1 m/s² acceleration).
 LINEAR_STEP_S = 1e-3
 #: B samples of the subsample on which the offset candidates are compared and refined.
-SUBSAMPLE_B = 4000
+SUBSAMPLE_B = 2000
 #: Gauss-Newton rounds on τ (each re-pairs and refits).
 MAX_ROUNDS = 8
 #: Candidates refined after their first round.
