@@ -40,7 +40,8 @@ def _guarded(command: str):
                                       f'installation or run `make venv`')
             except CoregError as e:
                 return _fail(command, str(e))
-            except KeyboardInterrupt:
+            except KeyboardInterrupt:  # Ctrl-C before rclpy's own handler was installed
+                print(f'coreg {command}: interrupted', file=sys.stderr)
                 return 130
         return run
     return wrap
@@ -56,8 +57,13 @@ def cmd_play(args) -> int:
     if not topics:
         return _fail('play', f'bag {args.bag} has no {POSE_STAMPED} topic; pass --topics')
     streams = read_pose_bag(args.bag, topics)
+    total = sum(len(s) for s in streams.values())
     with RosSession('coreg_play') as session:
-        play_streams(session, streams, rate=args.rate, wait_subscribers=args.wait)
+        sent = play_streams(session, streams, rate=args.rate, wait_subscribers=args.wait)
+        interrupted = not session.ok()
+    if interrupted:
+        print(f'coreg play: interrupted after {sent} of {total} messages', file=sys.stderr)
+        return 130
     return 0
 
 
@@ -94,26 +100,20 @@ def cmd_call(args) -> int:
 
 @_guarded('echo')
 def cmd_echo(args) -> int:
-    """Print the published PoseWithCovarianceStamped of a topic (latched results included)."""
-    from coreg_ros.ros.tools import RosSession, format_pose_msg, service_name, wait_for_result
+    """Print the messages of a topic with its publishers' type and QoS (latched ones too)."""
+    from coreg_ros.ros.tools import RosSession, echo_topic, service_name
 
     topic = service_name(args.topic, args.node)
     timeout = args.timeout
     if timeout is None and args.once:
         timeout = 10.0
     with RosSession('coreg_echo') as session:
-        printed = 0
-        while session.ok():
-            msg = wait_for_result(session, topic, timeout)
-            if msg is None:
-                break
-            print(format_pose_msg(msg, topic), flush=True)
-            printed += 1
-            if args.once:
-                break
-    if printed == 0:
-        return _fail('echo', f'nothing received on {topic} within {timeout:g} s; has coreg_node '
-                             f'calibrated (coreg call calibrate) on this ROS_DOMAIN_ID?')
+        printed = echo_topic(session, topic, timeout=timeout, once=args.once,
+                             out=functools.partial(print, flush=True))
+        interrupted = not session.ok()
+    if interrupted and printed == 0:
+        print(f'coreg echo: interrupted before any message on {topic}', file=sys.stderr)
+        return 130
     return 0
 
 
@@ -142,13 +142,19 @@ def register(subparsers) -> None:
                    help='seconds to wait for the service and its answer (default 60)')
     p.set_defaults(func=cmd_call)
 
-    p = subparsers.add_parser('echo', help='print a published pose with covariance')
-    p.add_argument('topic', help='e.g. base_to_base, tool_to_marker or a full topic name')
+    p = subparsers.add_parser(
+        'echo', help='print the messages of a topic (poses, diagnostics, markers)',
+        description='Print the messages of a topic readably, with the type and QoS of its '
+                    'publishers: PoseStamped, PoseWithCovarianceStamped, DiagnosticArray, '
+                    'MarkerArray.')
+    p.add_argument('topic', help='e.g. base_to_base, tool_to_marker, fused_pose, '
+                                 'uncertainty_markers or a full name such as /diagnostics')
     p.add_argument('--node', default='coreg_node',
                    help='node whose private topic a relative name means (default coreg_node)')
     p.add_argument('--once', action='store_true', help='exit after the first message')
     p.add_argument('--timeout', type=positive,
-                   help='seconds to wait for a message (default: 10 with --once, else forever)')
+                   help='seconds to wait for a publisher and for each message (default: 10 with '
+                        '--once, else forever)')
     p.set_defaults(func=cmd_echo)
 
 

@@ -1,5 +1,5 @@
 """
-Stand-ins for the ros2 CLI: play a bag, record topics, call a Trigger service, echo a pose.
+Stand-ins for the ros2 CLI: play a bag, record topics, call a Trigger service, echo a topic.
 
 Each tool works on a ``RosSession`` (a context, a node and an executor), so the same code
 serves the ``coreg`` subcommands, the live demo and the tests (which give every session its
@@ -9,6 +9,7 @@ own ROS domain). Failures raise ``ToolError`` with one line saying what is wrong
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
+from contextlib import suppress
 import math
 import time
 from typing import Optional
@@ -24,6 +25,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
 
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.types import PoseStream
@@ -59,31 +61,56 @@ class RosSession:
     def __init__(self, name: str, domain_id: Optional[int] = None, signals: bool = True):
         self.context = Context()
         options = SignalHandlerOptions.ALL if signals else SignalHandlerOptions.NO
+        #: Set once a Ctrl-C (KeyboardInterrupt) or an external shutdown was seen.
+        self.interrupted = False
         rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=options)
-        self.node = Node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        try:
+            self.node = Node(name, context=self.context)
+            self.executor = SingleThreadedExecutor(context=self.context)
+            self.executor.add_node(self.node)
+        except BaseException:  # e.g. Ctrl-C right now: do not leave the context running
+            shutdown_quietly(self.context)
+            raise
 
     def ok(self) -> bool:
-        """Return False once the context is shut down (e.g. by SIGINT)."""
-        return self.context.ok()
+        """Return False once interrupted (SIGINT) or the context is shut down."""
+        return not self.interrupted and self.context.ok()
+
+    def interrupt(self) -> None:
+        """Mark the session as interrupted: ``ok()`` is False from now on."""
+        self.interrupted = True
 
     def spin_until(self, done: Callable[[], bool], timeout: Optional[float]) -> bool:
         """Spin until ``done()`` or the timeout (s; None: forever) or shutdown; return done()."""
         end = math.inf if timeout is None else time.monotonic() + timeout
-        while not done():
+        while not self._check(done):
             left = end - time.monotonic()
             if left <= 0 or not self.ok():
                 break
             try:
                 self.executor.spin_once(timeout_sec=min(0.1, left))
             except (KeyboardInterrupt, ExternalShutdownException):
+                # rclpy shuts the context down from another thread: it may still look ok
+                self.interrupt()
                 break
             except RCLError:
                 if self.ok():  # only the shutdown race (see coreg_ros.ros.node.main) is normal
                     raise
                 break
-        return done()
+        return self._check(done)
+
+    def _check(self, done: Callable[[], bool]) -> bool:
+        """Return ``done()``; False when it fails because the context was shut down (Ctrl-C)."""
+        try:
+            return done()
+        except RCLError:
+            if self.context.ok():
+                raise
+            self.interrupt()
+            return False
+        except KeyboardInterrupt:
+            self.interrupt()
+            return False
 
     def close(self) -> None:
         """Destroy the node and shut the context down."""
@@ -122,7 +149,8 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
     Returns
     -------
     n : int
-        Messages published.
+        Messages published; fewer than all when the session was shut down meanwhile (Ctrl-C),
+        which the caller sees as ``not session.ok()``.
 
     Raises
     ------
@@ -139,6 +167,8 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
         def all_heard():
             return all(p.get_subscription_count() > 0 for p in pubs)
         if not session.spin_until(all_heard, wait_subscribers):
+            if not session.ok():  # interrupted while waiting
+                return 0
             missing = [t for t, p in zip(topics, pubs, strict=True)
                        if p.get_subscription_count() == 0]
             raise ToolError(f'no subscriber on {", ".join(missing)} after {wait_subscribers:g} s; '
@@ -165,18 +195,42 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
     log(f'playing {len(which)} messages on {", ".join(topics)} at rate {rate:g}')
     start = time.perf_counter()
     sent = 0
-    for k, i, due in zip(which, index, offsets, strict=True):
-        if not session.ok():
-            break
-        wait = start + due - time.perf_counter()
-        if wait > 0.0005:
-            time.sleep(wait)
-        pubs[k].publish(make_pose_stamped(stamps[k][i], frames[k], pos[k][i], quat[k][i]))
-        sent += 1
-    for p in pubs:  # reliable: do not tear down before the readers have everything
-        p.wait_for_all_acked(Duration(seconds=5))
-    log(f'published {sent} messages in {time.perf_counter() - start:.2f} s')
+    try:
+        for k, i, due in zip(which, index, offsets, strict=True):
+            if not _sleep_until(session, start + due):
+                break
+            try:
+                pubs[k].publish(make_pose_stamped(stamps[k][i], frames[k], pos[k][i],
+                                                  quat[k][i]))
+            except RCLError:
+                if session.ok():  # a shutdown (Ctrl-C) after the check is normal
+                    raise
+                break
+            sent += 1
+        if session.ok():
+            for p in pubs:  # reliable: do not tear down before the readers have everything
+                p.wait_for_all_acked(Duration(seconds=5))
+    except KeyboardInterrupt:
+        session.interrupt()
+    except RCLError:
+        if session.ok():
+            raise
+    if session.ok():
+        log(f'published {sent} messages in {time.perf_counter() - start:.2f} s')
     return sent
+
+
+def _sleep_until(session: RosSession, when: float) -> bool:
+    """Sleep until ``time.perf_counter() >= when`` in short steps; False once shut down."""
+    while session.ok():
+        wait = when - time.perf_counter()
+        if wait <= 0.0005:
+            return True
+        try:
+            time.sleep(min(wait, 0.05))
+        except KeyboardInterrupt:
+            session.interrupt()
+    return False
 
 
 # --- record ----------------------------------------------------------------------------------
@@ -327,3 +381,171 @@ def format_pose_msg(msg: PoseWithCovarianceStamped, topic: str = '') -> str:
         f'  std position [m]  {std[0]}  {std[1]}  {std[2]}',
         f'  std rotation [rad] {std[3]}  {std[4]}  {std[5]}',
     ])
+
+
+def format_pose_stamped(msg: PoseStamped, topic: str = '') -> str:
+    """Lines for a person: frame, stamp, position and quaternion of a PoseStamped."""
+    p, q = msg.pose.position, msg.pose.orientation
+    return '\n'.join([
+        f'{topic} (frame {msg.header.frame_id}, stamp {_stamp(msg.header):.3f})',
+        f'  position  [m]     x {p.x: .6f}  y {p.y: .6f}  z {p.z: .6f}',
+        f'  quaternion (wxyz) w {q.w: .6f}  x {q.x: .6f}  y {q.y: .6f}  z {q.z: .6f}',
+    ])
+
+
+#: Names of the DiagnosticStatus levels.
+LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
+
+
+def _level(status: DiagnosticStatus) -> str:
+    level = status.level
+    level = level[0] if isinstance(level, (bytes, bytearray)) else int(level)
+    return LEVEL_NAMES.get(level, str(level))
+
+
+def format_diagnostics(msg: DiagnosticArray, topic: str = '/diagnostics') -> str:
+    """Lines for a person: one ``[LEVEL] name: message`` per status, then its key: value pairs."""
+    lines = [f'{topic} (stamp {_stamp(msg.header):.3f}, {len(msg.status)} status)']
+    for status in msg.status:
+        lines.append(f'  [{_level(status)}] {status.name}: {status.message}')
+        lines.extend(f'      {kv.key}: {kv.value}' for kv in status.values)
+    return '\n'.join(lines)
+
+
+_MARKER_TYPES = {v: k.lower() for k, v in vars(Marker).items()
+                 if k.isupper() and isinstance(v, int) and k not in ('ADD', 'MODIFY', 'DELETE',
+                                                                      'DELETEALL')}
+_MARKER_ACTIONS = {Marker.ADD: 'add', Marker.DELETE: 'delete', Marker.DELETEALL: 'delete all'}
+
+
+def format_marker_array(msg: MarkerArray, topic: str = '') -> str:
+    """Lines for a person: one line per marker (namespace/id, type, frame, position, scale)."""
+    lines = [f'{topic} ({len(msg.markers)} markers)']
+    for m in msg.markers:
+        p, sc = m.pose.position, m.scale
+        lines.append(
+            f'  {m.ns}/{m.id} {_MARKER_TYPES.get(m.type, m.type)} '
+            f'{_MARKER_ACTIONS.get(m.action, m.action)} (frame {m.header.frame_id}) '
+            f'at [{p.x:.4f}, {p.y:.4f}, {p.z:.4f}] scale [{sc.x:.4g}, {sc.y:.4g}, {sc.z:.4g}]')
+    return '\n'.join(lines)
+
+
+def _stamp(header) -> float:
+    return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+#: What ``echo_topic`` can show: ROS type name -> (message class, formatter).
+ECHO_TYPES = {
+    'geometry_msgs/msg/PoseWithCovarianceStamped': (PoseWithCovarianceStamped, format_pose_msg),
+    'geometry_msgs/msg/PoseStamped': (PoseStamped, format_pose_stamped),
+    'diagnostic_msgs/msg/DiagnosticArray': (DiagnosticArray, format_diagnostics),
+    'visualization_msgs/msg/MarkerArray': (MarkerArray, format_marker_array),
+}
+
+
+def matching_qos(infos, depth: int = 100) -> QoSProfile:
+    """
+    Return a subscription QoS that every publisher in ``infos`` serves.
+
+    Reliable only if every publisher is reliable, transient-local (late subscribers get the
+    stored messages) only if every publisher is; otherwise best effort, volatile, which any
+    publisher matches.
+    """
+    reliable = bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                                   for i in infos)
+    latched = bool(infos) and all(
+        i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=(ReliabilityPolicy.RELIABLE if reliable
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
+
+
+def find_publishers(session: RosSession, topic: str, timeout: Optional[float]) -> list:
+    """Return the publishers (TopicEndpointInfo) of ``topic`` once any is found; [] on timeout."""
+    infos: list = []
+
+    def found() -> bool:
+        try:
+            infos[:] = session.node.get_publishers_info_by_topic(topic)
+        except RCLError:  # shut down (Ctrl-C) since the last check
+            if session.ok():
+                raise
+            infos.clear()
+        return bool(infos)
+
+    session.spin_until(found, timeout)
+    return infos
+
+
+def echo_topic(session: RosSession, topic: str, *, timeout: Optional[float] = None,
+               once: bool = False, out: Callable[[str], None] = print) -> int:
+    """
+    Print the messages of ``topic`` with the type and QoS its publishers use.
+
+    Waits for a publisher, takes its message type (one of ``ECHO_TYPES``) and a QoS every
+    publisher serves (``matching_qos``: a transient-local result is received by a late echo,
+    a volatile or best-effort stream is received too), then prints each message readably.
+
+    Parameters
+    ----------
+    session : RosSession
+    topic : str
+        Full topic name.
+    timeout : float, optional
+        Seconds to wait for a publisher and then for each message; None: until shutdown.
+    once : bool
+        Return after the first message.
+    out : callable
+        Where the lines go.
+
+    Returns
+    -------
+    printed : int
+        Messages printed (0 if the session was shut down, e.g. by Ctrl-C, before any came).
+
+    Raises
+    ------
+    ToolError
+        If no publisher appears within ``timeout``, the topic's type is not one of
+        ``ECHO_TYPES``, or no message comes within ``timeout``.
+
+    """
+    infos = find_publishers(session, topic, timeout)
+    if not infos:
+        if not session.ok() or timeout is None:
+            return 0
+        raise ToolError(f'no publisher of {topic} within {timeout:g} s; is the node running on '
+                        f'this ROS_DOMAIN_ID (and the topic name right)?')
+    types = list(dict.fromkeys(i.topic_type for i in infos))
+    known = [t for t in types if t in ECHO_TYPES]
+    if not known:
+        raise ToolError(f'{topic} carries {", ".join(types)}; coreg echo shows '
+                        f'{", ".join(t.rsplit("/", 1)[-1] for t in ECHO_TYPES)} only')
+    msg_type, formatter = ECHO_TYPES[known[0]]
+    qos = matching_qos([i for i in infos if i.topic_type == known[0]])
+    got: list = []
+    sub = session.node.create_subscription(msg_type, topic, got.append, qos)
+    printed = 0
+    try:
+        while session.ok():
+            if not session.spin_until(lambda: bool(got), timeout):
+                break
+            while got:
+                out(formatter(got.pop(0), topic))
+                printed += 1
+                if once:
+                    return printed
+    except KeyboardInterrupt:
+        session.interrupt()
+    finally:
+        with suppress(RCLError):  # after a Ctrl-C the node may be gone already
+            session.node.destroy_subscription(sub)
+    if printed == 0 and session.ok() and timeout is not None:
+        latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        hint = ('it keeps its last message for late subscribers but has none yet (results '
+                'appear after `coreg call calibrate`)' if latched
+                else 'it has not published since echo started')
+        raise ToolError(f'nothing received on {topic} ({known[0]}) within {timeout:g} s; {hint}')
+    return printed
