@@ -174,38 +174,39 @@ class _Fitter:
             check_observability(sol.info, sol.params, quat_a)
         return sol
 
-    def reject_outliers(self, sol: Solution) -> tuple[np.ndarray, Solution]:
+    def reject_outliers(self, sol: Solution, max_share: float = MAX_REJECTED_SHARE
+                        ) -> tuple[np.ndarray, Solution]:
         """
         Reject pairs far outside the noise, refitting on the rest until the set settles.
 
         A pair is rejected when ``d² > s · χ²_m(1 - OUTLIER_ALPHA)`` with d² its normalised
         squared residual at the current fit (``linearized.normalised_squares``) and
-        ``s = max(1, median(d²) / median(χ²_m))``: the stated noise, or the typical scatter of
-        the inliers if that is larger (so that early rounds, fitted with the outliers in,
-        keep the inliers, and a recording whose noise is understated throughout is judged
-        by the fit verdict, not cut down). Rejected pairs are tested again each round.
+        ``s = max(1, q25(d²) / q25(χ²_m))`` (lower quartiles, which outliers up to half the
+        pairs do not reach): the stated noise, or the typical scatter of the inliers if that
+        is larger (so that early rounds, fitted with the outliers in, keep the inliers, and a
+        recording whose noise is understated throughout is judged by the fit verdict, not cut
+        down). Rejected pairs are tested again each round. More than ``max_share`` rejected is
+        refused (InconsistentDataError).
         """
         m = self.spec.n_res
         n = len(self.pos_a)
         limit = float(stats.chi2.isf(OUTLIER_ALPHA, m))
-        median = float(stats.chi2.median(m))
+        quartile = float(stats.chi2.ppf(0.25, m))
         keep = np.ones(n, dtype=bool)
         for _ in range(MAX_ROUNDS):
             d2 = normalised_squares(sol.params, self.data)
-            scale = max(1.0, float(np.median(d2[keep])) / median)
+            scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
             new = d2 <= scale * limit
             if np.array_equal(new, keep):
                 break
-            self._refuse_if_mostly_outside(~new)
+            self._refuse_if_mostly_outside(~new, max_share)
             keep = new
             sol = self.solve(keep, sol.params, warm=True)
-        # judged at the settled fit: the share far outside the *stated* noise
-        self._refuse_if_mostly_outside(d2 > limit)
         return keep, sol
 
-    def _refuse_if_mostly_outside(self, outside: np.ndarray) -> None:
+    def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
         share = float(outside.mean())
-        if share > MAX_REJECTED_SHARE:
+        if share > max_share:
             raise InconsistentDataError(
                 f'{share:.0%} of the pairs lie far outside the stated noise: the data are '
                 f'not the model plus a few outliers{_where(outside, self.stamps)}; check the '
@@ -228,7 +229,8 @@ def _where(rejected: np.ndarray, stamps: np.ndarray) -> str:
 
 def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional[Prior] = None,
               cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None,
-              start: Optional[Parameters] = None, warm: bool = False) -> CalibrationResult:
+              start: Optional[Parameters] = None, warm: bool = False,
+              max_rejected_share: float = MAX_REJECTED_SHARE) -> CalibrationResult:
     """
     Estimate T0 = T_bbase_abase and T1 = T_atool_bmarker from paired samples.
 
@@ -251,6 +253,9 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     warm : bool
         ``start`` is a fit of nearly the same pairs (e.g. at a nearby time offset): TLS starts
         from it without an OLS pass.
+    max_rejected_share : float
+        Largest share of rejected pairs before the data are refused (1 never refuses, e.g.
+        while comparing candidate time offsets).
 
     Returns
     -------
@@ -271,7 +276,7 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     keep = np.ones(len(pairs), dtype=bool)
     sol = fitter.solve(keep, start, warm and start is not None)
     if settings.robust:
-        keep, sol = fitter.reject_outliers(sol)
+        keep, sol = fitter.reject_outliers(sol, max_rejected_share)
     result = _result(sol, spec, settings, len(pairs))
     return replace(result, inliers=keep,
                    rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])

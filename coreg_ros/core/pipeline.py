@@ -23,6 +23,7 @@ import numpy as np
 from scipy import stats
 
 from coreg_ros.core.calibrate import (
+    MAX_REJECTED_SHARE,
     calibrate,
     metric_covariance,
     noise_covariance,
@@ -55,7 +56,7 @@ MAX_ROUNDS = 8
 #: Candidates refined after their first round.
 REFINED_CANDIDATES = 2
 #: Iteration limit of the fits that compare candidates.
-TRIAL_ITERATIONS = 20
+TRIAL_ITERATIONS = 8
 #: Candidates closer than this (s) are one.
 SAME_CANDIDATE_S = 2e-3
 
@@ -143,6 +144,7 @@ class _Context:
     half: float
     cov_a: np.ndarray
     cov_b: np.ndarray
+    max_rejected_share: float = MAX_REJECTED_SHARE
 
     @classmethod
     def build(cls, stream_a, streams_b, settings, prior):
@@ -175,8 +177,14 @@ class _Round:
     kappa: Optional[float]
 
     def score(self) -> float:
-        """χ² per pair (candidates are fitted without rejection)."""
-        return self.result.chi2 / max(self.result.n_pairs, 1)
+        """
+        Median squared residual per pair.
+
+        A wrong offset for part of the data (a clock step) does not hide a candidate that fits
+        the rest.
+        """
+        r = self.result.residuals
+        return float(np.median(np.sum(r * r, axis=1))) if len(r) else float('inf')
 
 
 def _subsampled(streams_b: list, target: int) -> list:
@@ -198,7 +206,8 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     timing = ctx.timing(tau, kappa)
     pairs, report = pair_for(ctx.stream_a, streams_b, settings, timing, validated=True)
     try:
-        result = calibrate(pairs, settings, ctx.prior, start=start, warm=start is not None)
+        result = calibrate(pairs, settings, ctx.prior, start=start, warm=start is not None,
+                           max_rejected_share=ctx.max_rejected_share)
     except TooFewPairsError as e:
         raise TooFewPairsError(f'{e} ({report.summary()})') from e
     spec = SPECS[settings.model]
@@ -255,11 +264,11 @@ def _spatiotemporal(stream_a, streams_b, settings, prior):
     ctx = _Context.build(stream_a, streams_b, settings, prior)
     kappa0 = 0.0 if settings.estimate_clock_drift else None
     sub_b = _subsampled(ctx.streams_b, SUBSAMPLE_B)
-    # candidates are compared by plain OLS with few iterations: a wrong one is far off either
-    # way, and near the right one the pairs do not fit the noise yet (no refusal, no rejection)
-    trial = replace(ctx, settings=settings.updated(
-        method='ols', robust=False,
-        max_iterations=min(int(settings.max_iterations), TRIAL_ITERATIONS)))
+    # candidates are compared by OLS with few iterations (a wrong one is far off either way),
+    # never refused: near the right offset the pairs do not fit the noise yet, and where the
+    # data change (a clock step) the candidate that fits a part is the one to find
+    trial = replace(ctx, max_rejected_share=1.0, settings=settings.updated(
+        method='ols', max_iterations=min(int(settings.max_iterations), TRIAL_ITERATIONS)))
     # one round per candidate, then the best few refined: a wrong lag is far off at once
     firsts = []
     for tau in _candidates(ctx):

@@ -46,7 +46,7 @@ MIN_OVERLAP_SHARE = 0.3
 #: Every how many pairs the noise share of the velocity signature is evaluated.
 NOISE_STRIDE = 8
 #: Largest number of grid samples of one coarse signal (bounds time and memory).
-MAX_GRID = 1 << 20
+MAX_GRID = 1 << 16
 
 
 def query_seconds(stamps_b: np.ndarray, tau0: float, kappa: float, reference_ns: int,
