@@ -101,6 +101,8 @@ def cmd_calibrate(args) -> int:
     from coreg_ros.cli.convert import direction_guard
     from coreg_ros.cli.files import write_json
     from coreg_ros.cli.text import format_result
+    from coreg_ros.core.directions import check_directions
+    from coreg_ros.core.errors import InconsistentDataError
     from coreg_ros.core.pipeline import calibrate_streams
     from coreg_ros.core.result_io import load_prior, result_to_dict
     from coreg_ros.report.calibration_report import points_from_flat
@@ -112,8 +114,16 @@ def cmd_calibrate(args) -> int:
     prior = load_prior(args.prior) if args.prior else None
     streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
     stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
-    result, report = calibrate_streams(stream_a, streams_b, settings, prior,
-                                       frames=config_frames(args))
+    try:
+        result, report = calibrate_streams(stream_a, streams_b, settings, prior,
+                                           frames=config_frames(args))
+    except InconsistentDataError as e:
+        # data refused as a whole: a stream given the wrong way round is a cheap explanation
+        check = None if args.no_direction_check else check_directions(
+            stream_a, streams_b, settings)
+        if check is not None and check.flagged:
+            raise InconsistentDataError(f'{check.message} ({e})') from e
+        raise
     check = direction_guard(args, stream_a, streams_b, settings, result)
     wrong_way = check is not None and check.flagged
     print(f'{PROG} calibrate: {args.bag}', file=out)

@@ -141,7 +141,7 @@ class _Fitter:
                              self.scale, settings.method == 'tls')
 
     def solve(self, keep: np.ndarray, start: Optional[Parameters],
-              warm: bool = False) -> Solution:
+              warm: bool = False, with_priors: bool = True) -> Solution:
         """
         Fit the pairs in ``keep`` from ``start`` (closed form when None).
 
@@ -161,7 +161,7 @@ class _Fitter:
         quat_a = sub(self.quat_a)
         problem = Problem(self.spec, sub(self.pos_a), quat_a, sub(self.pos_b),
                           sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
-                          self.priors)
+                          self.priors if with_priors else [])
         tls = settings.method == 'tls'
         if start is None:
             start = initialize(self.spec, problem.pos_a, quat_a, problem.pos_b, problem.quat_b)
@@ -201,7 +201,7 @@ class _Fitter:
                 break
             self._refuse_if_mostly_outside(~new, max_share)
             keep = new
-            sol = self.solve(keep, sol.params, warm=True)
+            sol = self.solve(keep, sol.params, warm=True, with_priors=False)
         return keep, sol
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
@@ -274,9 +274,14 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b)
     check_motion(fitter.quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
     keep = np.ones(len(pairs), dtype=bool)
-    sol = fitter.solve(keep, start, warm and start is not None)
+    # outliers are a property of the data: they are found without the prior, which is then
+    # tested against the data (verdict.prior_check) instead of pulling pairs out of the fit
+    with_priors = not (settings.robust and prior is not None)
+    sol = fitter.solve(keep, start, warm and start is not None, with_priors)
     if settings.robust:
         keep, sol = fitter.reject_outliers(sol, max_rejected_share)
+        if prior is not None:
+            sol = fitter.solve(keep, sol.params, warm=True)
     result = _result(sol, spec, settings, len(pairs))
     return replace(result, inliers=keep,
                    rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])
