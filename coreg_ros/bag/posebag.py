@@ -45,6 +45,9 @@ BAG_VERSION = 9
 #: builtin_interfaces/Time has an int32 ``sec``: header stamps must lie in [0, 2**31 s).
 _MAX_HEADER_STAMP = 2**31 * 10**9
 
+#: Messages converted to Python values at a time by ``write_pose_bag`` (bounds its memory).
+_WRITE_CHUNK = 65536
+
 #: How to salvage a damaged storage file, by storage identifier (for error messages).
 _SALVAGE = {'mcap': '`mcap recover`', 'sqlite3': 'the sqlite3 `.recover` command'}
 
@@ -361,12 +364,19 @@ def write_pose_bag(path: PathLike, streams: Mapping[str, PoseStream],
     header_cls, time_cls = types['std_msgs/msg/Header'], types['builtin_interfaces/msg/Time']
     pose_cls, point_cls = types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point']
     quat_cls = types['geometry_msgs/msg/Quaternion']
-    # Python floats and ints: the generated serializer is fastest on them.
     frames = [streams[t].frame_id for t in topics]
-    pos = [np.asarray(streams[t].position, dtype=float).tolist() for t in topics]
-    quat = [np.asarray(streams[t].quat_wxyz, dtype=float).tolist() for t in topics]
-    secs = [(s // 1_000_000_000).tolist() for s, _ in checked]
-    nsecs = [(s % 1_000_000_000).tolist() for s, _ in checked]
+    # All messages in write order as arrays (88 B each), turned into Python floats and ints
+    # (the generated serializer is fastest on them) one chunk at a time: bounded memory.
+    which, index, logs = which[order], index[order], logs[order]
+    empty = np.zeros((0, 3))
+    pos = np.concatenate([np.asarray(streams[t].position, dtype=float).reshape(-1, 3)
+                          for t in topics] or [empty])
+    quat = np.concatenate([np.asarray(streams[t].quat_wxyz, dtype=float).reshape(-1, 4)
+                           for t in topics] or [np.zeros((0, 4))])
+    stamps = np.concatenate([s for s, _ in checked]) if checked else logs
+    start = np.cumsum([0] + [len(s) for s, _ in checked])[:-1] if checked else logs
+    flat = start[which] + index if len(which) else which
+    pos, quat, stamps = pos[flat], quat[flat], stamps[flat]
 
     staging = Path(tempfile.mkdtemp(prefix=f'.{path.name}.partial-', dir=path.parent))
     try:
@@ -374,15 +384,19 @@ def write_pose_bag(path: PathLike, streams: Mapping[str, PoseStream],
         with Writer(tmp_bag, version=BAG_VERSION, storage_plugin=STORAGES[storage]) as writer:
             conns = [writer.add_connection(t, POSE_STAMPED, typestore=store) for t in topics]
             serialize = store.serialize_cdr
-            for k, i, log_ns in zip(which[order].tolist(), index[order].tolist(),
-                                    logs[order].tolist(), strict=True):
-                (x, y, z), (qw, qx, qy, qz) = pos[k][i], quat[k][i]
-                msg = msg_cls(
-                    header=header_cls(stamp=time_cls(sec=secs[k][i], nanosec=nsecs[k][i]),
-                                      frame_id=frames[k]),
-                    pose=pose_cls(position=point_cls(x=x, y=y, z=z),
-                                  orientation=quat_cls(x=qx, y=qy, z=qz, w=qw)))
-                writer.write(conns[k], log_ns, serialize(msg, POSE_STAMPED))
+            for lo in range(0, len(which), _WRITE_CHUNK):
+                hi = lo + _WRITE_CHUNK
+                chunk = zip(which[lo:hi].tolist(), logs[lo:hi].tolist(),
+                            (stamps[lo:hi] // 1_000_000_000).tolist(),
+                            (stamps[lo:hi] % 1_000_000_000).tolist(),
+                            pos[lo:hi].tolist(), quat[lo:hi].tolist(), strict=True)
+                for k, log_ns, sec, nsec, (x, y, z), (qw, qx, qy, qz) in chunk:
+                    msg = msg_cls(
+                        header=header_cls(stamp=time_cls(sec=sec, nanosec=nsec),
+                                          frame_id=frames[k]),
+                        pose=pose_cls(position=point_cls(x=x, y=y, z=z),
+                                      orientation=quat_cls(x=qx, y=qy, z=qz, w=qw)))
+                    writer.write(conns[k], log_ns, serialize(msg, POSE_STAMPED))
         if path.exists():
             raise BagError(f'{str(path)!r} appeared while the bag was being written; it was not '
                            f'overwritten; choose a new bag name')

@@ -15,6 +15,7 @@ from coreg_ros.sim.devices import (
     FRAME_B,
     SimRecording,
     add_pose_noise,
+    check_allocation,
     simulate_pairs,
     simulate_recording,
 )
@@ -26,6 +27,7 @@ from coreg_ros.sim.truth import Truth, random_truth, validate_sigma
 __all__ = [
     'DEFAULT_SIGMA_A', 'DEFAULT_SIGMA_B', 'DEFAULT_START_NS', 'EFFECT_NAMES', 'EFFECT_UNITS',
     'Effect', 'EffectContext', 'FRAME_A', 'FRAME_B', 'MOTION_PRESETS', 'Motion', 'SimRecording',
-    'Truth', 'add_pose_noise', 'apply_effects', 'make_effect', 'make_motion', 'parse_effect',
-    'random_rotation', 'random_truth', 'simulate_pairs', 'simulate_recording', 'validate_sigma',
+    'Truth', 'add_pose_noise', 'apply_effects', 'check_allocation', 'make_effect',
+    'make_motion', 'parse_effect', 'random_rotation', 'random_truth', 'simulate_pairs',
+    'simulate_recording', 'validate_sigma',
 ]
