@@ -16,14 +16,14 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML'],
+    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML',
+                      'ruamel.yaml'],
     extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib']},
     zip_safe=True,
     maintainer='coreg_ros developers',
     maintainer_email='dev@coreg-ros.invalid',
     description='Coregistration of two pose measurement devices (Ikits OLS/TLS) for ROS 2.',
     license='BSD-3-Clause',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'coreg = coreg_ros.cli.main:main',

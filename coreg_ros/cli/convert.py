@@ -523,6 +523,50 @@ def register(subparsers) -> None:
     p.add_argument('--topic-a', default=DEFAULT_TOPIC_A, help=f'default {DEFAULT_TOPIC_A}')
     p.add_argument('--topic-b', default=DEFAULT_TOPIC_B[0], help=f'default {DEFAULT_TOPIC_B[0]}')
     p.set_defaults(func=cmd_convert)
+    register_fix_bag(subparsers)
+
+
+def cmd_fix_bag(args) -> int:
+    """Write a repaired copy of a recording: sorted, without repeated stamps, or split."""
+    from coreg_ros.bag.fixbag import fix_bag
+
+    report = fix_bag(args.bag, args.out_bag, sort=args.sort,
+                     drop_duplicates=args.drop_duplicates, split_at_jump=args.split_at_jump,
+                     storage=args.storage)
+    for topic, n in report.reordered.items():
+        print(f'  {topic}: {n} messages were out of stamp order, now sorted')
+    for topic, n in report.dropped.items():
+        print(f'  {topic}: {n} messages with a repeated stamp dropped')
+    for topic, before, after in report.jumps:
+        print(f'  {topic}: clock jump of {(after - before) * 1e-9:+.3f} s (stamp {before} -> '
+              f'{after} ns): split there')
+    if report.skipped_topics:
+        print(f'  not copied (not PoseStamped): {", ".join(report.skipped_topics)}')
+    for path, counts in report.outputs:
+        print(f'coreg fix-bag: wrote {path} ('
+              + ', '.join(f'{t} {n}' for t, n in counts.items()) + ')')
+    return 0
+
+
+def register_fix_bag(subparsers) -> None:
+    """Add the ``fix-bag`` subcommand (``coreg_ros.bag.fixbag``)."""
+    from coreg_ros.cli.argtypes import positive
+
+    p = subparsers.add_parser(
+        'fix-bag', help='sort a bag by stamp, drop repeated stamps or split it at a clock jump',
+        description='Write a repaired copy of the PoseStamped topics of a rosbag2: sorted by '
+                    'header stamp (--sort), without messages whose stamp repeats '
+                    '(--drop-duplicates), or split where a stamp jumps by more than S seconds '
+                    '(--split-at-jump S: OUT_BAG_1, OUT_BAG_2, ...).')
+    p.add_argument('bag', help='rosbag2 directory to repair (left unchanged)')
+    p.add_argument('out_bag', help='rosbag2 directory to create')
+    p.add_argument('--sort', action='store_true', help='sort each topic by header stamp')
+    p.add_argument('--drop-duplicates', action='store_true',
+                   help='drop messages whose header stamp repeats an earlier one (keep first)')
+    p.add_argument('--split-at-jump', type=positive, metavar='S',
+                   help='split where a header stamp jumps by more than S seconds')
+    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    p.set_defaults(func=cmd_fix_bag)
 
 
 def direction_guard(args, stream_a: PoseStream, streams_b, settings,
