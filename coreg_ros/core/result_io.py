@@ -11,6 +11,7 @@ Layout (relied upon by checks)::
      "rescaled_covariance": {"factor", "base_to_base", "tool_to_marker"} (inconsistent fits:
                             the covariances multiplied by chi2/dof),
      "prior_check": {"chi2", "dof", "p_value", "consistent"} (with a prior),
+     "cov_joint": [144 numbers] (12×12 of (T0, T1), ROS layout, when estimated),
      "base_to_base": {"position": [x, y, z], "orientation": {"w", "x", "y", "z"},
                       "covariance": [36 numbers, ROS row-major layout]},
      "tool_to_marker": {same},
@@ -79,6 +80,8 @@ def result_to_dict(result: CalibrationResult) -> dict:
         'fit_consistent': result.fit_consistent,
         'verdict': result.verdict,
     }
+    if result.cov_joint is not None:
+        out['cov_joint'] = [float(v) for v in np.ravel(result.cov_joint)]
     if result.time_offset is not None:
         out['time_offset'] = result.time_offset.as_dict()
         if result.time_offset.drift_dict() is not None:
@@ -151,7 +154,19 @@ def prior_from_dict(doc: Mapping[str, Any]) -> Prior:
     if not poses:
         raise InputError('the prior file has neither base_to_base nor tool_to_marker; give a '
                          'previous result or a partial prior')
-    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'))
+    joint = doc.get('cov_joint')
+    if joint is not None and len(poses) == 2:
+        try:
+            joint = np.array(joint, dtype=float).reshape(12, 12)
+        except (TypeError, ValueError) as e:
+            raise InputError('prior cov_joint must be 144 numbers (12×12 of T0, T1)') from e
+        unknown = np.diag(joint) < 0  # the "not estimated" mark, e.g. q1 of position-only
+        joint[unknown, :] = 0.0
+        joint[:, unknown] = 0.0
+        joint[unknown, unknown] = np.inf
+    else:
+        joint = None
+    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'), joint)
 
 
 def load_prior(path) -> Prior:

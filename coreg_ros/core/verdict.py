@@ -18,7 +18,7 @@ from typing import Optional
 import numpy as np
 from scipy import stats
 
-from coreg_ros.core.covariance import Prior, constrained_axes
+from coreg_ros.core.covariance import Prior
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
@@ -85,23 +85,14 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
     if result.cov_joint is None:
         return None
     spec = SPECS[result.model]
-    diffs, covs, idx = [], [], []
-    for which, pose, est in ((0, prior.base_to_base, result.base_to_base),
-                             (1, prior.tool_to_marker, result.tool_to_marker)):
-        if pose is None:
-            continue
-        axes = constrained_axes(pose, spec, which)
-        d = -pose_error(pose.position, pose.quat_wxyz, est.position, est.quat_wxyz)
-        cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
-        diffs.append(d[axes])
-        covs.append(cov[np.ix_(axes, axes)])
-        idx.extend(6 * which + axes)
-    d = np.concatenate(diffs)
-    c_prior = np.zeros((d.size, d.size))
-    k = 0
-    for c in covs:
-        c_prior[k:k + len(c), k:k + len(c)] = c
-        k += len(c)
+    idx = prior.axes(spec)
+    est = {0: result.base_to_base, 1: result.tool_to_marker}
+    full = np.zeros(12)
+    for w, p in prior.poses():
+        full[6 * w:6 * w + 6] = -pose_error(p.position, p.quat_wxyz, est[w].position,
+                                            est[w].quat_wxyz)
+    d = full[idx]
+    c_prior = prior.covariance()[np.ix_(idx, idx)]
     D = c_prior - result.cov_joint[np.ix_(idx, idx)]
     lam, U = np.linalg.eigh(0.5 * (D + D.T))
     keep = lam > 1e-9 * max(float(lam.max()), 0.0)
