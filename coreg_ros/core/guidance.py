@@ -40,9 +40,10 @@ import numpy as np
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import noise_covariance
 from coreg_ros.core.crlb import CRLB_DIMENSION, model_jacobians
-from coreg_ros.core.errors import InputError
+from coreg_ros.core.errors import InputError, UnobservableError
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS, Parameters
+from coreg_ros.core.observability import check_motion
 from coreg_ros.core.trajectory import VELOCITY_HALF_WINDOW, Trajectory
 from coreg_ros.core.types import MODELS, CalibrationResult, Pairs
 
@@ -595,7 +596,11 @@ class Guidance:
     ready : bool
         Every σ is within its target.
     determined : bool
-        The motion determines every parameter (no σ near the weak prior's).
+        The motion determines every parameter: it rotates the tool about two axes at least
+        (``observability.check_motion`` on the pairs so far) and no σ is near the weak
+        prior's.
+    reason : str
+        Why not determined (empty when determined).
     options : tuple of MotionOption
         The candidate motions, best first.
     summary : str
@@ -615,6 +620,7 @@ class Guidance:
     determined: bool
     options: tuple
     summary: str
+    reason: str = ''
 
     @property
     def suggestion(self) -> Optional[MotionOption]:
@@ -716,6 +722,7 @@ class GuidanceAccumulator:
             raise InputError('target_sigma_time must be > 0 (or None)')
         self.model = model
         self.cov_a, self.cov_b = device_covariances(model, sigma_a, sigma_b)
+        self.sigma_rot_a = float(sigma_a[1])
         self.targets = (float(target_sigma_position), float(target_sigma_rotation),
                         None if target_sigma_time is None else float(target_sigma_time))
         self.with_time = bool(estimate_time_offset)
@@ -829,6 +836,14 @@ class GuidanceAccumulator:
         ready = worst_ratio <= 1.0
         prior_sd = np.sqrt(np.diag(np.linalg.inv(_weak_prior(self.model, self.with_time))))
         determined = bool(np.all(np.sqrt(np.diag(cov)) < 0.1 * prior_sd))
+        reason = '' if determined else 'some σ are still at the weak prior'
+        if self._n_store:
+            try:
+                # the store is an even sample of the motion: enough to judge its rotations
+                check_motion(np.concatenate(self._store)[:, 3:7], SPECS[self.model],
+                             self.sigma_rot_a)
+            except UnobservableError as e:
+                determined, reason = False, str(e).split(':')[0]
         ready = ready and determined
         options = []
         if self.last_pose is not None:
@@ -855,10 +870,10 @@ class GuidanceAccumulator:
             summary = (f'ready: {self.n_pairs} pairs, every σ within target (worst {what} '
                        f'{_format_sigma(name, sd)} of {_format_sigma(name, target)})')
         else:
-            head = 'collecting' if determined else 'collecting (not yet determined)'
+            head = 'collecting' if determined else f'collecting (not yet determined: {reason})'
             summary = (f'{head}: {self.n_pairs} pairs; worst {what} σ {_format_sigma(name, sd)}'
                        f' (target {_format_sigma(name, target)})')
             if options:
                 summary += f'; next: {options[0].description}'
         return Guidance(self.model, self.n_pairs, duration, sigma, cov, self.targets, worst,
-                        worst_ratio, ready, determined, tuple(options), summary)
+                        worst_ratio, ready, determined, tuple(options), summary, reason)
