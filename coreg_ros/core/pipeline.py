@@ -30,15 +30,17 @@ from coreg_ros.core.calibrate import (
     output_covariance,
 )
 from coreg_ros.core.covariance import Prior, result_poses, tangent_map
-from coreg_ros.core.errors import CoregError, TooFewPairsError
+from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
 from coreg_ros.core.linearized import PairData
 from coreg_ros.core.models import SPECS, Parameters
 from coreg_ros.core.pairing import pair_streams, validated_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.timing import (
     OffsetStep,
+    clock_step,
     coarse_offsets,
     offset_step,
+    offsets_by_block,
     query_seconds,
     velocity_noise_cov,
 )
@@ -57,6 +59,8 @@ MAX_ROUNDS = 8
 REFINED_CANDIDATES = 2
 #: Iteration limit of the fits that compare candidates.
 TRIAL_ITERATIONS = 8
+#: Blocks whose coarse offsets differ by more than this (s) witness a clock step.
+STEP_TOLERANCE_S = 0.1
 #: Candidates closer than this (s) are one.
 SAME_CANDIDATE_S = 2e-3
 
@@ -291,8 +295,17 @@ def _spatiotemporal(stream_a, streams_b, settings, prior):
         result, report = _fixed(stream_a, streams_b, settings, prior, TimeOffset(
             given, message='not estimated: no offset within the overlap gave a fit'))
         return result, report
-    full = _refine(ctx, ctx.streams_b,
-                   _round(ctx, ctx.streams_b, best.tau, best.kappa, best.params))
+    try:
+        full = _refine(ctx, ctx.streams_b,
+                       _round(ctx, ctx.streams_b, best.tau, best.kappa, best.params))
+    except InconsistentDataError as e:
+        # refused as a whole: a clock step is a cheap explanation, seen in the blocks' offsets
+        blocks = offsets_by_block(ctx.stream_a, ctx.streams_b,
+                                  angular=settings.model != 'position_only')
+        step = clock_step(blocks, STEP_TOLERANCE_S)
+        if step:
+            raise InconsistentDataError(f'{step} ({e})') from e
+        raise
     ok, why = full.step.determined()
     if not ok:
         return _fixed(stream_a, streams_b, settings, prior, TimeOffset(

@@ -184,6 +184,52 @@ def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
     return out
 
 
+def offsets_by_block(stream_a: PoseStream, streams_b: Sequence[PoseStream], *, angular: bool,
+                     n_blocks: int = 6) -> list:
+    """
+    Find the best coarse offset of each of ``n_blocks`` consecutive time blocks of B.
+
+    Returns
+    -------
+    list of (float, float, float)
+        (start s, end s, τ s) per block with a candidate, times from B's first stamp.
+
+    """
+    first = streams_b[0]
+    edges = np.linspace(0, len(first), n_blocks + 1).astype(int)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        if hi - lo < 16:
+            continue
+        block = [PoseStream(first.stamps[lo:hi], first.position[lo:hi],
+                            first.quat_wxyz[lo:hi], first.frame_id)] + list(streams_b[1:])
+        found = coarse_offsets(stream_a, block, angular=angular, max_candidates=1)
+        if found:
+            t0 = float(first.stamps[lo] - first.stamps[0]) * 1e-9
+            t1 = float(first.stamps[hi - 1] - first.stamps[0]) * 1e-9
+            out.append((t0, t1, found[0][0]))
+    return out
+
+
+def clock_step(blocks: list, tolerance_s: float) -> Optional[str]:
+    """
+    Describe a clock step in the blocks' offsets, or return None.
+
+    A step: the earlier blocks agree with each other, the later blocks too, and the two runs
+    differ by more than ``tolerance_s``.
+    """
+    taus = np.array([b[2] for b in blocks])
+    for k in range(1, len(taus)):
+        before, after = taus[:k], taus[k:]
+        if (np.ptp(before) < tolerance_s and np.ptp(after) < tolerance_s
+                and abs(np.median(after) - np.median(before)) > tolerance_s):
+            return (f'the clock offset changes from {np.median(before):.3f} s to '
+                    f'{np.median(after):.3f} s between {blocks[k - 1][1]:.1f} s and '
+                    f'{blocks[k][0]:.1f} s into the recording (a clock step): split the '
+                    f'recording there and calibrate each part')
+    return None
+
+
 # --------------------------------------------------------------------------- joint step
 
 
