@@ -91,7 +91,8 @@ def format_diagnosis(report: dict) -> str:
     if report['effects']:
         lines.append('effects:')
         for e in report['effects']:
-            lines.append(f'  {e["name"]}: {e["estimate"].get("text", "")} (held-out gain '
+            lines.append(f'  {e["name"]} [{e.get("kind", "")}]: {e["estimate"].get("text", "")} '
+                         f'(held-out gain '
                          f'{e["held_out_gain"]:.1f} nats, {e["blocks_improved"]}/{e["blocks"]} '
                          f'blocks)')
     else:
@@ -100,15 +101,30 @@ def format_diagnosis(report: dict) -> str:
         lines.append('not separable with this motion: '
                      + '; '.join(' vs '.join(p) for p in report['not_separable']))
     b, a = report['gap_before'], report['gap_after']
-    lines.append(f'gap (held out): chi2/dof {b["chi2_per_dof"]:.3f} -> {a["chi2_per_dof"]:.3f}; '
-                 f'position RMS {b["position_rms_m"] * 1e3:.3f} -> '
-                 f'{a["position_rms_m"] * 1e3:.3f} mm '
-                 f'(floor {a["noise_floor_position_m"] * 1e3:.3f} mm)'
-                 + (f'; rotation RMS {b["rotation_rms_rad"] * 1e3:.2f} -> '
-                    f'{a["rotation_rms_rad"] * 1e3:.2f} mrad (floor '
-                    f'{a["noise_floor_rotation_rad"] * 1e3:.2f} mrad)'
-                    if 'rotation_rms_rad' in a else '')
-                 + f'; share of the excess explained {a["share_of_excess_explained"] * 100:.0f} %')
+    line = (f'gap (held out, at the stated noise): chi2/dof '
+            f'{b["chi2_per_dof_at_stated_noise"]:.3f} -> {a["chi2_per_dof_at_stated_noise"]:.3f}'
+            f'; position RMS {b["rms_position_mm"]:.3f} -> {a["rms_position_mm"]:.3f} mm '
+            f'(stated floor {a["stated_floor_position_mm"]:.3f} mm)')
+    if 'rms_rotation_deg' in a:
+        line += (f'; rotation RMS {b["rms_rotation_deg"]:.3f} -> {a["rms_rotation_deg"]:.3f} deg '
+                 f'(stated floor {a["stated_floor_rotation_deg"]:.3f} deg)')
+    line += f'; share of the excess explained {a["share_of_excess_explained"] * 100:.0f} %'
+    if not a.get('rms_moved', True):
+        line += ' (the RMS did not move: nothing explained)'
+    lines.append(line)
+    excl = a.get('excluded_pairs', {})
+    if excl.get('count'):
+        lines.append(f'  {excl["count"]} pairs ({excl["share"] * 100:.1f} %) set aside as '
+                     f'outliers, counted as unexplained (all pairs: position RMS '
+                     f'{a["rms_position_mm_all_pairs"]:.3f} mm)')
+    ne = report.get('noise_excess')
+    if ne:
+        lines.append(f'noise excess: {ne["text"]}; largest at '
+                     f'{ne["largest_in_time_s"][0]:.0f}-{ne["largest_in_time_s"][1]:.0f} s')
+    st = report.get('stamps')
+    if st:
+        for dev in st.get('devices', []):
+            lines.append(f'stamps {dev["device"]}: {dev["text"]}')
     return '\n'.join(lines)
 
 

@@ -31,6 +31,8 @@ EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distort
 TIME_EFFECTS = ('time_offset', 'clock_drift')
 MEAN_EFFECTS = ('field_distortion', 'scale', 'link_flex', 'backlash')
 VARIANCE_EFFECTS = ('timestamp_jitter', 'distance_noise', 'outliers', 'noise_scale')
+#: Effects that change only the noise model (describe the noise, never close the gap).
+NOISE_EFFECTS = ('timestamp_jitter', 'distance_noise', 'noise_scale')
 #: Effects tied to the workspace (also cross-validated on spatial blocks).
 SPATIAL_EFFECTS = ('field_distortion', 'scale', 'distance_noise')
 #: Effects that need motion to show (velocity signatures).
@@ -210,6 +212,11 @@ class Backlash(MeanEffect):
         s = np.tanh(ctx.vel / self.v0)
         J = ctx.j_x[:, :, 0:3] * s[:, None, :]
         return J @ theta, J
+
+
+def effect_kind(name: str) -> str:
+    """``'noise'`` for effects that change only the noise model, else ``'structured'``."""
+    return 'noise' if name in NOISE_EFFECTS else 'structured'
 
 
 def make_mean_effect(name: str, data: DiagData) -> MeanEffect:

@@ -30,6 +30,8 @@ import numpy as np
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.diagnosis import detect as dt
 from coreg_ros.core.diagnosis import effects as fx
+from coreg_ros.core.diagnosis import gap as gp
+from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model, start_state
 from coreg_ros.core.diagnosis.summary import effect_estimate, gap_measures, transforms
@@ -360,10 +362,13 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
     after = final.heldout(folds, K) if accepted else before
     gap_before = gap_measures(data, base, before)
     gap_after = gap_measures(data, final, after)
-    excess_before = gap_before['chi2_per_dof'] - 1.0
-    excess_after = gap_after['chi2_per_dof'] - 1.0
-    share = (1.0 - abs(excess_after) / abs(excess_before)) if abs(excess_before) > 1e-9 else 0.0
-    gap_after['share_of_excess_explained'] = float(share)
+    sd = _stated_sd(data, base)
+    everyone = np.ones(n, dtype=bool)
+    counted = after.p_in > 0.5 if final.state.var.eps > 0 else everyone
+    gap_before.update(gp.stated_measures(data, before.quad_stated, before.e, sd, everyone))
+    gap_after.update(gp.stated_measures(data, after.quad_stated, after.e, sd, counted))
+    gap_after['share_of_excess_explained'] = gp.share_explained(gap_before, gap_after)
+    gap_after['rms_moved'] = gp.rms_moved(gap_before, gap_after)
     gap_before['share_of_excess_explained'] = 0.0
     n_res = len(idx) * data.m
     effect_rows = []
@@ -371,7 +376,8 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
     var_cov = final.var_cov() if final.model.var_names else None
     for cand, not_sep in chosen:
         est = effect_estimate(cand.name, final, final_cov, var_cov)
-        row = {'name': cand.name, 'estimate': est, 'held_out_gain': float(cand.gain),
+        row = {'name': cand.name, 'kind': fx.effect_kind(cand.name), 'estimate': est,
+               'held_out_gain': float(cand.gain),
                'held_out_gain_per_residual': float(cand.gain / n_res),
                'blocks_improved': int(np.sum(cand.fold_gains > 0)),
                'blocks': int(len(cand.fold_gains))}
@@ -380,6 +386,8 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
         if not_sep:
             row['not_separable_with'] = list(not_sep)
         effect_rows.append(row)
+    structure = _structure_checks(data, final, after, counted, effect_rows, gap_after)
+    noise_excess = _noise_excess(data, final, after, counted, effect_rows, gap_after)
     gap_detected = bool(detection['gap'] or effect_rows)
     report = {
         'gap_detected': gap_detected,
@@ -387,9 +395,11 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
         'not_separable': not_separable,
         'gap_before': gap_before,
         'gap_after': gap_after,
+        'noise_excess': noise_excess,
+        'excess_left': structure,
         'location': location,
         'verdict': _verdict(gap_detected, effect_rows, not_separable, gap_before, gap_after,
-                            detection, location),
+                            detection, location, noise_excess),
         'detection': detection,
         'candidates': [[c.row(n_res) for c in sorted(cs, key=lambda c: -c.gain)]
                        for cs in rounds],
@@ -453,13 +463,101 @@ def _detect_locate(data: DiagData, base: Fit):
     return detection, location
 
 
+def _stated_sd(data: DiagData, fit: Fit) -> np.ndarray:
+    """Return the standard deviation (N, m) of each raw error under the stated noise."""
+    model = fit.model
+    return np.concatenate([model.evaluate(fit.state, ch, jac=False).sd
+                           for ch in model.chunks(np.arange(data.n))])
+
+
+def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) -> dict:
+    """
+    Outliers versus structure, and an excess left in some blocks or cells only.
+
+    Flagged pairs that cluster in time or in the workspace are a structured or
+    non-stationary error there, not glitches: the ``outliers`` row is renamed
+    ``non_stationary`` (kind structured) and says where. An outlier share at the model's cap
+    is said, never hidden. An excess left after the accepted effects that is concentrated in
+    some time blocks or workspace cells adds a ``non_stationary`` row: no stationary effect
+    explains it.
+    """
+    out = {}
+    flagged = ~counted
+    row = next((r for r in rows if r['name'] == 'outliers'), None)
+    if row is not None:
+        cl = gp.flagged_clustering(data, flagged)
+        out['flagged_pairs'] = cl
+        at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
+        row['estimate']['at_cap'] = bool(at_cap)
+        if at_cap:
+            row['estimate']['text'] += (f' (at the cap of {vm.MAX_OUTLIER_SHARE * 100:.0f} %: '
+                                        'more pairs lie outside the stated noise; these are '
+                                        'not glitches)')
+        if cl['clustered'] or at_cap:
+            row['name'] = 'non_stationary'
+            row['kind'] = 'structured'
+            row['from'] = 'outliers'
+            where = cl['where'] or 'throughout'
+            row['estimate'] = {
+                'flagged_pairs': cl['count'], 'flagged_share': cl['share'],
+                'where': cl['where'], 'at_cap': bool(at_cap),
+                'text': (f'structured/non-stationary error here: {where} '
+                         f'({cl["count"]} pairs, {cl["share"] * 100:.1f} %, flagged in '
+                         'clusters, not at random)')}
+    # under the fitted noise model: a noise that grows with range is stationary, not local
+    emap = gp.excess_map(data, after.quad, counted)
+    out['map'] = emap
+    ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
+    if (emap['concentrated'] and ex_after > 0.05
+            and not any(r['name'] == 'non_stationary' for r in rows)):
+        rows.append({'name': 'non_stationary', 'kind': 'structured',
+                     'estimate': {'where': emap['text'],
+                                  'share_in_time_blocks': emap['share_in_time_blocks'],
+                                  'share_in_cells': emap['share_in_cells'],
+                                  'excess_after': ex_after,
+                                  'text': (f'excess left in {emap["text"]} only: no '
+                                           'stationary effect explains it')},
+                     'held_out_gain': 0.0, 'held_out_gain_per_residual': 0.0,
+                     'blocks_improved': 0, 'blocks': 0})
+    return out
+
+
+def _noise_excess(data, final, after, counted, rows: list, gap_after: dict) -> Optional[dict]:
+    """
+    Describe the noise left larger (or smaller) than stated: a description, not a gap closed.
+
+    Returns None when the held-out χ²/dof at the stated noise is within 5 % of one and no
+    noise effect was accepted.
+    """
+    chi = gap_after['chi2_per_dof_at_stated_noise']
+    noise_rows = [r for r in rows if r['kind'] == 'noise']
+    if abs(chi - 1.0) < 0.05 and not noise_rows:
+        return None
+    emap = gp.excess_map(data, after.quad_stated, counted)
+    worst_t = max(emap['time_blocks'], key=lambda b: b['excess'])
+    worst_c = max(emap['cells'], key=lambda c: c['excess'])
+    out = {'factor': float(np.sqrt(max(chi, 0.0))),
+           'effects': [r['name'] for r in noise_rows],
+           'largest_in_time_s': [worst_t['from_s'], worst_t['to_s']],
+           'largest_in_workspace_m': worst_c['centre_m'],
+           'concentrated': emap['concentrated'], 'where': emap['text']}
+    var = final.state.var
+    if 'distance_noise' in final.model.var_names:
+        out['distance_exponent'] = float(var.k)
+    if 'noise_scale' in final.model.var_names:
+        out['noise_scale'] = float(np.exp(0.5 * var.log_s2))
+    out['text'] = (f'the residual noise is x {out["factor"]:.2f} the stated'
+                   + (f' ({", ".join(out["effects"])})' if out['effects'] else ''))
+    return out
+
+
 def _verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
-             detection: dict, location: dict) -> str:
+             detection: dict, location: dict, noise_excess: Optional[dict] = None) -> str:
     if not gap:
         return (f'no gap: the recording fits the model with the stated noise '
                 f'(chi2/dof {detection["chi2_per_dof"]:.3f}, p = {detection["p_value"]:.2g})')
     if not effects:
-        return (f'gap detected (chi2/dof {detection["chi2_per_dof"]:.2f}) but none of the ten '
+        return (f'gap detected (chi2/dof {detection["chi2_per_dof"]:.2f}) but none of the '
                 f'candidate effects explains it; largest in {location["largest"]}')
     parts = []
     for row in effects:
@@ -469,7 +567,26 @@ def _verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
         if row.get('not_separable_with'):
             text += f' (not separable from {", ".join(row["not_separable_with"])})'
         parts.append(text)
-    return (f'gap explained by {"; ".join(parts)}: held-out chi2/dof '
-            f'{before["chi2_per_dof"]:.2f} -> {after["chi2_per_dof"]:.2f}, position RMS '
-            f'{before["position_rms_m"] * 1e3:.2f} -> {after["position_rms_m"] * 1e3:.2f} mm '
-            f'(noise floor {after["noise_floor_position_m"] * 1e3:.2f} mm)')
+    structured = [r for r in effects if r['kind'] == 'structured']
+    share = after['share_of_excess_explained']
+    numbers = (f'held-out chi2/dof at the stated noise '
+               f'{before["chi2_per_dof_at_stated_noise"]:.2f} -> '
+               f'{after["chi2_per_dof_at_stated_noise"]:.2f}, position RMS '
+               f'{before["rms_position_mm"]:.3f} -> {after["rms_position_mm"]:.3f} mm '
+               f'(stated floor {after["stated_floor_position_mm"]:.3f} mm)')
+    if 'rms_rotation_deg' in after:
+        numbers += (f', rotation RMS {before["rms_rotation_deg"]:.3f} -> '
+                    f'{after["rms_rotation_deg"]:.3f} deg (stated floor '
+                    f'{after["stated_floor_rotation_deg"]:.3f} deg)')
+    excl = after['excluded_pairs']
+    if excl['count']:
+        numbers += f'; {excl["count"]} pairs set aside, counted as unexplained'
+    if not structured:
+        return (f'no structured effect: the residuals are noise '
+                f'{"larger" if (noise_excess or {}).get("factor", 1) >= 1 else "smaller"} '
+                f'than stated ({"; ".join(parts)}); nothing is explained, the noise is '
+                f'described: {numbers}')
+    verb = 'gap explained by' if share >= 0.5 else 'gap partly explained by'
+    if share < 0.05:
+        verb = 'effects found but the gap did not shrink:'
+    return f'{verb} {"; ".join(parts)} ({share * 100:.0f} % of the excess): {numbers}'

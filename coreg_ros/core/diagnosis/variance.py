@@ -35,7 +35,9 @@ VAR_PARAMS = {
     'outliers': ('logit_eps', 'log_lam'),
 }
 _BOUNDS = {
-    'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0), 'k': (-8.0, 8.0),
+    'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0),
+    # EM noise grows with the distance from the source: the exponent is not negative
+    'k': (0.0, 8.0),
     'log_beta': (np.log(1e-5 ** 2), np.log(0.5 ** 2)),
     'logit_eps': (-12.0, float(np.log(0.2 / 0.8))), 'log_lam': (np.log(5.0), np.log(1e5)),
 }

@@ -1,0 +1,271 @@
+"""
+Gap measures that a noise model cannot game, and where the excess that is left lies.
+
+Every number here is taken at the **stated** noise (DESIGN.md §5): an effect that only
+widens the noise model (noise scale, distance noise, jitter as a variance) changes none of
+them, so it can never look as if it closed the gap. Pairs an outlier model sets aside are
+counted, shown and taken as unexplained.
+
+- ``stated_measures``: held-out χ²/dof at the stated noise, position RMS (mm) and rotation
+  RMS (deg) against the stated floor, over the counted pairs and over all pairs.
+- ``share_explained``: the share of the excess explained, with excluded pairs unexplained.
+- ``excess_map``: the excess left per time block and workspace cell, and whether it is
+  concentrated (a non-stationary or local error that no stationary effect explains).
+- ``flagged_clustering``: whether the pairs an outlier model flags cluster in time or in the
+  workspace (then they are structure, not glitches).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+from scipy import stats
+
+#: Time blocks and cells per workspace axis of the excess map.
+TIME_BLOCKS = 10
+CELLS = 3
+#: A block or cell is "where the excess lies" when its mean excess per residual is at least
+#: this and this many times the median block's.
+LOCAL_EXCESS = 0.5
+LOCAL_RATIO = 4.0
+#: An RMS that moved by less than this share did not move.
+RMS_MOVED = 0.02
+
+
+def _rows(data) -> tuple[list, Optional[list]]:
+    k = data.spec.n_markers
+    if data.spec.has_q1:
+        return [0, 1, 2], [3, 4, 5]
+    return list(range(3 * k)), None
+
+
+def stated_measures(data, quad_stated: np.ndarray, e: np.ndarray, sd: np.ndarray,
+                    counted: np.ndarray) -> dict:
+    """
+    Held-out gap at the stated noise.
+
+    Parameters
+    ----------
+    data : DiagData
+    quad_stated : ndarray, shape (N,)
+        Held-out squared normalised error per pair at the stated noise.
+    e : ndarray, shape (N, m)
+        Held-out raw output errors (m; half-angle for rotation rows).
+    sd : ndarray, shape (N, m)
+        Standard deviation of each raw error under the stated noise.
+    counted : ndarray of bool, shape (N,)
+        Pairs counted (False: set aside by an outlier model).
+
+    Returns
+    -------
+    dict
+        ``chi2_per_dof_at_stated_noise``, ``rms_position_mm``, ``stated_floor_position_mm``
+        (and ``rms_rotation_deg``, ``stated_floor_rotation_deg`` for full pose) over the
+        counted pairs; the same over all pairs with the suffix ``_all_pairs``;
+        ``excluded_pairs`` (count, share, the first stamps).
+
+    """
+    m = data.m
+    pos, rot = _rows(data)
+    if not counted.any():
+        counted = np.ones_like(counted)
+
+    def block(sel):
+        out = {'chi2_per_dof_at_stated_noise': float(np.mean(quad_stated[sel]) / m),
+               'rms_position_mm': float(np.sqrt(np.mean(e[sel][:, pos] ** 2)) * 1e3),
+               'stated_floor_position_mm': float(np.sqrt(np.mean(sd[sel][:, pos] ** 2)) * 1e3)}
+        if rot is not None:
+            # rows 3:6 are half-angle errors: the angle is twice their size
+            out['rms_rotation_deg'] = float(np.degrees(
+                2.0 * np.sqrt(np.mean(e[sel][:, rot] ** 2))))
+            out['stated_floor_rotation_deg'] = float(np.degrees(
+                2.0 * np.sqrt(np.mean(sd[sel][:, rot] ** 2))))
+        return out
+
+    out = block(counted)
+    for key, value in block(np.ones_like(counted)).items():
+        out[key + '_all_pairs'] = value
+    excluded = np.flatnonzero(~counted)
+    out['excluded_pairs'] = {'count': int(excluded.size),
+                             'share': float(excluded.size / max(len(counted), 1)),
+                             'counted_as': 'unexplained',
+                             'stamps_ns': [int(s) for s in data.stamps[excluded[:200]]]}
+    return out
+
+
+def share_explained(before: dict, after: dict) -> float:
+    """
+    Share of the excess explained, at the stated noise, excluded pairs unexplained.
+
+    ``(1 - excluded share) · (1 - excess after / excess before)``, the excess being χ²/dof at
+    the stated noise minus one (before over all pairs, after over the counted ones), clipped
+    to [0, 1]; zero when both RMS (position and rotation) moved by less than ``RMS_MOVED``.
+    """
+    ex_b = before['chi2_per_dof_at_stated_noise'] - 1.0
+    ex_a = after['chi2_per_dof_at_stated_noise'] - 1.0
+    if ex_b <= 1e-9:
+        return 0.0
+    if not rms_moved(before, after):
+        return 0.0
+    share = float(np.clip(1.0 - max(ex_a, 0.0) / ex_b, 0.0, 1.0))
+    return share * (1.0 - after['excluded_pairs']['share'])
+
+
+def rms_moved(before: dict, after: dict) -> bool:
+    """Tell whether the position or the rotation RMS fell by at least ``RMS_MOVED``."""
+    for key in ('rms_position_mm', 'rms_rotation_deg'):
+        if key in before and key in after:
+            if after[key] < (1.0 - RMS_MOVED) * before[key]:
+                return True
+    return False
+
+
+def _cells(points: np.ndarray, cells: int = CELLS) -> np.ndarray:
+    lo = np.percentile(points, 1, axis=0)
+    hi = np.percentile(points, 99, axis=0)
+    idx = np.clip(((points - lo) / np.maximum(hi - lo, 1e-9) * cells).astype(int), 0, cells - 1)
+    return idx[:, 0] * cells * cells + idx[:, 1] * cells + idx[:, 2]
+
+
+def _concentration(excess: np.ndarray, labels: np.ndarray, quad: np.ndarray, m: int) -> dict:
+    """Mean excess per label, and which labels stand out (practically and significantly)."""
+    out = []
+    ids = np.unique(labels)
+    means = np.array([excess[labels == i].mean() for i in ids])
+    counts = np.array([np.sum(labels == i) for i in ids])
+    med = float(np.median(means))
+    for i, mu, c in zip(ids, means, counts, strict=True):
+        sel = labels == i
+        # chi-square of the block's sum against the others' level (scaled by their mean)
+        level = max(1.0 + med, 1.0)
+        stat = float(np.sum(quad[sel]) / level)
+        p = float(stats.chi2.sf(stat, m * int(c)))
+        out.append({'label': int(i), 'n': int(c), 'excess': float(mu),
+                    'stands_out': bool(mu >= LOCAL_EXCESS and mu >= LOCAL_RATIO * max(med, 0.05)
+                                       and p < 1e-6 and c >= 10)})
+    return {'median_excess': med, 'blocks': out}
+
+
+def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
+               n_blocks: int = TIME_BLOCKS) -> dict:
+    """
+    Where the held-out excess (stated noise) lies: time blocks and workspace cells.
+
+    Parameters
+    ----------
+    data : DiagData
+    quad_stated : ndarray, shape (N,)
+    counted : ndarray of bool, shape (N,)
+        Pairs not set aside (the excluded ones are shown apart, not hidden).
+    n_blocks : int
+
+    Returns
+    -------
+    dict
+        ``time_blocks`` (from/to s, n, excess, stands_out), ``cells`` (centre m, n, excess,
+        stands_out), ``concentrated`` (bool: some blocks or cells carry most of the excess),
+        ``text``.
+
+    """
+    m = data.m
+    excess = quad_stated / m - 1.0
+    t = data.t
+    span = max(float(t[-1] - t[0]), 1e-12)
+    tb = np.minimum(((t - t[0]) / span * n_blocks).astype(int), n_blocks - 1)
+    pts = data.b_points[:, 0, :]
+    cl = _cells(pts)
+    sel = counted if counted.sum() >= 20 else np.ones_like(counted)
+    ct = _concentration(excess[sel], tb[sel], quad_stated[sel], m)
+    cc = _concentration(excess[sel], cl[sel], quad_stated[sel], m)
+    edges = t[0] + span * np.arange(n_blocks + 1) / n_blocks
+    time_blocks = [{'from_s': float(edges[b['label']]), 'to_s': float(edges[b['label'] + 1]),
+                    'n': b['n'], 'excess': b['excess'], 'stands_out': b['stands_out']}
+                   for b in ct['blocks']]
+    cells = [{'centre_m': pts[sel][cl[sel] == b['label']].mean(axis=0).tolist(), 'n': b['n'],
+              'excess': b['excess'], 'stands_out': b['stands_out']} for b in cc['blocks']]
+    hot_t = [b for b in time_blocks if b['stands_out']]
+    hot_c = [c for c in cells if c['stands_out']]
+    total = float(np.sum(np.maximum(excess[sel], 0.0)))
+
+    def share(mask):
+        return float(np.sum(np.maximum(excess[sel][mask], 0.0)) / total) if total > 0 else 0.0
+
+    hot_t_mask = np.isin(tb[sel], [b['label'] for b in ct['blocks'] if b['stands_out']])
+    hot_c_mask = np.isin(cl[sel], [b['label'] for b in cc['blocks'] if b['stands_out']])
+    # concentrated: the standing-out blocks (or cells) hold most of the excess while being
+    # a minority of the pairs
+    conc_t = bool(hot_t and share(hot_t_mask) >= 0.5 and hot_t_mask.mean() <= 0.5)
+    conc_c = bool(hot_c and share(hot_c_mask) >= 0.5 and hot_c_mask.mean() <= 0.5)
+    parts = []
+    if conc_t:
+        parts.append('time ' + ', '.join(f'{b["from_s"]:.0f}-{b["to_s"]:.0f} s'
+                                         for b in hot_t))
+    if conc_c:
+        parts.append('workspace cells at ' + '; '.join(
+            '[' + ', '.join(f'{v:.2f}' for v in c['centre_m']) + '] m' for c in hot_c[:4]))
+    return {'time_blocks': time_blocks, 'cells': cells, 'concentrated_in_time': conc_t,
+            'concentrated_in_workspace': conc_c, 'share_in_time_blocks': share(hot_t_mask),
+            'share_in_cells': share(hot_c_mask), 'concentrated': conc_t or conc_c,
+            'text': '; '.join(parts)}
+
+
+def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -> dict:
+    """
+    Whether flagged pairs cluster in time or in the workspace (then: structure, not glitches).
+
+    Glitches strike at random: the flagged count per time block and per workspace cell is
+    then binomial with the overall share. A chi-square test of that homogeneity (and a
+    practical size: some block holds at least three times the share it would) says the
+    flagged pairs are not outliers but a structured or non-stationary error there.
+
+    Parameters
+    ----------
+    data : DiagData
+    flagged : ndarray of bool, shape (N,)
+    n_blocks : int
+
+    Returns
+    -------
+    dict
+        ``clustered`` (bool), ``in_time``, ``in_workspace`` (bool), p-values, ``where`` text.
+
+    """
+    n = len(flagged)
+    k = int(flagged.sum())
+    out = {'clustered': False, 'in_time': False, 'in_workspace': False, 'count': k,
+           'share': float(k / max(n, 1)), 'p_time': 1.0, 'p_workspace': 1.0, 'where': ''}
+    if k < 8:
+        return out
+    t = data.t
+    span = max(float(t[-1] - t[0]), 1e-12)
+    tb = np.minimum(((t - t[0]) / span * n_blocks).astype(int), n_blocks - 1)
+    # A's tool positions: a flagged pair's own B position may be the glitch itself
+    pts = data.pos_a
+    cl = _cells(pts)
+    share = k / n
+    where = []
+    for key, labels in (('time', tb), ('workspace', cl)):
+        ids, inv = np.unique(labels, return_inverse=True)
+        tot = np.bincount(inv)
+        hit = np.bincount(inv, weights=flagged.astype(float))
+        exp = tot * share
+        ok = exp > 0
+        stat = float(np.sum((hit[ok] - exp[ok]) ** 2 / (exp[ok] * (1 - share) + 1e-12)))
+        p = float(stats.chi2.sf(stat, max(int(ok.sum()) - 1, 1)))
+        ratio = hit / np.maximum(exp, 1e-12)
+        big = (ratio >= 3.0) & (hit >= 5)
+        clustered = bool(p < 1e-6 and big.any())
+        out['p_' + key] = p
+        out['in_' + key] = clustered
+        if clustered and key == 'time':
+            edges = t[0] + span * np.arange(n_blocks + 1) / n_blocks
+            where.append('time ' + ', '.join(f'{edges[i]:.0f}-{edges[i + 1]:.0f} s'
+                                             for i in ids[big]))
+        elif clustered:
+            cen = [pts[labels == i].mean(axis=0) for i in ids[big]][:4]
+            where.append('workspace (A tool) near ' + '; '.join(
+                '[' + ', '.join(f'{v:.2f}' for v in c) + '] m' for c in cen))
+    out['clustered'] = out['in_time'] or out['in_workspace']
+    out['where'] = '; '.join(where)
+    return out
