@@ -220,7 +220,8 @@ def test_parameters_switch_outputs_and_restart_fuses_from_the_stored_result(ros_
 
     # restart on the stored result: markers latched at start-up, fusion with the stored
     # joint covariance (cross terms included) equal to the offline computation
-    stored = yaml.safe_load((node.storage / 'result.yaml').read_text())['result']
+    (stored_file,) = node.storage.glob('result_coreg_node_*.yaml')  # one per configuration
+    stored = yaml.safe_load(stored_file.read_text())['result']
     assert len(stored['cov_joint']) == 144
     node.stop()
     fused.msgs.clear()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+import sys
 import tempfile
 
 from coreg_ros.core.errors import ConfigError, CoregError
@@ -39,25 +40,97 @@ def write_json(path, data) -> Path:
     return write_atomic(path, json.dumps(data, indent=2) + '\n')
 
 
-def load_parameters(path, node_name: str = 'coreg_node') -> dict:
-    """
-    Read the ``ros__parameters`` of ``node_name`` from a ROS parameter YAML file.
+#: Warnings already printed (a file is read more than once per command).
+_WARNED: set = set()
 
-    Returns the raw mapping (node-only keys included); pass it to
-    ``settings.settings_from_mapping``.
+
+def _yaml_loader():
+    """Return a safe YAML loader that also reads ``1e-3`` as a number, as the ROS parser does."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_implicit_resolver(
+        'tag:yaml.org,2002:float',
+        re.compile(r'^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$'),
+        list('-+0123456789.'))
+    return Loader
+
+
+def _warn_once(line: str) -> None:
+    if line not in _WARNED:
+        _WARNED.add(line)
+        print(f'coreg: warning: {line}', file=sys.stderr)
+
+
+def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dict:
+    """
+    Read and check the ``ros__parameters`` of ``node_name`` from a ROS parameter YAML file.
+
+    The sections ``/**`` (every node), ``coreg_node`` and ``/coreg_node`` are merged in that
+    order, as ROS does. The values are checked by
+    ``coreg_ros.core.config_schema.check_parameters``, the check the node applies to the same
+    file, so the command line and the node accept and refuse the same files.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The parameter file.
+    node_name : str
+        Node whose section is read.
+    warn : callable
+        Gets one line per unknown key (with the nearest valid name); by default printed to
+        stderr once.
+
+    Returns
+    -------
+    values : dict
+        The known keys, converted to their types (node-only keys included); pass it to
+        ``settings.settings_from_mapping``.
+
+    Raises
+    ------
+    ConfigError
+        If the file is unreadable, not YAML, has no section of the node, or a value has the
+        wrong type (one line naming the key, the expected type and an example).
+
     """
     import yaml
 
+    from coreg_ros.core.config_schema import check_parameters
+
     try:
         with open(path, encoding='utf-8') as f:
-            doc = yaml.safe_load(f) or {}
+            doc = yaml.load(f, Loader=_yaml_loader()) or {}  # noqa: S506 - a SafeLoader
     except OSError as e:
         raise ConfigError(f'cannot read config file {path}: {e.strerror}') from e
     except yaml.YAMLError as e:
-        raise ConfigError(f'config file {path} is not valid YAML: {e}') from e
-    for key in (node_name, '/' + node_name, '/**'):
+        where = getattr(e, 'problem_mark', None)
+        at = f' at line {where.line + 1}, column {where.column + 1}' if where else ''
+        problem = getattr(e, 'problem', None) or str(e).splitlines()[0]
+        raise ConfigError(f'config file {path} is not valid YAML{at}: {problem}; compare with '
+                          f'config/coreg.yaml') from e
+    except (ValueError, TypeError) as e:  # e.g. an impossible date or number literal
+        raise ConfigError(f'config file {path} is not valid YAML: {e}; compare with '
+                          f'config/coreg.yaml') from e
+    values, found = {}, False
+    for key in ('/**', node_name, '/' + node_name):
         section = doc.get(key) if isinstance(doc, dict) else None
-        if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
-            return dict(section['ros__parameters'])
-    raise ConfigError(f'config file {path} has no "{node_name}: ros__parameters:" section; '
-                      f'see config/coreg.yaml')
+        if section is None:
+            continue
+        params = section.get('ros__parameters') if isinstance(section, dict) else None
+        if not isinstance(params, dict):
+            raise ConfigError(f'config file {path}: section {key!r} has no '
+                              f'"ros__parameters:" mapping; see config/coreg.yaml')
+        values.update(params)
+        found = True
+    if not found:
+        raise ConfigError(f'config file {path} has no "{node_name}: ros__parameters:" section; '
+                          f'see config/coreg.yaml')
+    checked, warnings = check_parameters(values, where=f'{path}: ')
+    for line in warnings:
+        warn(line)
+    return checked

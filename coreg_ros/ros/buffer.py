@@ -154,7 +154,93 @@ class StreamBuffer:
                               quat_wxyz=vals[:, 3:], frame_id=self.frame_id or '',
                               receive_stamps=self._recv[idx])
 
+    def since(self, mark: int, until: int | None = None) -> tuple[int, PoseStream, bool]:
+        """
+        Return the accepted samples numbered ``mark + 1 .. until`` that are still held.
+
+        Samples are numbered by the ``accepted`` counter (1 = the first ever accepted), which
+        ``clear`` does not reset, so a caller can take "what is new since I last looked".
+
+        Parameters
+        ----------
+        mark : int
+            ``accepted`` at the caller's last look.
+        until : int, optional
+            Last sample number wanted (default: the newest).
+
+        Returns
+        -------
+        end : int
+            The number of the last sample asked for (the next ``mark``).
+        stream : PoseStream
+            Copies of those samples, oldest first.
+        complete : bool
+            False if some of them were overwritten (buffer full) or forgotten (``clear``).
+
+        """
+        with self._lock:
+            end = self.accepted if until is None else min(int(until), self.accepted)
+            oldest_held = self.accepted - self._size  # number of the sample before the oldest
+            first = max(int(mark), oldest_held)
+            k = max(0, end - first)
+            stop = self._next - (self.accepted - end)
+            idx = np.arange(stop - k, stop) % self.capacity
+            vals = self._vals[idx]
+            stream = PoseStream(stamps=self._stamps[idx], position=vals[:, :3],
+                                quat_wxyz=vals[:, 3:], frame_id=self.frame_id or '',
+                                receive_stamps=self._recv[idx])
+            return end, stream, first == int(mark) or end <= int(mark)
+
     def clear(self) -> None:
         """Forget the samples, the reference frame id and the last stamp (not the counters)."""
         with self._lock:
             self._clear_locked()
+
+
+class GapCounter:
+    """
+    Count messages missing from a stream from the gaps in its header stamps.
+
+    Messages lost before the subscription callback runs (a full middleware history, a
+    best-effort transport dropping under load) leave holes in the stamps of a stream sent at a
+    steady rate. The stream's own period is estimated robustly (the median of the intervals
+    not above 1.5 times their 10th percentile, so heavy loss does not inflate it), and an
+    interval of ``k`` periods counts ``k - 1`` missing messages.
+    """
+
+    #: Intervals needed before a period estimate is trusted.
+    MIN_INTERVALS = 20
+
+    def __init__(self):
+        self.missing = 0
+        self.period_ns: float | None = None
+        self._last: int | None = None
+        self._early = np.zeros(0, np.int64)  # stamps seen before the period is known
+
+    def update(self, stamps: np.ndarray) -> int:
+        """Take the next accepted stamps (increasing, ns); return the newly missing count."""
+        if len(stamps) == 0:
+            return 0
+        if self.period_ns is None:  # too few stamps yet: keep them until there are enough
+            stamps = np.concatenate((self._early, stamps))
+            if len(stamps) <= self.MIN_INTERVALS:
+                self._early = stamps
+                return 0
+            self._early = np.zeros(0, np.int64)
+        joined = stamps if self._last is None else np.concatenate(([self._last], stamps))
+        self._last = int(stamps[-1])
+        d = np.diff(joined).astype(float)
+        if len(d) >= self.MIN_INTERVALS:
+            low = np.percentile(d, 10)
+            self.period_ns = float(np.median(d[d <= 1.5 * low]))
+        if not self.period_ns or self.period_ns <= 0 or not len(d):
+            return 0
+        big = d[d > 1.5 * self.period_ns]
+        new = int(np.sum(np.rint(big / self.period_ns) - 1)) if len(big) else 0
+        self.missing += new
+        return new
+
+    def restart(self) -> None:
+        """Forget the last stamp (after a reset: the next stamps start afresh)."""
+        self._last = None
+        self._early = np.zeros(0, np.int64)

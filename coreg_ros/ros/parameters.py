@@ -12,12 +12,13 @@ from dataclasses import dataclass
 import os
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
+from coreg_ros.core.config_schema import DEFAULTS, check_parameters, example
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.settings import Settings, settings_from_mapping
-
-_DEFAULTS = Settings()
 
 
 def _float_range(lo: float, hi: float) -> list:
@@ -38,70 +39,77 @@ def _desc(description: str, *, read_only: bool = False, constraints: str = '',
 #: (name, default, descriptor). Read-only where a change would need new subscriptions or
 #: buffers; the calibration keys may be changed at run time and apply to the next ~/calibrate.
 PARAMETERS = (
-    ('topic_a', _DEFAULTS.topic_a,
+    ('topic_a', DEFAULTS['topic_a'],
      _desc('PoseStamped topic of device A: tool pose in A base frame', read_only=True)),
-    ('topic_b', list(_DEFAULTS.topic_b),
+    ('topic_b', DEFAULTS['topic_b'],
      _desc('PoseStamped topic(s) of device B: marker pose in B base frame (3 for three_marker)',
            read_only=True)),
-    ('model', _DEFAULTS.model,
+    ('model', DEFAULTS['model'],
      _desc('measurement model', read_only=True,
            constraints='full_pose | position_only | three_marker')),
-    ('method', _DEFAULTS.method, _desc('estimator', constraints='ols | tls')),
-    ('sigma_a', list(_DEFAULTS.sigma_a),
+    ('method', DEFAULTS['method'], _desc('estimator', constraints='ols | tls')),
+    ('sigma_a', DEFAULTS['sigma_a'],
      _desc('device A noise std: [position m, rotation rad]', constraints='two numbers > 0')),
-    ('sigma_b', list(_DEFAULTS.sigma_b),
+    ('sigma_b', DEFAULTS['sigma_b'],
      _desc('device B noise std: [position m, rotation rad]', constraints='two numbers > 0')),
-    ('max_gap', _DEFAULTS.max_gap,
+    ('max_gap', DEFAULTS['max_gap'],
      _desc('largest distance (s) from a B stamp to each A sample it is interpolated between',
            floats=_float_range(1e-6, 10.0))),
-    ('time_offset', _DEFAULTS.time_offset,
+    ('time_offset', DEFAULTS['time_offset'],
      _desc("B's clock minus A's clock, s", floats=_float_range(-10.0, 10.0))),
-    ('estimate_time_offset', _DEFAULTS.estimate_time_offset,
+    ('estimate_time_offset', DEFAULTS['estimate_time_offset'],
      _desc('estimate the clock offset jointly with the transforms (time_offset is the start); '
            'false: use time_offset as given')),
-    ('estimate_clock_drift', _DEFAULTS.estimate_clock_drift,
+    ('estimate_clock_drift', DEFAULTS['estimate_clock_drift'],
      _desc('also estimate a linear clock drift (ppm) with the offset')),
-    ('robust', _DEFAULTS.robust,
+    ('robust', DEFAULTS['robust'],
      _desc('reject pairs far outside the stated noise (outliers) before the final fit')),
-    ('min_pairs', _DEFAULTS.min_pairs,
+    ('min_pairs', DEFAULTS['min_pairs'],
      _desc('fewest pairs a calibration accepts', ints=_int_range(3, 1_000_000_000))),
-    ('max_iterations', _DEFAULTS.max_iterations,
+    ('max_iterations', DEFAULTS['max_iterations'],
      _desc('iteration limit of the estimator', ints=_int_range(1, 100_000))),
-    ('prior_file', '',
+    ('prior_file', DEFAULTS['prior_file'],
      _desc('a previous result (result.yaml or coreg calibrate --json) or a partial prior that '
            'calibrations refine (Ikits B.3); empty: none')),
-    ('use_last_result_as_prior', False,
+    ('use_last_result_as_prior', DEFAULTS['use_last_result_as_prior'],
      _desc("refine the node's own stored result (result.yaml in storage_dir) when no "
            'prior_file is given')),
-    ('publish_inconsistent', False,
+    ('publish_inconsistent', DEFAULTS['publish_inconsistent'],
      _desc('publish a calibration whose fit contradicts the stated noise (it is refused by '
            'default: ~/calibrate answers success=false with the reason)')),
-    ('buffer_capacity', 200_000,
+    ('buffer_capacity', DEFAULTS['buffer_capacity'],
      _desc('samples kept per topic; the oldest are dropped when full', read_only=True,
            ints=_int_range(10, 100_000_000))),
-    ('qos_reliable', False,
+    ('qos_reliable', DEFAULTS['qos_reliable'],
      _desc('false: sensor-data QoS (best effort), true: reliable', read_only=True)),
-    ('frame_base_a', 'device_a_base', _desc("device A's base frame", read_only=True)),
-    ('frame_base_b', 'device_b_base', _desc("device B's base frame", read_only=True)),
-    ('frame_tool', 'device_a_tool', _desc("device A's tool frame", read_only=True)),
-    ('frame_marker', 'device_b_marker', _desc("device B's marker frame", read_only=True)),
-    ('storage_dir', '~/.ros/coreg',
-     _desc('directory of the stored result (result.yaml) and saved sample bags',
+    ('frame_base_a', DEFAULTS['frame_base_a'], _desc("device A's base frame", read_only=True)),
+    ('frame_base_b', DEFAULTS['frame_base_b'], _desc("device B's base frame", read_only=True)),
+    ('frame_tool', DEFAULTS['frame_tool'], _desc("device A's tool frame", read_only=True)),
+    ('frame_marker', DEFAULTS['frame_marker'], _desc("device B's marker frame", read_only=True)),
+    ('storage_dir', DEFAULTS['storage_dir'],
+     _desc('directory of the stored results (one file per node and configuration), the '
+           'sample journal and saved sample bags', read_only=True)),
+    ('resume_samples', DEFAULTS['resume_samples'],
+     _desc('at start-up, load the samples of an interrupted session (the journal a killed '
+           'node left in storage_dir) instead of saving them to a bag and starting afresh',
            read_only=True)),
     # Uncertainty outputs (coreg_ros.ros.uncertainty_outputs), changeable at run time.
-    ('publish_fused_pose', True,
+    ('publish_fused_pose', DEFAULTS['publish_fused_pose'],
      _desc('publish ~/fused_pose: A through the calibration fused with B, in frame_base_b, '
            'once a calibration exists')),
-    ('publish_markers', True,
+    ('publish_markers', DEFAULTS['publish_markers'],
      _desc('publish ~/uncertainty_markers: 3-sigma ellipsoids and axis cones of T0, T1 and '
            'the latest fused pose (transient local)')),
-    ('fused_rate_limit', 50.0,
+    ('fused_rate_limit', DEFAULTS['fused_rate_limit'],
      _desc('largest rate (Hz) of ~/fused_pose and of the fused markers (the newest pair '
            'each time); 0.0 = every pair', floats=_float_range(0.0, 1000.0))),
-    ('marker_magnification', 1.0,
+    ('marker_magnification', DEFAULTS['marker_magnification'],
      _desc('display gain on the ellipsoid semi-axes and on tan of the cone half-angles '
            '(1 = true size)', floats=_float_range(1e-3, 1e6))),
 )
+
+if [name for name, _, _ in PARAMETERS] != list(DEFAULTS):  # one table of keys, one of types
+    raise AssertionError('ros.parameters.PARAMETERS and core.config_schema.DEFAULTS differ')
 
 #: Names of the calibration keys (those of Settings).
 CALIBRATION_KEYS = ('topic_a', 'topic_b', 'model', 'method', 'sigma_a', 'sigma_b', 'max_gap',
@@ -125,7 +133,9 @@ class NodeConfig:
     frame_base_a, frame_base_b, frame_tool, frame_marker : str
         Frame ids of the published poses.
     storage_dir : str
-        Directory of result.yaml and sample bags, user (~) expanded.
+        Directory of the stored results, the journal and sample bags, user (~) expanded.
+    resume_samples : bool
+        Load the journal of an interrupted session at start-up.
 
     """
 
@@ -137,6 +147,7 @@ class NodeConfig:
     frame_tool: str
     frame_marker: str
     storage_dir: str
+    resume_samples: bool = False
 
     @property
     def frames(self) -> dict:
@@ -145,9 +156,93 @@ class NodeConfig:
                 'tool': self.frame_tool, 'marker': self.frame_marker}
 
 
-def declare_parameters(node: Node) -> None:
-    """Declare every parameter of the table on ``node`` (once, at construction)."""
-    node.declare_parameters('', [(name, default, desc) for name, default, desc in PARAMETERS])
+def declare_parameters(node: Node) -> list[str]:
+    """
+    Declare every parameter of the table on ``node`` (once, at construction).
+
+    The node's parameter overrides (``--params-file``, ``-p``) are checked first by
+    ``core.config_schema.check_parameters``, the check ``coreg --config`` applies to the same
+    file: an integer where a double is expected is converted (ROS itself would refuse
+    ``max_gap: 1``), a wrong type is one line naming the key.
+
+    Returns
+    -------
+    warnings : list of str
+        One line per unknown key of the overrides, naming the nearest valid key.
+
+    Raises
+    ------
+    ConfigError
+        If an override has the wrong type or is outside the parameter's range.
+
+    """
+    # rclpy keeps the overrides it read from the arguments here (no public accessor); if a
+    # later rclpy moves them, the declare-time exceptions below still give one line.
+    overrides = getattr(node, '_parameter_overrides', None)
+    warnings: list[str] = []
+    if isinstance(overrides, dict):
+        values = {name: p.value for name, p in overrides.items()}
+        checked, warnings = check_parameters(values, where='parameters: ')
+        for name, value in checked.items():
+            if values[name] != value or type(values[name]) is not type(value):
+                overrides[name] = Parameter(name, value=value)
+    try:
+        node.declare_parameters('', [(name, default, desc)
+                                     for name, default, desc in PARAMETERS])
+    except ParameterException as e:
+        raise ConfigError(_one_line(e)) from None
+    return warnings
+
+
+def _one_line(error: ParameterException) -> str:
+    """Turn rclpy's declare-time exception into one line naming the key and an example."""
+    text = str(error)
+    name = text.rsplit(': ', 1)[-1].strip("[]' ")
+    reason = text.rsplit(': ', 1)[0]
+    if 'Reason: ' in reason:
+        reason = reason.split('Reason: ', 1)[1]
+    if name in DEFAULTS:
+        return f'parameter {name}: {reason}; e.g. {example(name)}'
+    return f'parameters: {text}'
+
+
+def params_files(args: list[str]) -> list[str]:
+    """Return the ``--params-file`` paths of a command line's ``--ros-args`` sections."""
+    files, in_ros = [], False
+    for k, arg in enumerate(args):
+        if arg == '--ros-args':
+            in_ros = True
+        elif arg == '--':
+            in_ros = False
+        elif in_ros and arg == '--params-file' and k + 1 < len(args):
+            files.append(args[k + 1])
+    return files
+
+
+def check_params_files(args: list[str], node_name: str) -> None:
+    """
+    Check the parameter files of a command line before ROS parses them.
+
+    ROS refuses an unparseable file, or a value of the wrong type, with a long traceback; this
+    runs the check of ``coreg --config`` (``cli.files.load_parameters``) on each file with a
+    section for ``node_name`` first. Unknown keys are not reported here (the node reports them
+    from its overrides).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file, the key, the expected type and an example.
+
+    """
+    from coreg_ros.cli.files import load_parameters
+
+    for path in params_files(args):
+        try:
+            load_parameters(path, node_name, warn=lambda line: None)
+        except ConfigError as e:
+            if f'has no "{node_name}: ros__parameters:"' in str(e):
+                continue  # a file for other nodes only: ROS applies none of it here
+            raise
 
 
 def _plain(value):
@@ -187,4 +282,5 @@ def read_config(node: Node) -> NodeConfig:
         frame_tool=str(values['frame_tool']),
         frame_marker=str(values['frame_marker']),
         storage_dir=os.path.expanduser(storage),
+        resume_samples=bool(values['resume_samples']),
     )
