@@ -63,8 +63,9 @@ class RosSession:
         options = SignalHandlerOptions.ALL if signals else SignalHandlerOptions.NO
         #: Set once a Ctrl-C (KeyboardInterrupt) or an external shutdown was seen.
         self.interrupted = False
-        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=options)
         try:
+            rclpy.init(context=self.context, domain_id=domain_id,
+                       signal_handler_options=options)
             self.node = Node(name, context=self.context)
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
