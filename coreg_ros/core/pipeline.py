@@ -226,7 +226,7 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     stamps = pairs.stamps[keep]
     t_a = query_seconds(stamps, tau, 0.0 if kappa is None else kappa, ctx.reference_ns,
                         ctx.origin_ns)
-    v, w = ctx.trajectory.velocity(t_a, ctx.half)
+    v, w = ctx.trajectory.velocity(t_a, ctx.half, max_gap=settings.max_gap)
     since = None if kappa is None else (stamps - np.int64(ctx.reference_ns)).astype(
         float) * 1e-9
     step = offset_step(params, data, np.hstack([v, w]), since, result.param_cov,

@@ -38,7 +38,7 @@ from coreg_ros.core.types import PoseStream, TimeOffset  # noqa: F401 (re-export
 #: Largest posterior σ of τ (s) for which τ counts as determined by the motion.
 MAX_SIGMA_S = 0.010
 #: The velocity signature must carry this many times the information A's noise alone would.
-MIN_SIGNAL_TO_NOISE = 25.0
+MIN_SIGNAL_TO_NOISE = 4.0
 #: Candidates of the coarse search that are refined by the fit.
 MAX_CANDIDATES = 4
 #: Smallest share of the shorter signal two signals must overlap at a lag.
@@ -333,10 +333,12 @@ def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
         h_tt += np.einsum('nmi,nmj->ij', cols, wc)
         h_pt += np.einsum('nmp,nmk->pk', ch.j_phi, wc)
         g_t += np.einsum('nm,nmk->k', ch.e, wc)
-        # tr(Σ⁻¹ F_x Σ_v F_xᵀ) on every NOISE_STRIDE-th pair: only a threshold depends on it
-        jl = ch.j_x[::NOISE_STRIDE] @ noise_factor
-        sub = Chunk(ch.sl, ch.e, ch.j_phi, ch.j_x,
-                    ch.cov if ch.cov.ndim == 2 else ch.cov[::NOISE_STRIDE])
+        # tr(Σ⁻¹ F_x Σ_v F_xᵀ) on every NOISE_STRIDE-th pair whose velocity is known: only a
+        # threshold depends on it
+        pick = np.arange(0, c.shape[0], NOISE_STRIDE)
+        pick = pick[np.any(velocity[ch.sl][pick] != 0.0, axis=1)]
+        jl = ch.j_x[pick] @ noise_factor
+        sub = Chunk(ch.sl, ch.e, ch.j_phi, ch.j_x, ch.cov if ch.cov.ndim == 2 else ch.cov[pick])
         noise_tt += NOISE_STRIDE * float(np.einsum('nmk,nmk->', jl, sub.weighted(jl)))
     S = h_tt - h_pt.T @ param_cov @ h_pt
     S = 0.5 * (S + S.T)

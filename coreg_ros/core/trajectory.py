@@ -9,6 +9,8 @@ pairing itself never uses float seconds.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
@@ -62,12 +64,16 @@ class Trajectory:
         q /= np.linalg.norm(q, axis=1, keepdims=True)
         return pos, quat.canonical(q)
 
-    def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW):
+    def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW,
+                 max_gap: Optional[float] = None):
         """
         Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
 
         ``ω = Log(q(t+h) ⊗ q(t-h)*) / 2h``: the rotation acts on the left, in A's base frame,
-        as the input perturbation of the models does.
+        as the input perturbation of the models does. With ``max_gap`` (s), a window
+        ``[t-h, t+h]`` that reaches past either end or spans a gap between samples longer
+        than ``max_gap`` gives zero: no velocity is known there (interpolating across a
+        tracking dropout or between recorded still poses would invent one).
         """
         t = np.asarray(t, dtype=float)
         if len(self) > 1:
@@ -77,4 +83,12 @@ class Trajectory:
         p0, q0 = self.pose(t - half)
         v = (p1 - p0) / (2.0 * half)
         w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
+        if max_gap is not None:
+            gaps = np.concatenate([[0], np.cumsum(np.diff(self.t) > max_gap)])
+            lo = np.searchsorted(self.t, t - half, side='right') - 1
+            hi = np.searchsorted(self.t, t + half, side='left')
+            known = (lo >= 0) & (hi < len(self))
+            known[known] &= gaps[hi[known]] == gaps[lo[known]]
+            v[~known] = 0.0
+            w[~known] = 0.0
         return v, w
