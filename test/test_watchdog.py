@@ -181,26 +181,14 @@ def test_changes_are_detected_and_attributed(calibrated, spec, seed):
 
 def test_noise_change_is_attributed_to_noise(calibrated):
     truth, result, settings = calibrated
-    rec = _record(43, 40.0, truth)
-    b = rec.streams[rec.topics_b[0]]
-    after = b.stamps >= rec.start_ns + 20_000_000_000
-    rng = np.random.default_rng(5)
-    pos = b.position.copy()
-    q = b.quat_wxyz.copy()
-    # the noise of B doubles (e.g. metal near an EM field generator): add √3 σ more
-    extra = np.sqrt(3.0)
-    pos[after] += extra * SIGMA_B[0] * rng.standard_normal((after.sum(), 3))
-    q[after] = quat.multiply(quat.exp(extra * SIGMA_B[1] * rng.standard_normal((after.sum(), 3))),
-                             q[after])
-    from dataclasses import replace
-    streams = dict(rec.streams)
-    streams[rec.topics_b[0]] = PoseStream(b.stamps, pos, q, b.frame_id)
-    rec = replace(rec, streams=streams)
+    # the noise of B doubles (e.g. metal near an EM field generator)
+    rec = apply_changes(_record(43, 40.0, truth), ['noise_step=2@20'])
     wd = Watchdog(result, SIGMA_A, SIGMA_B)
     final = _watch(wd, rec, settings, result)[-1]
     assert final.level == ERROR
     assert final.attribution.kind == 'noise', final.attribution.text
-    assert 1.6 < final.attribution.noise_factor < 2.5
+    assert 1.7 < final.attribution.noise_factor < 2.3
+    assert len(wd.last_d2) > 0
 
 
 def test_position_only_t1_step(calibrated):
@@ -252,8 +240,10 @@ def test_parse_change():
     assert parse_change('clock_step=0.01@30').clock_s == 0.01
     assert parse_change('clock_step=10ms@30').clock_s == pytest.approx(0.01)
     assert parse_change('clock_step=-0.005@1').clock_s == -0.005
+    assert parse_change('noise_step=2.5@3').noise_factor == 2.5
     for bad in ('t0_step=2@30', 't0_step=2mm', 'wobble=2mm@3', 'clock_step=2mm@3',
-                't0_step=2mm@-1', 'clock_step=0.01:x@3', 't0_step=2furlong@3', ''):
+                't0_step=2mm@-1', 'clock_step=0.01:x@3', 't0_step=2furlong@3', '',
+                'noise_step=0.5@3', 'noise_step=2mm@3'):
         with pytest.raises(ConfigError):
             parse_change(bad)
 

@@ -636,6 +636,8 @@ class Watchdog:
         self.attribution: Optional[Attribution] = None
         self.transients = 0
         self._mean_d2 = float('nan')
+        #: d² of the pairs of the last update (normalised squared residuals, χ²_m in control)
+        self.last_d2 = np.zeros(0)
 
     def reset(self, calibration=None) -> None:
         """Start over (with a new calibration, if given): OK, CUSUM at zero."""
@@ -661,6 +663,7 @@ class Watchdog:
         d2, _ = linearise(self.calibration, batch, self.cov_a, self.cov_b, self.tls,
                           self.noise_scale)
         self.n_checked += len(batch)
+        self.last_d2 = d2
         self._mean_d2 = float(np.mean(d2) / self.m)
         if self.level == OK:
             self._cusum(batch, d2)

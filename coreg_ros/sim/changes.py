@@ -9,7 +9,10 @@ What the watchdog (``coreg_ros.core.watchdog``) must notice:
   Exp(δθ) R1)`` in A's tool axes; for three markers the marker set moves as a rigid body,
   ``p_j' = p1 + δp + Exp(δθ) (p_j - p1)``;
 - ``clock_step``: B's clock jumps by S seconds at time t: B's stamps at or after t grow by S
-  (B's clock minus A's, the time offset, grows by S).
+  (B's clock minus A's, the time offset, grows by S);
+- ``noise_step``: B's noise grows by a factor F at time t (metal brought near an EM field
+  generator, a tracker losing line of sight): independent noise of σ_b √(F² - 1) is added
+  to B's samples from then on (``F`` ≥ 1).
 
 The poses are changed as measured, so the device noise of the recording is kept: a T0 step
 multiplies B's measured pose on the left by ``T0' T0⁻¹`` (the isotropic noise is rotated, which
@@ -18,10 +21,11 @@ displacement ``R0 R_A(t) (p_j' - p_j)`` and turns B's measured orientation by ``
 the right (A's true pose from the recording's motion).
 
 Text form (``parse_change``): ``NAME=SIZE[+SIZE][:AXIS]@TIME``, e.g. ``t0_step=2mm@30``,
-``t1_step=0.5deg@30``, ``t0_step=1mm+0.2deg@45``, ``t0_step=2mm:z@30``, ``clock_step=0.01@30``
-or ``clock_step=10ms@30``. Sizes are mm, m, deg or rad (a clock step s or ms; a bare number
-is s); TIME is seconds from the start of the recording. The direction of a step is random
-(drawn from the seed given to ``apply_changes``) unless ``:AXIS`` (x, y, z, -x, ...) gives it.
+``t1_step=0.5deg@30``, ``t0_step=1mm+0.2deg@45``, ``t0_step=2mm:z@30``, ``clock_step=0.01@30``,
+``clock_step=10ms@30`` or ``noise_step=2@30`` (a factor). Sizes are mm, m, deg or rad (a
+clock step s or ms; a bare number is s); TIME is seconds from the start of the recording.
+The direction of a step is random (drawn from the seed given to ``apply_changes``) unless
+``:AXIS`` (x, y, z, -x, ...) gives it.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import PoseStream
 
 #: Names of the changes.
-CHANGE_NAMES = ('t0_step', 't1_step', 'clock_step')
+CHANGE_NAMES = ('t0_step', 't1_step', 'clock_step', 'noise_step')
 
 _UNITS = {'mm': ('translation', 1e-3), 'm': ('translation', 1.0),
           'deg': ('rotation', np.pi / 180.0), 'rad': ('rotation', 1.0),
@@ -62,6 +66,8 @@ class Change:
         Size of the rotation step, rad.
     clock_s : float
         Clock step S, s.
+    noise_factor : float
+        Factor F on B's noise σ (``noise_step``).
     axis : ndarray, shape (3,), optional
         Unit direction of the step (translation and rotation alike); random when None.
 
@@ -72,12 +78,16 @@ class Change:
     translation_m: float = 0.0
     rotation_rad: float = 0.0
     clock_s: float = 0.0
+    noise_factor: float = 1.0
     axis: Optional[np.ndarray] = None
 
     def __post_init__(self):
         if self.name not in CHANGE_NAMES:
             raise ConfigError(f'change {self.name!r} is unknown; use one of '
                               f'{", ".join(CHANGE_NAMES)}')
+        if not (np.isfinite(self.noise_factor) and self.noise_factor >= 1.0):
+            raise ConfigError(f'change {self.name}: the noise factor must be >= 1, got '
+                              f'{self.noise_factor!r}')
         if not (np.isfinite(self.time_s) and self.time_s >= 0):
             raise ConfigError(f'change {self.name}: time must be >= 0 s, got {self.time_s!r}')
 
@@ -93,7 +103,7 @@ def parse_change(text: str) -> Change:
 
     """
     form = ('expected NAME=SIZE@TIME, e.g. t0_step=2mm@30, t1_step=0.5deg@30, '
-            't0_step=1mm+0.2deg:z@45 or clock_step=0.01@30')
+            't0_step=1mm+0.2deg:z@45, clock_step=0.01@30 or noise_step=2@30')
     m = re.fullmatch(r'\s*(\w+)\s*=\s*([^@:]+?)\s*(?::\s*(-?[xyzXYZ]))?\s*@\s*([^@]+?)\s*',
                      text or '')
     if not m:
@@ -107,6 +117,15 @@ def parse_change(text: str) -> Change:
     except ValueError:
         raise ConfigError(f'change {text!r}: the time {when!r} is not a number of seconds; '
                           f'{form}') from None
+    if name == 'noise_step':
+        try:
+            factor = float(sizes)
+        except ValueError:
+            raise ConfigError(f"change {text!r}: a noise step is a factor >= 1 on B's noise, "
+                              f'e.g. noise_step=2@30') from None
+        if axis_text:
+            raise ConfigError(f'change {text!r}: a noise step has no axis')
+        return Change(name, time_s, noise_factor=factor)
     values = {'translation': 0.0, 'rotation': 0.0, 'time': 0.0}
     for part in sizes.split('+'):
         pm = re.fullmatch(r'\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-z]*)\s*', part)
@@ -178,7 +197,22 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
     streams = dict(rec.streams)
     desc = {'name': change.name, 'time_s': float(change.time_s), 'start_ns': at}
     truth = rec.truth
-    if change.name == 'clock_step':
+    if change.name == 'noise_step':
+        sigma_pos, sigma_rot = (float(v) * np.sqrt(change.noise_factor ** 2 - 1.0)
+                                for v in truth.sigma_b)
+        for topic in rec.topics_b:
+            s = streams[topic]
+            after = s.stamps >= at
+            n = int(after.sum())
+            pos = s.position.copy()
+            q = s.quat_wxyz.copy()
+            pos[after] += sigma_pos * rng.standard_normal((n, 3))
+            if truth.model == 'full_pose':
+                q[after] = quat.canonical(quat.multiply(
+                    quat.exp(sigma_rot * rng.standard_normal((n, 3))), q[after]))
+            streams[topic] = _stream(s, position=pos, quat_wxyz=q)
+        desc['noise_factor'] = float(change.noise_factor)
+    elif change.name == 'clock_step':
         shift = np.int64(int(round(change.clock_s * 1e9)))
         for topic in rec.topics_b:
             s = streams[topic]
