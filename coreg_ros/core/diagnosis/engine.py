@@ -278,8 +278,8 @@ def _select_round(sel: _Selector, accepted: tuple, ref: tuple, names: Sequence[s
 
 def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = None,
              options: Optional[Options] = None, progress: Optional[Progress] = None,
-             cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None
-             ) -> Diagnosis:
+             cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None,
+             context: Optional[dict] = None) -> Diagnosis:
     """
     Diagnose the gap between a recording and the model with its stated noise.
 
@@ -296,6 +296,10 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
         ``progress(fraction, text)`` called as the work advances.
     cov_a, cov_b : ndarray, shape (6, 6), optional
         Full noise covariances (ROS layout) overriding the sigmas.
+    context : dict, optional
+        What ``diagnose_streams`` read before pairing: ``stamps`` (``stamps.stamps_report``),
+        ``coarse_shift_s`` (the pairs were made that far from the given offset, found by the
+        coarse search) and ``before`` (the pairs at the given offset, for the gap before).
 
     Returns
     -------
@@ -309,10 +313,10 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
     """
     with single_blas_thread():
         return _diagnose(pairs, settings, stream_a, options or Options(),
-                         progress or (lambda f, s: None), cov_a, cov_b)
+                         progress or (lambda f, s: None), cov_a, cov_b, context or {})
 
 
-def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagnosis:
+def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) -> Diagnosis:
     progress(0.0, 'calibrating')
     # the diagnosis models outliers itself: its base fit keeps every pair
     result = calibrate(pairs, settings.updated(robust=False), cov_a=cov_a, cov_b=cov_b)
@@ -337,10 +341,21 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
     not_separable = []
     rounds = []
     chosen = []
+    shift = float(context.get('coarse_shift_s', 0.0))
+    drift_checks = []
     for r in range(opts.max_effects):
         span = (0.1 + 0.25 * r, 0.1 + 0.25 * (r + 1))
         best, cands, not_sep = _select_round(sel, accepted, ref, names, r, span)
         rounds.append(cands)
+        if best is not None and best.name == 'clock_drift':
+            check = _drift_check(data, sel, best, cands)
+            drift_checks.append(check)
+            if not check['accepted']:
+                best.passes = False
+                best.reason = check['reason']
+                alt = [c for c in cands if c.passes and c.name != 'clock_drift']
+                best = max(alt, key=lambda c: c.gain) if alt else None
+                not_sep = []
         if best is None:
             break
         if r == 0:
@@ -354,18 +369,36 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
         ref = sel.score(accepted, best.fit.state)
 
     progress(0.85, 'final fit on all pairs')
-    if stride == 1:
+    forced_offset = shift != 0.0 and not any(a in fx.TIME_EFFECTS for a in accepted)
+    if forced_offset:
+        # the coarse search moved the pairing: that offset is an effect found, refined here
+        accepted = ('time_offset',) + accepted
+        final = Model(data, accepted).fit(ref[0].state, None, folds, K)
+    elif stride == 1:
         final = ref[0]
     else:
         final = Model(data, accepted).fit(ref[0].state, None, folds, K)
     before = base.heldout(folds, K)
     after = final.heldout(folds, K) if accepted else before
-    gap_before = gap_measures(data, base, before)
     gap_after = gap_measures(data, final, after)
     sd = _stated_sd(data, base)
     everyone = np.ones(n, dtype=bool)
     counted = after.p_in > 0.5 if final.state.var.eps > 0 else everyone
-    gap_before.update(gp.stated_measures(data, before.quad_stated, before.e, sd, everyone))
+    if 'before' in context:
+        # the gap before is the recording paired at the offset the user gave
+        b_pairs, b_settings = context['before']
+        b_data = prepare(b_pairs, b_settings, stream_a, cov_a, cov_b)
+        b_folds = time_folds(b_data.t, K)
+        b_res = calibrate(b_pairs, b_settings.updated(robust=False), cov_a=cov_a, cov_b=cov_b)
+        b_fit = Model(b_data, ()).fit(start_state(_params_of(b_res, spec)), None, b_folds, K)
+        b_held = b_fit.heldout(b_folds, K)
+        gap_before = gap_measures(b_data, b_fit, b_held)
+        gap_before.update(gp.stated_measures(b_data, b_held.quad_stated, b_held.e,
+                                             _stated_sd(b_data, b_fit),
+                                             np.ones(b_data.n, dtype=bool)))
+    else:
+        gap_before = gap_measures(data, base, before)
+        gap_before.update(gp.stated_measures(data, before.quad_stated, before.e, sd, everyone))
     gap_after.update(gp.stated_measures(data, after.quad_stated, after.e, sd, counted))
     gap_after['share_of_excess_explained'] = gp.share_explained(gap_before, gap_after)
     gap_after['rms_moved'] = gp.rms_moved(gap_before, gap_after)
@@ -374,6 +407,13 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
     effect_rows = []
     final_cov = final.mean_cov()
     var_cov = final.var_cov() if final.model.var_names else None
+    if forced_offset:
+        est = effect_estimate('time_offset', final, final_cov, var_cov)
+        est['coarse_s'] = shift
+        effect_rows.append({'name': 'time_offset', 'kind': 'structured', 'estimate': est,
+                            'source': 'coarse search', 'held_out_gain': 0.0,
+                            'held_out_gain_per_residual': 0.0, 'blocks_improved': 0,
+                            'blocks': 0})
     for cand, not_sep in chosen:
         est = effect_estimate(cand.name, final, final_cov, var_cov)
         row = {'name': cand.name, 'kind': fx.effect_kind(cand.name), 'estimate': est,
@@ -386,9 +426,26 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
         if not_sep:
             row['not_separable_with'] = list(not_sep)
         effect_rows.append(row)
+    for row in effect_rows:
+        est = row['estimate']
+        if shift and 'tau_s' in est:
+            est['tau_s'] += shift
+            est['text'] = f'{est["tau_s"] * 1e3:.2f} ± {est["sigma_s"] * 1e3:.2f} ms'
+        if shift and 'offset_at_start_s' in est:
+            est['offset_at_start_s'] += shift
+            est['offset_at_end_s'] += shift
+    if drift_checks:
+        row = next((r for r in effect_rows if r['name'] == 'clock_drift'), None)
+        if row is not None:
+            row['per_block_offsets'] = drift_checks[-1]
+    stamps = context.get('stamps')
+    if stamps is not None:
+        _stamp_rows(stamps, effect_rows)
     structure = _structure_checks(data, final, after, counted, effect_rows, gap_after)
     noise_excess = _noise_excess(data, final, after, counted, effect_rows, gap_after)
     gap_detected = bool(detection['gap'] or effect_rows)
+    if stamps is not None and stamps['issues']:
+        gap_detected = True
     report = {
         'gap_detected': gap_detected,
         'effects': effect_rows,
@@ -408,6 +465,14 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
         'duration_s': float(data.t[-1] - data.t[0]) if n > 1 else 0.0,
         'stated_noise': {'sigma_a': list(data.sigma_a), 'sigma_b': list(data.sigma_b)},
     }
+    if stamps is not None:
+        report['stamps'] = stamps
+        if stamps['issues'] and not effect_rows:
+            report['verdict'] = ('timing issues in the stamps, residuals fit the model: '
+                                 + '; '.join(f'{d["device"]}: {d["text"]}'
+                                             for d in stamps['devices']))
+    if shift:
+        report['coarse_offset_s'] = shift
     progress(1.0, 'done')
     return Diagnosis(report=report, data=data, base=base, final=final, before=before,
                      after=after, rounds=rounds)
@@ -416,12 +481,134 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b) -> Diagno
 def diagnose_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
                      settings: Settings, options: Optional[Options] = None,
                      progress: Optional[Progress] = None) -> Diagnosis:
-    """Pair the streams as ``coreg calibrate`` does, then ``diagnose``."""
-    pairs, report = pair_for(stream_a, streams_b, settings)
-    diag = diagnose(pairs, settings, stream_a, options, progress)
+    """
+    Read the stamps, search the clock offset coarsely, pair as ``coreg calibrate``, diagnose.
+
+    The coarse search (``timing.coarse_offsets``, the devices' speeds cross-correlated) finds
+    offsets of any size even when another error dominates the residuals; when its best
+    candidate is more than ``COARSE_MIN_S`` from the given offset and pairing there fits
+    clearly better, the diagnosis pairs there, names the offset and measures the gap before
+    at the given offset.
+    """
+    from coreg_ros.core.diagnosis.stamps import stamps_report
+
+    bs = list(streams_b) if isinstance(streams_b, (list, tuple)) else [streams_b]
+    context = {'stamps': stamps_report(stream_a, bs)}
+    pairs, report = pair_for(stream_a, bs, settings)
+    use_settings = settings
+    shift = _coarse_shift(stream_a, bs, settings, pairs, options)
+    if shift:
+        moved = settings.updated(time_offset=settings.time_offset + shift)
+        context['before'] = (pairs, settings)
+        context['coarse_shift_s'] = shift
+        pairs, report = pair_for(stream_a, bs, moved)
+        use_settings = moved
+    diag = diagnose(pairs, use_settings, stream_a, options, progress, context=context)
     diag.report['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b,
                               'n_paired': report.n_paired, 'unpaired': dict(report.unpaired)}
     return diag
+
+
+#: A coarse offset this far from the given one (s) is tried as the pairing offset.
+COARSE_MIN_S = 0.05
+#: ... and kept when the fit there has at most this share of the χ² at the given offset.
+COARSE_GAIN = 0.5
+
+
+def _coarse_shift(stream_a, streams_b, settings, pairs, options) -> float:
+    """Shift (s) of the pairing offset found by the coarse search, or 0."""
+    from coreg_ros.core.timing import coarse_offsets
+
+    angular = settings.model == 'full_pose' or len(streams_b) == 3
+    try:
+        cands = coarse_offsets(stream_a, streams_b, angular=angular)
+    except (ValueError, np.linalg.LinAlgError):
+        return 0.0
+    far = [tau for tau, _ in cands if abs(tau - settings.time_offset) > COARSE_MIN_S]
+    if not far or len(pairs) < 50:
+        return 0.0
+    with single_blas_thread():
+        try:
+            here = calibrate(pairs, settings.updated(robust=False))
+        except Exception:  # noqa: BLE001 - a refusal at the given offset: try the other
+            here = None
+        best, best_chi = 0.0, here.chi2 / max(here.dof, 1) if here is not None else np.inf
+        for tau in far[:2]:
+            moved = settings.updated(time_offset=tau)
+            p2, _ = pair_for(stream_a, streams_b, moved)
+            if len(p2) < max(50, 0.5 * len(pairs)):
+                continue
+            try:
+                res = calibrate(p2, moved.updated(robust=False))
+            except Exception:  # noqa: BLE001 - unobservable or too few: not this one
+                continue
+            chi = res.chi2 / max(res.dof, 1)
+            if chi < COARSE_GAIN * best_chi:
+                best, best_chi = tau - settings.time_offset, chi
+    return float(best)
+
+
+def _drift_check(data: DiagData, sel: _Selector, best: Candidate, cands: list) -> dict:
+    """
+    Accept a clock drift only if it beats a constant offset and per-block offsets trend.
+
+    The offset is fitted on each time block alone (``time_offset`` model); a drift must show
+    as a significant linear trend of those offsets (slope beyond 3σ, agreeing in sign with
+    the drift and within a factor of three of it), and the drift's held-out gain must exceed
+    the constant offset's by the practical threshold.
+    """
+    K = sel.K
+    idx = sel.idx
+    taus, sds, mids = [], [], []
+    for k in range(K):
+        block = idx[sel.tf == k]
+        if len(block) < 30:
+            continue
+        try:
+            fit = Model(data, ('time_offset',)).fit(best.fit.state, block)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        cov = fit.mean_cov()
+        sl = fit.model.slices['time_offset']
+        if cov is None:
+            continue
+        taus.append(float(fit.state.theta['time_offset'][0]))
+        sds.append(float(np.sqrt(max(cov[sl, sl][0, 0], 1e-30))))
+        mids.append(float(np.mean(data.t[block])))
+    out = {'block_offsets_s': taus, 'block_sigma_s': sds, 'block_mid_s': mids,
+           'accepted': False, 'reason': ''}
+    if len(taus) < 3:
+        out['reason'] = 'too few blocks to see a trend of the offset'
+        return out
+    t = np.array(mids)
+    y = np.array(taus)
+    w = 1.0 / np.maximum(np.array(sds), 1e-9) ** 2
+    # the per-block σ ignores any non-stationary error: widen by the scatter about the line
+    A = np.stack([np.ones_like(t), t - np.average(t, weights=w)], axis=1)
+    H = A.T @ (A * w[:, None])
+    coef = np.linalg.solve(H, A.T @ (w * y))
+    res = y - A @ coef
+    dof = max(len(y) - 2, 1)
+    infl = max(1.0, float(np.sum(w * res ** 2) / dof))
+    slope_sd = float(np.sqrt(np.linalg.inv(H)[1, 1] * infl))
+    slope = float(coef[1])
+    est = best.fit.state.theta['clock_drift']
+    kappa = float(est[1]) / max(best.fit.model.duration, 1e-9)
+    out.update(trend_ppm=slope * 1e6, trend_sigma_ppm=slope_sd * 1e6, drift_ppm=kappa * 1e6)
+    const = next((c for c in cands if c.name == 'time_offset'), None)
+    margin = sel.threshold(0)
+    reasons = []
+    if abs(slope) < 3.0 * slope_sd:
+        reasons.append(f'the per-block offsets show no trend ({slope * 1e6:.1f} ± '
+                       f'{slope_sd * 1e6:.1f} ppm)')
+    elif not (1.0 / 3.0 <= (slope / kappa if kappa != 0 else np.inf) <= 3.0):
+        reasons.append(f'the per-block offsets trend by {slope * 1e6:.1f} ppm, not the '
+                       f'{kappa * 1e6:.1f} ppm of the drift fit')
+    if const is not None and const.passes and best.gain - const.gain < margin:
+        reasons.append('no better than a constant offset on held-out blocks')
+    out['accepted'] = not reasons
+    out['reason'] = '; '.join(reasons) if reasons else 'per-block offsets trend'
+    return out
 
 
 def base_errors(data: DiagData, fit: Fit):
@@ -468,6 +655,32 @@ def _stated_sd(data: DiagData, fit: Fit) -> np.ndarray:
     model = fit.model
     return np.concatenate([model.evaluate(fit.state, ch, jac=False).sd
                            for ch in model.chunks(np.arange(data.n))])
+
+
+def _stamp_rows(stamps: dict, rows: list) -> None:
+    """
+    Name jitter from the stamps when the residuals did not; add drops and gaps to any row.
+
+    The stamp jitter goes first when the residuals named nothing structured (their first
+    answer then was a noise description the stamps explain).
+    """
+    from coreg_ros.core.diagnosis.stamps import jitter_row
+
+    row = jitter_row(stamps)
+    if row is None:
+        return
+    have = next((r for r in rows if r['name'] == 'timestamp_jitter'), None)
+    if have is not None:
+        have['estimate']['sigma_s_from_stamps'] = row['estimate']['sigma_s']
+        have['estimate']['dropped'] = row['estimate']['dropped']
+        have['estimate']['gaps'] = row['estimate']['gaps']
+        have['estimate']['text'] += f' (stamps: {row["estimate"]["text"]})'
+        return
+    if rows and rows[0]['kind'] == 'structured':
+        rows.append(row)
+    else:
+        # a noise answer ahead of it was the jitter seen through the residuals
+        rows[:] = [row] + [r for r in rows if r['name'] != 'noise_scale']
 
 
 def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) -> dict:
