@@ -32,7 +32,7 @@ from scipy import fft
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.linearized import Chunk, PairData, chunks
 from coreg_ros.core.models import Parameters
-from coreg_ros.core.trajectory import VELOCITY_HALF_WINDOW, Trajectory
+from coreg_ros.core.trajectory import Trajectory
 from coreg_ros.core.types import PoseStream, TimeOffset  # noqa: F401 (re-exported)
 
 #: Largest posterior σ of τ (s) for which τ counts as determined by the motion.
@@ -45,6 +45,8 @@ MAX_CANDIDATES = 4
 MIN_OVERLAP_SHARE = 0.3
 #: Every how many pairs the noise share of the velocity signature is evaluated.
 NOISE_STRIDE = 8
+#: Half-width (s) of the central differences of the coarse speed signals.
+COARSE_HALF_WINDOW = 0.1
 #: Largest number of grid samples of one coarse signal (bounds time and memory).
 MAX_GRID = 1 << 16
 
@@ -86,7 +88,9 @@ def _speed(stream_or_streams, origin_ns: int, step: float, angular: bool):
     first = streams[0]
     t = (first.stamps - np.int64(origin_ns)).astype(float) * 1e-9
     grid = np.arange(t[0], t[-1], step)
-    half = max(1.5 * step, VELOCITY_HALF_WINDOW / 2)
+    # a longer window than the calibration uses: the coarse signal needs the shape of the
+    # motion, not its detail, and noisy trackers (a degree of orientation noise) need smoothing
+    half = max(1.5 * step, COARSE_HALF_WINDOW)
     if len(streams) == 3:
         trajs = [Trajectory((s.stamps - np.int64(origin_ns)).astype(float) * 1e-9, s.position,
                             np.tile([1.0, 0.0, 0.0, 0.0], (len(s), 1))) for s in streams]
