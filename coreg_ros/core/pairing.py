@@ -110,14 +110,15 @@ def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) 
         if step[i - 1] == 0:
             raise InputError(
                 f'{name}: duplicate stamp {int(stamps[i])} ns at index {i} (same as index '
-                f'{i - 1}; {int((step == 0).sum())} duplicate(s) in all); drop repeated '
-                f'messages before pairing')
+                f'{i - 1}; {int((step == 0).sum())} duplicate(s) in all); drop them with '
+                f'`coreg fix-bag BAG NEW_BAG --drop-duplicates`')
         jump = -int(step[i - 1])
         raise InputError(
             f'{name}: stamps go backwards at index {i} by {jump} ns ({jump / 1e6:.3f} ms), '
             f'from {int(stamps[i - 1])} to {int(stamps[i])} ({int((step < 0).sum())} '
-            f'backward step(s) in all): out-of-order messages or a clock jump; sort by stamp '
-            f'or split the recording at the jump')
+            f'backward step(s) in all): out-of-order messages or a clock jump; sort them with '
+            f'`coreg fix-bag BAG NEW_BAG --sort`, or split at the jump with '
+            f'`--split-at-jump S`')
 
     finite = np.isfinite(position).all(axis=1)
     if not finite.all():

@@ -230,7 +230,8 @@ def clock_step(blocks: list, tolerance_s: float) -> Optional[str]:
             return (f'the clock offset changes from {np.median(before):.3f} s to '
                     f'{np.median(after):.3f} s between {blocks[k - 1][1]:.1f} s and '
                     f'{blocks[k][0]:.1f} s into the recording (a clock step): split the '
-                    f'recording there and calibrate each part')
+                    f'recording there (coreg fix-bag BAG NEW_BAG --split-at-jump S) and '
+                    f'calibrate each part')
     return None
 
 
