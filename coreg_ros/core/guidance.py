@@ -64,7 +64,7 @@ CANDIDATE_ROTATION = (np.deg2rad(30.0), 0.2)
 #: Amplitude (m) and frequency (Hz) of a candidate translation along a base axis.
 CANDIDATE_TRANSLATION = (0.10, 0.2)
 #: Samples that represent a candidate's added motion (its information is scaled to its pairs).
-CANDIDATE_SAMPLES = 400
+CANDIDATE_SAMPLES = 100
 #: Pairs linearised at once.
 CHUNK = 4096
 
@@ -740,6 +740,8 @@ class GuidanceAccumulator:
         self._seen = 0
         self._store: list = []
         self._n_store = 0
+        # once the motion rotated about two axes, more pairs cannot undo it: checked until then
+        self._motion_ok = False
 
     # -- input
 
@@ -837,11 +839,12 @@ class GuidanceAccumulator:
         prior_sd = np.sqrt(np.diag(np.linalg.inv(_weak_prior(self.model, self.with_time))))
         determined = bool(np.all(np.sqrt(np.diag(cov)) < 0.1 * prior_sd))
         reason = '' if determined else 'some σ are still at the weak prior'
-        if self._n_store:
+        if self._n_store and not self._motion_ok:
             try:
                 # the store is an even sample of the motion: enough to judge its rotations
                 check_motion(np.concatenate(self._store)[:, 3:7], SPECS[self.model],
                              self.sigma_rot_a)
+                self._motion_ok = True
             except UnobservableError as e:
                 determined, reason = False, str(e).split(':')[0]
         ready = ready and determined
