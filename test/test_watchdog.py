@@ -22,6 +22,7 @@ from coreg_ros.core.watchdog import (
     Watchdog,
     _llr_constants,
     cusum_threshold,
+    recalibration_prior,
     run_length,
 )
 from coreg_ros.sim import simulate_recording
@@ -202,6 +203,33 @@ def test_position_only_t1_step(calibrated):
     assert final.level == ERROR and final.attribution.kind == 't1', final.message
     dp = np.asarray(later.truth.effects[-1]['translation_m'])
     assert np.linalg.norm(final.attribution.translation - dp) < 3e-4
+
+
+def test_recalibration_on_the_window_with_what_still_holds_as_prior(calibrated):
+    truth, result, settings = calibrated
+    rec = apply_changes(_record(47, 40.0, truth), ['t0_step=3mm+0.3deg@10'], seed=47)
+    wd = Watchdog(result, SIGMA_A, SIGMA_B)
+    final = _watch(wd, rec, settings, result)[-1]
+    assert final.level == ERROR and final.attribution.kind == 't0'
+    prior = recalibration_prior(result, final.attribution.kind)
+    assert prior.base_to_base is None and prior.tool_to_marker is not None
+    assert recalibration_prior(result, 'noise') is None
+    both = recalibration_prior(result, 'clock')
+    assert both.base_to_base is not None and both.tool_to_marker is not None
+
+    def since(s):
+        keep = s.stamps >= final.change_stamp
+        return PoseStream(s.stamps[keep], s.position[keep], s.quat_wxyz[keep], s.frame_id)
+
+    new, _ = calibrate_streams(since(rec.stream_a), [since(s) for s in rec.streams_b],
+                               settings, prior)
+    assert new.success and new.prior_check['consistent']
+    step = rec.truth.effects[-1]
+    p0 = truth.p0 + np.asarray(step['translation_m'])
+    sd = np.sqrt(np.diag(new.base_to_base.covariance))
+    assert np.all(np.abs(new.base_to_base.position - p0) < 4 * sd[:3])
+    q0 = quat.multiply(quat.exp(np.asarray(step['rotation_rad'])), truth.q0)
+    assert quat.angle_between(new.base_to_base.quat_wxyz, q0) < 4 * np.linalg.norm(sd[3:])
 
 
 def test_reset_and_the_ok_state(calibrated):

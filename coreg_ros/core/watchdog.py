@@ -42,6 +42,7 @@ import numpy as np
 from scipy import stats
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.covariance import Prior
 from coreg_ros.core.crlb import CRLB_DIMENSION
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.guidance import (
@@ -504,6 +505,32 @@ def describe(att: Attribution) -> str:
     if not att.decided:
         text += f' (or {KIND_TEXT[att.runner_up]}: not yet decided)'
     return text
+
+
+def recalibration_prior(result: CalibrationResult, kind: str) -> Optional[Prior]:
+    """
+    Return the prior for recalibrating after a change: the parts of ``result`` still valid.
+
+    After ``t0`` (the base moved) T1 still holds, after ``t1`` T0 does, after ``clock`` both
+    do (only τ changed; the recalibration estimates it again). After ``noise`` (or no
+    decided change) there is nothing to recalibrate: None.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        The calibration the watchdog found stale (its poses carry their covariance).
+    kind : str
+        ``Attribution.kind``.
+
+    """
+    if kind not in ('t0', 't1', 'clock'):
+        return None
+    keep_t0 = kind != 't0' and result.base_to_base.covariance is not None
+    keep_t1 = kind != 't1' and result.tool_to_marker.covariance is not None
+    if not (keep_t0 or keep_t1):
+        return None
+    return Prior(result.base_to_base if keep_t0 else None,
+                 result.tool_to_marker if keep_t1 else None)
 
 
 # --------------------------------------------------------------------------- the watchdog
