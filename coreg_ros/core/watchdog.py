@@ -79,6 +79,8 @@ MAX_UNDECIDED_S = 30.0
 MAX_FIT_PAIRS = 6000
 #: Seconds of recent pairs kept for the attribution.
 KEEP_S = 60.0
+#: Once ERROR, the size of the change is refined with the growing window for this long (s).
+REFINE_S = 10.0
 
 OK, WARN, ERROR = 0, 1, 2
 LEVEL_NAMES = ('OK', 'WARN', 'ERROR')
@@ -743,6 +745,9 @@ class Watchdog:
         return batch.take(keep)
 
     def _attribute(self, batch: PairBatch) -> None:
+        if (self.level == ERROR
+                and (int(batch.stamps[-1]) - self.change_stamp) * 1e-9 > REFINE_S):
+            return  # the size is known well enough: no more fits on a stale calibration
         window = self._window()
         if window is None or not len(window):
             return
