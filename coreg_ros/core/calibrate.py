@@ -137,7 +137,8 @@ class _Fitter:
         self.whiten_b = whitening(cov_b, spec, 'b')
         self.priors = prior.terms(spec) if prior is not None else []
         self.data = PairData(self.pos_a, self.quat_a, self.pos_b, self.quat_b,
-                             metric_covariance(cov_a), output_covariance(cov_b, spec),
+                             np.asarray(cov_a, dtype=float).reshape(6, 6),
+                             output_covariance(cov_b, spec),
                              self.scale, settings.method == 'tls')
 
     def solve(self, keep: np.ndarray, start: Optional[Parameters],

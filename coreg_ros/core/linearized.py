@@ -42,7 +42,9 @@ class PairData:
     pos_b : ndarray, shape (N, 3) or (N, 3, 3)
     quat_b : ndarray, shape (N, 4) or None
     cov_a : ndarray, shape (6, 6)
-        Covariance of A's input error metric.
+        Covariance of A's noise in the ROS layout (position m², rotation angle rad²): the
+        input perturbation of ``models.linearize`` is a rotation vector (the full angle), not
+        the half-angle error metric.
     cov_b : ndarray, shape (m, m)
         Covariance of B's output error metric.
     a_scale : ndarray, shape (N,) or None

@@ -25,7 +25,6 @@ from scipy import stats
 from coreg_ros.core.calibrate import (
     MAX_REJECTED_SHARE,
     calibrate,
-    metric_covariance,
     noise_covariance,
     output_covariance,
 )
@@ -160,7 +159,7 @@ class _Context:
         ref = (int(bs[0].stamps[0]) + int(bs[0].stamps[-1])) // 2
         return cls(a, bs, settings, prior, Trajectory(t, a.position, a.quat_wxyz), origin, ref,
                    max(VELOCITY_HALF_WINDOW, 1.5 * step),
-                   metric_covariance(noise_covariance(settings.sigma_a)),
+                   noise_covariance(settings.sigma_a),
                    output_covariance(noise_covariance(settings.sigma_b), spec))
 
     def timing(self, tau: float, kappa: Optional[float]) -> TimeOffset:
@@ -230,8 +229,17 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     since = None if kappa is None else (stamps - np.int64(ctx.reference_ns)).astype(
         float) * 1e-9
     step = offset_step(params, data, np.hstack([v, w]), since, result.param_cov,
-                       velocity_noise_cov(ctx.cov_a, ctx.half))
+                       velocity_noise_cov(ctx.cov_a, ctx.half), _prior_information(ctx, params))
     return _Round(result, report, pairs, params, step, tau, kappa)
+
+
+def _prior_information(ctx: _Context, params: Parameters) -> Optional[np.ndarray]:
+    """JᵀJ of the prior rows at φ (None without a prior)."""
+    if ctx.prior is None:
+        return None
+    rows = [term(params)[1] for term in ctx.prior.terms(params.spec)]
+    J = np.vstack(rows) if rows else np.zeros((0, params.spec.n_params))
+    return J.T @ J
 
 
 def _step_is_linear(rnd: _Round, span_s: float) -> bool:

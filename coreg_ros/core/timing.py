@@ -284,20 +284,20 @@ class OffsetStep:
         return param_cov + self.dphi @ self.cov @ self.dphi.T
 
 
-def velocity_noise_cov(cov_a_metric: np.ndarray, half: float) -> np.ndarray:
+def velocity_noise_cov(cov_a: np.ndarray, half: float) -> np.ndarray:
     """
-    Covariance (6×6, error-metric units per s) that A's noise puts into a central difference.
+    Covariance (6×6, m/s and rad/s) that A's noise puts into a central-difference velocity.
 
-    ``(x(t+h) - x(t-h)) / 2h`` of two independent samples has variance ``2 Σ / (2h)²``; the
-    rotation metric is half the angle, so the velocity's rotation part is converted back.
+    ``(x(t+h) - x(t-h)) / 2h`` of two independent samples has variance ``2 Σ / (2h)²``, with
+    Σ = ``cov_a`` A's noise in the ROS layout (position m², rotation angle rad²).
     """
-    to_angle = np.diag([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
-    return to_angle @ cov_a_metric @ to_angle * (2.0 / (2.0 * half) ** 2)
+    return np.asarray(cov_a, dtype=float).reshape(6, 6) * (2.0 / (2.0 * half) ** 2)
 
 
 def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
                 since_ref: Optional[np.ndarray], param_cov: np.ndarray,
-                noise_velocity_cov: np.ndarray) -> OffsetStep:
+                noise_velocity_cov: np.ndarray,
+                prior_information: Optional[np.ndarray] = None) -> OffsetStep:
     """
     Gauss-Newton step of the time parameters with φ eliminated.
 
@@ -316,25 +316,52 @@ def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
         H⁻¹, the posterior covariance of φ at fixed τ (priors included).
     noise_velocity_cov : ndarray, shape (6, 6)
         What A's noise alone puts into ``velocity`` (``velocity_noise_cov``).
+    prior_information : ndarray, shape (P, P), optional
+        JᵀJ of the prior rows at φ, for the fallback below.
 
     Returns
     -------
     OffsetStep
 
+    Notes
+    -----
+    φ is eliminated with the estimator's own H (TLS: its Schur complement), the τ blocks come
+    from the per-pair effective covariance. When large input noise makes the two differ
+    enough that S is not positive, φ is eliminated with the effective-covariance H of the
+    same linearisation instead (one more pass), which is positive by construction.
+
     """
+    step = _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_cov,
+                        None)
+    if step.cov is None:
+        step = _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_cov,
+                            np.zeros_like(param_cov) if prior_information is None
+                            else prior_information)
+    return step
+
+
+def _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_cov,
+                 own_information: Optional[np.ndarray]) -> OffsetStep:
+    """``offset_step`` with H⁻¹ = param_cov, or from the pairs (+ ``own_information``)."""
     k = 1 if since_ref is None else 2
     P = param_cov.shape[0]
     lam, vec = np.linalg.eigh(noise_velocity_cov)
     noise_factor = vec * np.sqrt(np.clip(lam, 0.0, None))  # Σ_v = F Fᵀ
     h_tt = np.zeros((k, k))
     h_pt = np.zeros((P, k))
+    h_pp = None if own_information is None else own_information.copy()
     g_t = np.zeros(k)
     noise_tt = 0.0
     for ch in chunks(params, data):
         c = -np.einsum('nij,nj->ni', ch.j_x, velocity[ch.sl])
         cols = c[:, :, None] if k == 1 else np.stack(
             [c, c * since_ref[ch.sl, None]], axis=2)
-        wc = ch.weighted(cols)
+        if h_pp is None:
+            wc = ch.weighted(cols)
+        else:
+            w = ch.weighted(np.concatenate([cols, ch.j_phi], axis=2))
+            wc = w[:, :, :k]
+            h_pp += np.einsum('nmp,nmq->pq', ch.j_phi, w[:, :, k:])
         h_tt += np.einsum('nmi,nmj->ij', cols, wc)
         h_pt += np.einsum('nmp,nmk->pk', ch.j_phi, wc)
         g_t += np.einsum('nm,nmk->k', ch.e, wc)
@@ -345,9 +372,15 @@ def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
         jl = ch.j_x[pick] @ noise_factor
         sub = Chunk(ch.sl, ch.e, ch.j_phi, ch.j_x, ch.cov if ch.cov.ndim == 2 else ch.cov[pick])
         noise_tt += NOISE_STRIDE * float(np.einsum('nmk,nmk->', jl, sub.weighted(jl)))
-    S = h_tt - h_pt.T @ param_cov @ h_pt
+    h_inv = param_cov
+    if h_pp is not None:
+        try:
+            h_inv = np.linalg.inv(0.5 * (h_pp + h_pp.T))
+        except np.linalg.LinAlgError:
+            h_inv = param_cov
+    S = h_tt - h_pt.T @ h_inv @ h_pt
     S = 0.5 * (S + S.T)
-    dphi = -param_cov @ h_pt
+    dphi = -h_inv @ h_pt
     snr = float(h_tt[0, 0] / noise_tt) if noise_tt > 0 else float('inf')
     try:
         np.linalg.cholesky(S)
