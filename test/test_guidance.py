@@ -126,6 +126,22 @@ def test_pair_feed_releases_every_pair_once_with_interior_velocities_as_in_batch
     assert np.allclose(vel[interior], whole.velocity[interior], atol=1e-12)
 
 
+def test_no_velocity_across_a_tracking_gap():
+    rec = simulate_recording(28, 10.0, sigma_a=SIGMA_A, sigma_b=SIGMA_B)
+    pairs, _ = pair_for(rec.stream_a, rec.streams_b, Settings(estimate_time_offset=False))
+    t = (pairs.stamps - pairs.stamps[0]) * 1e-9
+    keep = (t < 4.0) | (t > 5.0)  # the tracker lost the marker for a second
+    cut = Pairs(pairs.stamps[keep], pairs.pos_a[keep], pairs.quat_a[keep], pairs.pos_b[keep],
+                pairs.quat_b[keep], pairs.a_var_scale[keep])
+    got = batch_from_pairs(cut, max_gap=0.05)
+    tc = t[keep]
+    near = (np.abs(tc - 4.0) < 0.03) | (np.abs(tc - 5.0) < 0.03)
+    assert near.any() and np.all(got.velocity[near] == 0.0)
+    far = (np.abs(tc - 4.5) > 0.7) & (tc > 0.2) & (tc < 9.8)
+    assert np.all(np.linalg.norm(got.velocity[far], axis=1) > 0.0)
+    assert np.allclose(got.velocity[far], batch_from_pairs(cut).velocity[far])
+
+
 def test_relinearising_from_the_decimated_store_keeps_the_sigma():
     rec = simulate_recording(25, 60.0, sigma_a=SIGMA_A, sigma_b=SIGMA_B)
     settings = Settings(sigma_a=SIGMA_A, sigma_b=SIGMA_B, estimate_time_offset=False)

@@ -188,11 +188,17 @@ class PairFeed:
     ----------
     half : float
         Half-width of the difference window, s.
+    max_gap : float, optional
+        A window spanning a gap between pairs longer than this (s; at least 2.5 pair
+        intervals), or reaching before the first pair, gives zero velocity
+        (``Trajectory.velocity``): none is known across a tracking dropout. The settings'
+        ``max_gap``, as the clock-offset estimate uses; None: differences across any gap.
 
     """
 
-    def __init__(self, half: float = VELOCITY_HALF_WINDOW):
+    def __init__(self, half: float = VELOCITY_HALF_WINDOW, max_gap: Optional[float] = None):
         self.half = float(half)
+        self.max_gap = None if max_gap is None else float(max_gap)
         self._last_stamp: Optional[int] = None
         self._held: Optional[dict] = None  # released context + pending pairs
         self._n_context = 0  # leading pairs of _held already released
@@ -235,7 +241,10 @@ class PairFeed:
         release = slice(self._n_context, end)
         if len(t) > 1:
             traj = Trajectory(t, held['pos_a'], held['quat_a'])
-            v, w = traj.velocity(t[release], self.half)
+            gap = None
+            if self.max_gap is not None:
+                gap = max(self.max_gap, 2.5 * float(np.median(np.diff(t))))
+            v, w = traj.velocity(t[release], self.half, max_gap=gap)
         else:
             v = w = np.zeros((end - self._n_context, 3))
         out = PairBatch(held['stamps'][release], held['pos_a'][release], held['quat_a'][release],
@@ -254,9 +263,10 @@ class PairFeed:
         return out
 
 
-def batch_from_pairs(pairs: Pairs, half: float = VELOCITY_HALF_WINDOW) -> PairBatch:
+def batch_from_pairs(pairs: Pairs, half: float = VELOCITY_HALF_WINDOW,
+                     max_gap: Optional[float] = None) -> PairBatch:
     """All of ``pairs`` with A's velocity (``PairFeed`` at once)."""
-    out = PairFeed(half).push(pairs, final=True)
+    out = PairFeed(half, max_gap).push(pairs, final=True)
     if out is None:
         raise InputError('no pairs')
     return out
