@@ -210,12 +210,15 @@ class GapCounter:
 
     #: Intervals needed before a period estimate is trusted.
     MIN_INTERVALS = 20
+    #: Single intervals the period is the median of (the newest).
+    KEEP = 2000
 
     def __init__(self):
         self.missing = 0
         self.period_ns: float | None = None
         self._last: int | None = None
         self._early = np.zeros(0, np.int64)  # stamps seen before the period is known
+        self._single = np.zeros(0)  # recent intervals of one period, ns
 
     def update(self, stamps: np.ndarray) -> int:
         """Take the next accepted stamps (increasing, ns); return the newly missing count."""
@@ -230,9 +233,10 @@ class GapCounter:
         joined = stamps if self._last is None else np.concatenate(([self._last], stamps))
         self._last = int(stamps[-1])
         d = np.diff(joined).astype(float)
-        if len(d) >= self.MIN_INTERVALS:
+        if len(d) >= self.MIN_INTERVALS:  # the newest single intervals give the period
             low = np.percentile(d, 10)
-            self.period_ns = float(np.median(d[d <= 1.5 * low]))
+            self._single = np.concatenate((self._single, d[d <= 1.5 * low]))[-self.KEEP:]
+            self.period_ns = float(np.median(self._single))
         if not self.period_ns or self.period_ns <= 0 or not len(d):
             return 0
         big = d[d > 1.5 * self.period_ns]

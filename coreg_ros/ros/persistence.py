@@ -192,8 +192,8 @@ def save_samples(storage_dir: str, streams: Mapping[str, PoseStream],
 
 # --------------------------------------------------------------------------- sample journal
 
-#: Flushes merged into one bag when this many small ones have piled up (a minute at 2 Hz).
-MERGE_AFTER = 120
+#: Flushes merged into one bag when this many small ones have piled up (10 s at 2 Hz).
+MERGE_AFTER = 20
 _CHUNK = re.compile(r'^(\d{8})-(\d{8})$')
 
 
@@ -327,11 +327,13 @@ class SampleJournal:
         they are removed; a kill in between leaves chunks that ``read_journal`` skips.
         """
         path = self.folder / f'{first:08d}-{last:08d}'
-        if first == last or path.exists():
+        if first == last:
             return path
-        write_pose_bag(path, {t: s for t, s in streams.items() if len(s.stamps)},
-                       storage=self.storage)
-        _fsync_tree(path)
+        if not (path / 'metadata.yaml').is_file():  # else a merge cut short wrote it already
+            shutil.rmtree(path, ignore_errors=True)
+            write_pose_bag(path, {t: s for t, s in streams.items() if len(s.stamps)},
+                           storage=self.storage)
+            _fsync_tree(path)
         for lo, hi, p in _chunks_all(self.folder):
             if first <= lo and hi <= last and p != path:
                 shutil.rmtree(p, ignore_errors=True)
