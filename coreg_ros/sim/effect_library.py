@@ -14,18 +14,26 @@ name                VALUE unit stage     what it does
 =================== ========== ========= ====================================================
 time_offset         s          measured  B's header stamps = true time + τ (B stamped late)
 clock_drift         ppm        measured  B's stamps + κ (t - t_start), κ = VALUE·1e-6
-timestamp_jitter    s          measured  B's stamps + N(0, VALUE²), and 2 % of B dropped
-field_distortion    mm         clean     smooth error field around B's base (the source),
-                                         |error| reaching VALUE at the workspace edge, and a
-                                         position-dependent rotation error (1 mrad per mm)
+timestamp_jitter    s          measured  B's stamps + N(0, VALUE²), 2 % of B dropped (more,
+                                         and gaps of seconds, through the class)
+field_distortion    mm         clean     a harmonic quadratic field around B's base or a
+                                         dipole disturbance just outside the workspace; its
+                                         part a rigid registration cannot absorb reaches
+                                         VALUE; a rotation error (1 mrad per mm) beside it
 distance_noise      exponent k noise     B's noise σ × (r / r0)^k, r = distance from B's base
 scale               fraction   clean     B's positions × (1 + s) per axis about B's base
-link_flex           mm         clean     the marker sags VALUE along gravity (-z of A's base)
-                                         when the tool-to-marker link is horizontal
+link_flex           mm         clean     the link pivots under gravity (a random direction in
+                                         A's base): the marker sags VALUE when the link is
+                                         level, and tilts with it
 outliers            fraction   measured  that fraction of B's samples jump 2-10 cm, 10-90°
 backlash            mm         clean     A's position lags VALUE/2 per axis behind the
                                          motion, flipping at each reversal (play operator)
 noise_scale         factor     noise     the true noise of A and B is VALUE × the stated
+non_stationary      mm         clean     a dipole disturbance during one window of the
+                                         recording (a metal object brought near), VALUE at
+                                         most
+shared_clock        s          measured  A and B stamped on receipt by one host clock: B's
+                                         latency exceeds A's by VALUE, no drift
 =================== ========== ========= ====================================================
 
 ``as_dict()`` gives ``name``, ``value`` (as parsed), ``unit``, ``stage`` and the effect's
@@ -36,7 +44,7 @@ distortion) add what they found on the recording they were last applied to.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 
@@ -45,9 +53,14 @@ from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim.effects import EffectContext
 
-#: Names accepted by ``parse_effect``, in the order of DESIGN.md §5.
+#: The ten effects of DESIGN.md §5 that the diagnosis models one by one, in its order.
 EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distortion',
                 'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
+#: Further cases real rigs show (issue 11): a distortion that comes and goes, and both
+#: devices stamped by one host clock (a constant offset, no drift).
+EXTRA_EFFECT_NAMES = ('non_stationary', 'shared_clock')
+#: Every name ``parse_effect`` accepts.
+ALL_EFFECT_NAMES = EFFECT_NAMES + EXTRA_EFFECT_NAMES
 
 #: Unit of each effect's VALUE, as shown in error messages and ``as_dict()['unit']``.
 EFFECT_UNITS = {
@@ -55,6 +68,7 @@ EFFECT_UNITS = {
     'field_distortion': 'mm at the workspace edge', 'distance_noise': 'exponent k',
     'scale': 'fraction, one or three comma-separated', 'link_flex': 'mm of sag',
     'outliers': 'fraction of B samples', 'backlash': 'mm', 'noise_scale': 'factor',
+    'non_stationary': 'mm at most, during a window', 'shared_clock': 's of B latency over A',
 }
 
 #: Share of B's samples a ``timestamp_jitter`` drops.
@@ -171,11 +185,13 @@ class TimestampJitter:
 
     sigma_s: float
     drop_fraction: float = JITTER_DROP_FRACTION
+    gaps: int = 0
+    gap_s: float = 2.0
     stage = 'measured'
     _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
-        """Jitter, drop, sort and de-duplicate B's samples."""
+        """Jitter, drop, cut gaps, sort and de-duplicate B's samples."""
         first = streams[context.topics_b[0]]
         n = len(first)
         error = np.round(rng.standard_normal(n) * self.sigma_s * 1e9).astype(np.int64)
@@ -183,6 +199,13 @@ class TimestampJitter:
         dropped = rng.choice(n, size=n_drop, replace=False) if n_drop else np.array([], int)
         keep = np.ones(n, dtype=bool)
         keep[dropped] = False
+        t = (first.stamps - first.stamps[0]).astype(float) * 1e-9
+        gap_list = []
+        for _ in range(self.gaps):
+            # a stretch of gap_s seconds with no sample at all (a lost connection)
+            start = rng.uniform(0.1, 0.9) * max(float(t[-1]) - self.gap_s, 0.0) if n else 0.0
+            keep[(t >= start) & (t < start + self.gap_s)] = False
+            gap_list.append([float(start), float(self.gap_s)])
         stamps = first.stamps + error
         idx = np.flatnonzero(keep)
         idx = idx[np.argsort(stamps[idx], kind='stable')]
@@ -193,7 +216,7 @@ class TimestampJitter:
         for t in context.topics_b:
             s = streams[t]
             out[t] = _select(_replace_stream(s, stamps=s.stamps + error), idx)
-        self._found.update(n_dropped=int(n - idx.size),
+        self._found.update(n_dropped=int(n - idx.size), gaps_s=gap_list,
                            empirical_sigma_s=float(np.std(error[idx]) * 1e-9) if idx.size else 0.0)
         return out
 
@@ -232,56 +255,218 @@ def _harmonic_field(rng: np.random.Generator, n_terms: int = 3):
     return g
 
 
+def rigid_part(points: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """
+    Return the part of a displacement field a rigid registration absorbs, ``t + ω × p``.
+
+    Shape (N, 3), like ``points`` and ``d``.
+
+    Least squares over the points (first order in ω: the fields are millimetres on metres).
+    """
+    c = points.mean(axis=0)
+    q = points - c
+    n = len(points)
+    A = np.zeros((3 * n, 6))
+    A[:, 0:3] = np.tile(np.eye(3), (n, 1))
+    skew = np.zeros((n, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = q[:, 2], -q[:, 1]
+    skew[:, 1, 0], skew[:, 1, 2] = -q[:, 2], q[:, 0]
+    skew[:, 2, 0], skew[:, 2, 1] = q[:, 1], -q[:, 0]
+    A[:, 3:6] = skew.reshape(3 * n, 3)                 # ω × q = -q × ω
+    x, *_ = np.linalg.lstsq(A, d.reshape(-1), rcond=None)
+    return (A @ x).reshape(n, 3)
+
+
+def _dipole(rng: np.random.Generator, centre: np.ndarray, r_edge: float):
+    """Draw a dipole disturbance: a random moment at a source just outside the workspace."""
+    direction = _random_direction(rng)
+    source = centre + rng.uniform(1.2, 2.0) * r_edge * direction
+    moment = _random_direction(rng)
+
+    def g(p: np.ndarray) -> np.ndarray:
+        r = p - source
+        dist = np.linalg.norm(r, axis=1, keepdims=True)
+        rh = r / dist
+        return (3.0 * np.sum(rh * moment, axis=1, keepdims=True) * rh - moment) / dist ** 3
+
+    return g, source
+
+
 @dataclass(frozen=True)
 class FieldDistortion:
     """
     A smooth position-dependent error of B (an EM tracker's field distortion).
 
-    The error is a random quadratic field around B's base (the field source), the gradient of
-    a harmonic cubic: zero at the source, growing as r² with the distance r. Its size is set
-    on the recording: at the workspace edge r_edge (the largest distance of a true marker
-    position from B's base) it reaches ``max_mm`` — exactly, ``max_mm`` is the largest error
-    over the recording's samples. The orientation (full_pose) gets a rotation error
-    ``Exp(δθ(p)) ⊗ q`` from a second such field, largest ``max_mm · rotation_per_mm`` rad.
-    Applied to the noise-free poses, before the noise.
+    ``shape`` ``'harmonic'``: a random quadratic field around B's base (the gradient of a
+    harmonic cubic, zero at the source, growing as r²); ``'dipole'``: the field of a dipole
+    disturbance (a metal part) at a random point just outside the workspace, growing as the
+    inverse cube of the distance to it, steep on the near side; None draws either. The size
+    ``max_mm`` is the largest error a rigid registration **cannot** absorb (the field minus
+    its best translation and small rotation over the recording's samples); the whole field's
+    largest value is recorded beside it. The orientation (full_pose) gets a rotation error
+    ``Exp(δθ(p)) ⊗ q`` from a second field of the same shape, largest
+    ``max_mm · rotation_per_mm`` rad. Applied to the noise-free poses, before the noise.
     """
 
     max_mm: float
     rotation_per_mm: float = DISTORTION_ROTATION_PER_MM
+    shape: Optional[str] = None
     stage = 'clean'
     _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
         """Add the error field to B's positions (every marker) and orientation."""
-        g_pos, g_rot = _harmonic_field(rng), _harmonic_field(rng)
+        shape = self.shape or ('dipole' if rng.random() < 0.5 else 'harmonic')
         topics = context.topics_b
         p = np.stack([streams[t].position for t in topics], axis=1)   # (N, k, 3)
         flat = p.reshape(-1, 3)
         r_edge = float(np.max(np.linalg.norm(flat, axis=1))) if flat.size else 1.0
-        u = flat / r_edge
-        d = g_pos(u)
-        peak = float(np.max(np.linalg.norm(d, axis=1))) if flat.size else 1.0
+        found = {'shape': shape, 'r_edge_m': r_edge}
+        if shape == 'dipole':
+            centre = flat.mean(axis=0)
+            spread = float(np.max(np.linalg.norm(flat - centre, axis=1)))
+            g_pos, source = _dipole(rng, centre, spread)
+            g_rot, _ = _dipole(rng, centre, spread)
+            found['source_m'] = source.tolist()
+        else:
+            hp, hr = _harmonic_field(rng), _harmonic_field(rng)
+
+            def g_pos(x, hp=hp):
+                return hp(x / r_edge)
+
+            def g_rot(x, hr=hr):
+                return hr(x / r_edge)
+        d = g_pos(flat)
+        nonrigid = d - rigid_part(flat, d)
+        peak = float(np.max(np.linalg.norm(nonrigid, axis=1))) if flat.size else 1.0
         d = (self.max_mm * 1e-3 / peak) * d
+        found['whole_field_max_mm'] = float(np.max(np.linalg.norm(d, axis=1)) * 1e3)
         out = dict(streams)
         d = d.reshape(p.shape)
         for j, t in enumerate(topics):
             out[t] = _replace_stream(streams[t], position=streams[t].position + d[:, j])
         rot_max = self.max_mm * self.rotation_per_mm
         if _full_pose(context) and len(p):
-            w = g_rot(p[:, 0] / r_edge)
+            w = g_rot(p[:, 0])
             w = (rot_max / float(np.max(np.linalg.norm(w, axis=1)))) * w
             s = out[topics[0]]
             q = quat.canonical(quat.multiply(quat.exp(w), s.quat_wxyz))
             out[topics[0]] = _replace_stream(s, quat_wxyz=q)
-        self._found.update(r_edge_m=r_edge, rotation_max_rad=rot_max if _full_pose(context)
-                           else 0.0)
+        found['rotation_max_rad'] = rot_max if _full_pose(context) else 0.0
+        self._found.update(found)
         return out
 
     def as_dict(self) -> dict:
-        """Describe the effect: ``max_mm``, the rotation's size and the edge distance found."""
+        """Describe the effect: ``max_mm`` (non-rigid part), the shape and what was found."""
         return {'name': 'field_distortion', 'value': self.max_mm,
                 'unit': EFFECT_UNITS['field_distortion'], 'stage': self.stage,
                 'max_mm': self.max_mm, 'rotation_per_mm': self.rotation_per_mm, **self._found}
+
+
+@dataclass(frozen=True)
+class NonStationary:
+    """
+    A distortion that comes and goes: a metal object brought near an EM sensor for a while.
+
+    A dipole disturbance at a random point just outside the workspace acts during one window
+    of the recording (``window`` = (start, end) as shares of the duration, drawn when None:
+    15-35 % of it), switched on and off over half a second each. ``max_mm`` is the largest
+    position error it causes (rotation ``max_mm · rotation_per_mm`` rad). Applied to B's
+    noise-free poses.
+    """
+
+    max_mm: float
+    window: Optional[tuple] = None
+    rotation_per_mm: float = DISTORTION_ROTATION_PER_MM
+    stage = 'clean'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
+        """Add the switched disturbance to B's positions and orientation."""
+        topics = context.topics_b
+        b0 = streams[topics[0]]
+        t = (b0.stamps - b0.stamps[0]).astype(float) * 1e-9
+        T = max(float(t[-1]), 1e-9) if len(t) else 1.0
+        if self.window is None:
+            length = rng.uniform(0.15, 0.35)
+            start = rng.uniform(0.05, 0.95 - length)
+            window = (start, start + length)
+        else:
+            window = tuple(self.window)
+        t1, t2 = window[0] * T, window[1] * T
+        on = np.clip((t - t1) / 0.5, 0, 1) * np.clip((t2 - t) / 0.5, 0, 1)
+        p = np.stack([streams[x].position for x in topics], axis=1)
+        flat = p.reshape(-1, 3)
+        centre = flat.mean(axis=0)
+        spread = float(np.max(np.linalg.norm(flat - centre, axis=1)))
+        g_pos, source = _dipole(rng, centre, 0.7 * spread)
+        g_rot, _ = _dipole(rng, centre, 0.7 * spread)
+        d = g_pos(flat).reshape(p.shape)
+        scale = self.max_mm * 1e-3 / float(np.max(np.linalg.norm(d, axis=2)))
+        d = scale * d * on[:, None, None]
+        out = dict(streams)
+        for j, x in enumerate(topics):
+            out[x] = _replace_stream(streams[x], position=streams[x].position + d[:, j])
+        if _full_pose(context):
+            w = g_rot(p[:, 0])
+            w = (self.max_mm * self.rotation_per_mm / float(np.max(np.linalg.norm(w, axis=1)))
+                 ) * w * on[:, None]
+            s = out[topics[0]]
+            out[topics[0]] = _replace_stream(s, quat_wxyz=quat.canonical(
+                quat.multiply(quat.exp(w), s.quat_wxyz)))
+        self._found.update(window_s=[float(t1), float(t2)], source_m=source.tolist())
+        return out
+
+    def as_dict(self) -> dict:
+        """Describe the effect: ``max_mm``, the window (s) and the source."""
+        return {'name': 'non_stationary', 'value': self.max_mm,
+                'unit': EFFECT_UNITS['non_stationary'], 'stage': self.stage,
+                'max_mm': self.max_mm, **self._found}
+
+
+@dataclass(frozen=True)
+class SharedClock:
+    """
+    Both devices stamped on receipt by one host clock: a constant offset, never a drift.
+
+    Header stamps = true sample time + the device's transport latency + a small positive
+    host scheduling delay (exponential, mean ``host_jitter_s``); the receive stamps carry the
+    same host times. ``latency_s`` is B's latency minus A's (A's is drawn in 1-5 ms): the
+    offset the diagnosis should find (B stamped late by it), with no drift at all.
+    """
+
+    latency_s: float
+    host_jitter_s: float = 3e-5
+    stage = 'measured'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
+        """Restamp A and B with host receive times."""
+        lat_a = rng.uniform(0.001, 0.005)
+        out = dict(streams)
+        first = streams[context.topics_b[0]]
+        delay_b = rng.exponential(self.host_jitter_s, len(first))
+        for topic, lat, delay in (
+                [(context.topic_a, lat_a, rng.exponential(self.host_jitter_s,
+                                                          len(streams[context.topic_a])))]
+                + [(t, lat_a + self.latency_s, delay_b) for t in context.topics_b]):
+            s = streams[topic]
+            stamps = s.stamps + np.round((lat + delay) * 1e9).astype(np.int64)
+            order = np.argsort(stamps, kind='stable')
+            keep = np.ones(len(order), dtype=bool)
+            keep[1:] = np.diff(stamps[order]) > 0
+            idx = order[keep]
+            out[topic] = _select(_replace_stream(s, stamps=stamps, receive_stamps=stamps),
+                                 idx)
+        self._found.update(latency_a_s=float(lat_a))
+        return out
+
+    def as_dict(self) -> dict:
+        """Describe the effect: ``latency_s`` (B's minus A's) and A's latency."""
+        return {'name': 'shared_clock', 'value': self.latency_s,
+                'unit': EFFECT_UNITS['shared_clock'], 'stage': self.stage,
+                'latency_s': self.latency_s, 'host_jitter_s': self.host_jitter_s,
+                **self._found}
 
 
 @dataclass(frozen=True)
@@ -343,49 +528,79 @@ class Scale:
                 'stage': self.stage, 'scale': list(self.s)}
 
 
+def _a_orientation_at_b(context: EffectContext) -> np.ndarray:
+    """A's true tool orientation at B's stamps (exact from the motion, else nearest sample)."""
+    qa = context.true_streams[context.topic_a]
+    b0 = context.true_streams[context.topics_b[0]]
+    if context.motion is not None:
+        _, q = context.motion.pose((b0.stamps - np.int64(context.start_ns)) * 1e-9)
+        return q
+    i = np.clip(np.searchsorted(qa.stamps, b0.stamps), 0, len(qa) - 1)
+    return qa.quat_wxyz[i]
+
+
+def _random_direction(rng) -> np.ndarray:
+    g = rng.standard_normal(3)
+    return g / np.linalg.norm(g)
+
+
 @dataclass(frozen=True)
 class LinkFlex:
     """
-    A non-rigid link: the marker sags along gravity as a cantilever would.
+    A non-rigid link that pivots under gravity: the marker sags **and tilts**.
 
-    Gravity is -z of A's base frame (``GRAVITY_IN_A_BASE``: A, a robot or a haptic arm, stands
-    upright). The link is the tool-to-marker offset p1; the sag is ``sag_mm · h`` along
-    gravity, with h = |ℓ × ĝ| ∈ [0, 1] how horizontal the link direction ℓ = R_A p1 / |p1| is
-    (1 when horizontal, 0 when vertical). In the tool frame the sag direction R_Aᵀ ĝ depends
-    on the tool's orientation: the signature of a bending link. Every marker moves by the
-    same sag; the marker's orientation is kept (its small tilt is not modelled).
+    The link from A's tool to B's marker bends at a pivot on it (at ``pivot_share`` of the
+    way from the tool origin to the marker, drawn in [0, 0.7] when None) as a spring hinge
+    loaded by the weight beyond it: the part beyond the pivot turns about ``ℓ × ĝ`` (ℓ the
+    link direction R_A p1 / |p1|, ĝ gravity in A's base frame, a random direction when None)
+    by an angle ``θ_max |ℓ × ĝ|`` (the torque of the weight), exactly (a finite rotation, not
+    its first order). ``sag_mm`` is the marker's displacement when the link is horizontal:
+    ``θ_max = sag / |p1 - pivot|``. Every marker turns about the pivot; B's orientation turns
+    with it (full_pose).
     """
 
     sag_mm: float
+    gravity: Optional[tuple] = None
+    pivot_share: Optional[float] = None
     stage = 'clean'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
-        """Move B's noise-free marker positions by R0 · sag(R_A)."""
+        """Turn B's noise-free markers (and orientation) about the pivot."""
         truth = context.truth
-        qa = context.true_streams[context.topic_a]
-        b0 = context.true_streams[context.topics_b[0]]
-        # A's orientation at B's stamps from the motion (exact), else nearest A sample
-        if context.motion is not None:
-            _, q_at_b = context.motion.pose((b0.stamps - np.int64(context.start_ns)) * 1e-9)
-        else:
-            i = np.clip(np.searchsorted(qa.stamps, b0.stamps), 0, len(qa) - 1)
-            q_at_b = qa.quat_wxyz[i]
+        g = (np.asarray(self.gravity, dtype=float) if self.gravity is not None
+             else _random_direction(rng))
+        g = g / np.linalg.norm(g)
+        share = float(rng.uniform(0.0, 0.7) if self.pivot_share is None else self.pivot_share)
         p1 = np.asarray(truth.p1, dtype=float)
-        ell = quat.to_matrix(q_at_b) @ (p1 / np.linalg.norm(p1))
-        ell = ell.reshape(-1, 3)
-        h = np.linalg.norm(np.cross(ell, GRAVITY_IN_A_BASE), axis=1)
-        sag_a = (self.sag_mm * 1e-3) * h[:, None] * GRAVITY_IN_A_BASE
-        sag_b = sag_a @ quat.to_matrix(truth.q0).T
+        pivot = share * p1
+        lever = np.linalg.norm(p1 - pivot)
+        theta_max = self.sag_mm * 1e-3 / max(lever, 1e-9)
+        q_a = _a_orientation_at_b(context)
+        Ra = quat.to_matrix(q_a)
+        ell = Ra @ (p1 / np.linalg.norm(p1))
+        axis = np.cross(ell, g)                        # |axis| = sin of the link's tilt
+        rotvec = theta_max * axis                      # angle θ_max |ℓ × ĝ| about ℓ × ĝ
+        Rf = quat.to_matrix(quat.exp(rotvec))
+        R0 = quat.to_matrix(truth.q0)
         out = dict(streams)
-        for t in context.topics_b:
-            out[t] = _replace_stream(streams[t], position=streams[t].position + sag_b)
+        for j, t in enumerate(context.topics_b):
+            arm = Ra @ (truth.markers[j] - pivot)      # pivot to marker, A's base frame
+            moved = np.einsum('nij,nj->ni', Rf, arm) - arm
+            s = streams[t]
+            changes = {'position': s.position + moved @ R0.T}
+            if j == 0 and _full_pose(context):
+                changes['quat_wxyz'] = quat.canonical(quat.multiply(
+                    quat.exp(rotvec @ R0.T), s.quat_wxyz))
+            out[t] = _replace_stream(s, **changes)
+        self._found.update(gravity_in_a_base=g.tolist(), pivot_share=share,
+                           tilt_max_rad=float(theta_max), lever_m=float(lever))
         return out
 
     def as_dict(self) -> dict:
-        """Describe the effect: ``sag_mm`` and the gravity direction in A's base frame."""
+        """Describe the effect: ``sag_mm``, gravity in A's base frame, pivot, largest tilt."""
         return {'name': 'link_flex', 'value': self.sag_mm, 'unit': EFFECT_UNITS['link_flex'],
-                'stage': self.stage, 'sag_mm': self.sag_mm,
-                'gravity_in_a_base': GRAVITY_IN_A_BASE.tolist()}
+                'stage': self.stage, 'sag_mm': self.sag_mm, **self._found}
 
 
 @dataclass(frozen=True)
@@ -511,7 +726,7 @@ _CLASSES = {
     'time_offset': TimeOffset, 'clock_drift': ClockDrift, 'timestamp_jitter': TimestampJitter,
     'field_distortion': FieldDistortion, 'distance_noise': DistanceNoise, 'scale': Scale,
     'link_flex': LinkFlex, 'outliers': Outliers, 'backlash': Backlash,
-    'noise_scale': NoiseScale,
+    'noise_scale': NoiseScale, 'non_stationary': NonStationary, 'shared_clock': SharedClock,
 }
 
 # accepted range of VALUE per effect: (low, high, low inclusive), for the error message
@@ -521,11 +736,12 @@ _RANGES = {
     'distance_noise': (-10.0, 10.0, True), 'scale': (-0.5, 0.5, True),
     'link_flex': (0.0, 100.0, True), 'outliers': (0.0, 1.0, True),
     'backlash': (0.0, 100.0, True), 'noise_scale': (0.0, 100.0, False),
+    'non_stationary': (0.0, 1000.0, True), 'shared_clock': (-10.0, 10.0, True),
 }
 
 
 def _accepted() -> str:
-    return ', '.join(f'{n}=<{EFFECT_UNITS[n].split(",")[0]}>' for n in EFFECT_NAMES)
+    return ', '.join(f'{n}=<{EFFECT_UNITS[n].split(",")[0]}>' for n in ALL_EFFECT_NAMES)
 
 
 def make_effect(name: str, value: Union[float, tuple]):
@@ -594,5 +810,6 @@ def parse_effect(text: str):
 _EXAMPLES = {
     'time_offset': '0.012', 'clock_drift': '100', 'timestamp_jitter': '0.005',
     'field_distortion': '5', 'distance_noise': '2', 'scale': '0.005', 'link_flex': '1',
-    'outliers': '0.02', 'backlash': '0.3', 'noise_scale': '2',
+    'outliers': '0.02', 'backlash': '0.3', 'noise_scale': '2', 'non_stationary': '3',
+    'shared_clock': '0.02',
 }

@@ -41,10 +41,6 @@ MOTION_EFFECTS = ('time_offset', 'clock_drift', 'timestamp_jitter', 'backlash')
 NESTED = (('time_offset', 'clock_drift'), ('noise_scale', 'distance_noise'),
           ('scale', 'field_distortion'))
 
-#: Gravity in A's base frame assumed by the link-flex model (A upright, z up).
-GRAVITY_IN_A_BASE = np.array([0.0, 0.0, -1.0])
-
-
 @dataclass
 class Context:
     """
@@ -117,74 +113,198 @@ class Scale(MeanEffect):
         return J @ theta, J
 
 
+def _cubic(u: np.ndarray) -> np.ndarray:
+    """Return the ten monomials of degree three of u (n, 3)."""
+    x, y, z = u[:, 0], u[:, 1], u[:, 2]
+    return np.stack([x ** 3, y ** 3, z ** 3, x * x * y, x * x * z, y * y * x, y * y * z,
+                     z * z * x, z * z * y, x * y * z], axis=1)
+
+
+def rigid_part(points: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """
+    Return the part of a displacement field a rigid registration absorbs, ``t + ω × p``.
+
+    Least squares over the points, first order in ω. Shapes (N, 3).
+    """
+    q = points - points.mean(axis=0)
+    n = len(points)
+    A = np.zeros((n, 3, 6))
+    A[:, :, 0:3] = np.eye(3)
+    A[:, 0, 4], A[:, 0, 5] = q[:, 2], -q[:, 1]
+    A[:, 1, 3], A[:, 1, 5] = -q[:, 2], q[:, 0]
+    A[:, 2, 3], A[:, 2, 4] = q[:, 1], -q[:, 0]
+    x, *_ = np.linalg.lstsq(A.reshape(3 * n, 6), d.reshape(-1), rcond=None)
+    return (A.reshape(3 * n, 6) @ x).reshape(n, 3)
+
+
 class FieldDistortion(MeanEffect):
     """
-    A smooth error field of B around its base: quadratic in the marker position.
+    A smooth error field of B: quadratic and cubic in the marker position.
 
-    ``d(p) = Θ_p · q(p / r)`` with q the six degree-two monomials and r the largest distance of
-    B's markers from B's base; for full pose also a rotation error ``Exp(Θ_r · q(p / r))`` on
-    the left of B's orientation (its metric is half of it). Zero at the source and curl-free
-    fields included; constant and linear parts are left to T0 (and to ``scale``).
+    ``d(p) = Θ_p · [q(u), c(u)]`` with ``u = (p - centre) / spread`` (the workspace's centre
+    and half-size), q the six degree-two and c the ten degree-three monomials: the cubic
+    terms follow the steep side of a field whose source (a dipole-like disturbance) lies near
+    the workspace. For full pose also a rotation error ``Exp(Θ_r · q(u))`` on the left of B's
+    orientation (its metric is half of it). Constant and linear parts are left to T0 (and to
+    ``scale``). Its size is reported as the part a rigid registration cannot absorb.
     """
 
     name = 'field_distortion'
+    per_axis = 16
 
     def setup(self, data):
-        """Fix the distance scale r."""
+        """Fix the centre and spread of the workspace and the dipole source's position."""
         pts = data.b_points.reshape(-1, 3)
-        self.r = float(np.max(np.linalg.norm(pts, axis=1)))
+        self.centre = pts.mean(axis=0)
+        self.spread = float(np.max(np.linalg.norm(pts - self.centre, axis=1))) or 1.0
         self.rot = data.spec.has_q1
-        self.n = 18 + (18 if self.rot else 0)
+        self.source = _dipole_source(data, self.centre, self.spread)
+        self.n_pos = 3 * self.per_axis + 3
+        self.n = self.n_pos + (21 if self.rot else 0)
+
+    def dipole(self, points: np.ndarray) -> np.ndarray:
+        """Field of a unit dipole moment along each axis at the source, (n, 3, 3), per m³."""
+        return _dipole_matrix(points - self.source) * (0.5 * self.spread) ** 3
 
     def basis(self, points: np.ndarray) -> np.ndarray:
-        """Degree-two monomials of points / r, shape (n, 6)."""
-        return _quadratic(points / self.r)
+        """Degree-two and degree-three monomials of the centred positions, shape (n, 16)."""
+        u = (points - self.centre) / self.spread
+        return np.concatenate([_quadratic(u), _cubic(u)], axis=1)
 
     def apply(self, ctx, theta):
         """Add the field at the model's marker positions."""
         n, k = ctx.f_pos.shape[:2]
         m = ctx.data.m
+        a = self.per_axis
         J = np.zeros((n, m, self.n))
         for j in range(k):
             q = self.basis(ctx.f_pos[:, j, :])
-            for a in range(3):
-                J[:, 3 * j + a, 6 * a:6 * a + 6] = q
+            for ax in range(3):
+                J[:, 3 * j + ax, a * ax:a * ax + a] = q
+            J[:, 3 * j:3 * j + 3, 3 * a:3 * a + 3] = self.dipole(ctx.f_pos[:, j, :])
         if self.rot:
-            q = self.basis(ctx.f_pos[:, 0, :])
-            for a in range(3):
-                J[:, 3 + a, 18 + 6 * a:24 + 6 * a] = 0.5 * q
+            q = _quadratic((ctx.f_pos[:, 0, :] - self.centre) / self.spread)
+            for ax in range(3):
+                J[:, 3 + ax, self.n_pos + 6 * ax:self.n_pos + 6 * ax + 6] = 0.5 * q
+            J[:, 3:6, self.n_pos + 18:self.n_pos + 21] = 0.5 * self.dipole(ctx.f_pos[:, 0, :])
         return J @ theta, J
 
     def field(self, points: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Position error (n, 3), m, at B positions (n, 3)."""
         q = self.basis(points)
-        return np.stack([q @ theta[6 * a:6 * a + 6] for a in range(3)], axis=1)
+        a = self.per_axis
+        poly = np.stack([q @ theta[a * ax:a * ax + a] for ax in range(3)], axis=1)
+        return poly + self.dipole(points) @ theta[3 * a:3 * a + 3]
+
+
+def _dipole_matrix(r: np.ndarray) -> np.ndarray:
+    """(3 r̂ r̂ᵀ - I) / |r|³ per row of r (n, 3): the field of a unit moment, (n, 3, 3)."""
+    dist = np.maximum(np.linalg.norm(r, axis=1), 1e-9)
+    rh = r / dist[:, None]
+    return (3.0 * rh[:, :, None] * rh[:, None, :] - np.eye(3)[None]) / dist[:, None, None] ** 3
+
+
+def _dipole_source(data, centre: np.ndarray, spread: float) -> np.ndarray:
+    """
+    Position of a dipole source that best explains the base residuals, from a grid around.
+
+    Candidates lie in 26 directions at 1.15-3 workspace radii from its centre. For each the
+    base position residuals are regressed on the dipole's field together with what the
+    calibration absorbs anyway (a translation, a small rotation and a scale about the
+    centre); the candidate leaving the least is kept. Far candidates give a smooth field the
+    polynomial terms hold already, so a poor pick costs little.
+    """
+    e = data.cache.get('base_errors')
+    pts = data.b_points[:, 0, :]
+    far = centre + np.array([0.0, 0.0, 3.0 * spread])
+    if e is None:
+        return far
+    step = max(1, len(pts) // 3000)
+    p = pts[::step]
+    y = e[::step, 0:3].reshape(-1)
+    q = (p - centre) / spread
+    n = len(p)
+    base = np.zeros((n, 3, 9))
+    base[:, :, 0:3] = np.eye(3)
+    base[:, 0, 4], base[:, 0, 5] = q[:, 2], -q[:, 1]
+    base[:, 1, 3], base[:, 1, 5] = -q[:, 2], q[:, 0]
+    base[:, 2, 3], base[:, 2, 4] = q[:, 1], -q[:, 0]
+    base[:, 0, 6], base[:, 1, 7], base[:, 2, 8] = q[:, 0], q[:, 1], q[:, 2]
+    grid = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                     if (i, j, k) != (0, 0, 0)], dtype=float)
+    grid /= np.linalg.norm(grid, axis=1, keepdims=True)
+
+    def residual(s):
+        A = np.concatenate([base, _dipole_matrix(p - s) * spread ** 3], axis=2)
+        A = A.reshape(3 * n, 12)
+        x, *_ = np.linalg.lstsq(A, y, rcond=None)
+        return y - A @ x
+
+    best, best_ss = far, np.inf
+    for d in grid:
+        for dist in (1.15, 1.4, 1.8, 3.0):
+            s = centre + dist * spread * d
+            ss = float(np.sum(residual(s) ** 2))
+            if ss < best_ss:
+                best, best_ss = s, ss
+    # refine (variable projection: the moment solved for at each trial source), kept
+    # outside the workspace's sphere so the basis never has a pole among the samples
+    from scipy.optimize import least_squares
+
+    def outside(s):
+        v = s - centre
+        r = np.linalg.norm(v)
+        return centre + v * max(r, 1.05 * spread) / max(r, 1e-12)
+
+    try:
+        res = least_squares(lambda s: residual(outside(s)), best, x_scale=spread,
+                            max_nfev=60, method='trf')
+        s = outside(res.x)
+        if float(np.sum(residual(s) ** 2)) < best_ss:
+            best = s
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+    return best
 
 
 class LinkFlex(MeanEffect):
     """
-    The marker sags by b along gravity (-z of A's base) times how horizontal the link is.
+    A link that pivots under gravity of unknown direction: the marker sags and tilts.
 
-    ``δp_B = b h R0 ĝ`` with ``h = |ℓ × ĝ|``, ℓ the direction of ``R_A p1`` (p1 the marker
-    offset in the tool frame), as a cantilever bends. θ = (b,), m. Its mean over the
-    recording is absorbed by p0: b is seen through the variation of h with the orientation.
+    With ℓ = R_A p1 / |p1| the link direction in A's base frame, a hinge on the link loaded
+    by the weight beyond it turns the marker by ``δθ = ℓ × w`` (w = θ_max ĝ: gravity's
+    direction times the largest tilt) and moves it by ``δp = (I - ℓ ℓᵀ) u`` (u = sag ĝ: the
+    displacement when the link is horizontal), both in A's base frame, carried into B's by
+    R0. Linear in θ = (u, w) (w for full pose only), m and rad; gravity's direction is
+    estimated with them (û). Their constant parts are absorbed by T0 and T1: they are seen
+    through how the tool's orientation changes the link's direction.
     """
 
     name = 'link_flex'
-    n = 1
+
+    def setup(self, data):
+        """Sag only, or sag and tilt (full pose)."""
+        self.rot = data.spec.has_q1
+        self.n = 3 + (3 if self.rot else 0)
 
     def apply(self, ctx, theta):
-        """Sag at the chunk's tool orientations."""
+        """Sag and tilt at the chunk's tool orientations."""
         p = ctx.params
         Ra = quat.to_matrix(ctx.quat_a)
         p1 = p.markers[0]
-        ell = Ra @ (p1 / max(np.linalg.norm(p1), 1e-9))
-        h = np.linalg.norm(np.cross(ell, GRAVITY_IN_A_BASE), axis=1)
-        g_b = p.R0 @ GRAVITY_IN_A_BASE
-        n = len(h)
-        J = np.zeros((n, ctx.data.m, 1))
+        ell = Ra @ (p1 / max(np.linalg.norm(p1), 1e-9))             # (n, 3)
+        n = len(ell)
+        proj = np.eye(3)[None] - ell[:, :, None] * ell[:, None, :]   # I - ℓℓᵀ
+        J = np.zeros((n, ctx.data.m, self.n))
+        sag = np.einsum('ij,njk->nik', p.R0, proj)
         for j in range(p.spec.n_markers):
-            J[:, 3 * j:3 * j + 3, 0] = h[:, None] * g_b
+            J[:, 3 * j:3 * j + 3, 0:3] = sag
+        if self.rot:
+            skew = np.zeros((n, 3, 3))
+            skew[:, 0, 1], skew[:, 0, 2] = -ell[:, 2], ell[:, 1]
+            skew[:, 1, 0], skew[:, 1, 2] = ell[:, 2], -ell[:, 0]
+            skew[:, 2, 0], skew[:, 2, 1] = -ell[:, 1], ell[:, 0]
+            J[:, 3:6, 3:6] = 0.5 * np.einsum('ij,njk->nik', p.R0, skew)
         return J @ theta, J
 
 

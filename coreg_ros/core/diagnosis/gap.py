@@ -27,8 +27,8 @@ TIME_BLOCKS = 10
 CELLS = 3
 #: A block or cell is "where the excess lies" when its mean excess per residual is at least
 #: this and this many times the median block's.
-LOCAL_EXCESS = 0.5
-LOCAL_RATIO = 4.0
+LOCAL_EXCESS = 0.2
+LOCAL_RATIO = 3.0
 #: An RMS that moved by less than this share did not move.
 RMS_MOVED = 0.02
 
@@ -186,17 +186,50 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
               'excess': b['excess'], 'stands_out': b['stands_out']} for b in cc['blocks']]
     hot_t = [b for b in time_blocks if b['stands_out']]
     hot_c = [c for c in cells if c['stands_out']]
-    total = float(np.sum(np.maximum(excess[sel], 0.0)))
 
-    def share(mask):
-        return float(np.sum(np.maximum(excess[sel][mask], 0.0)) / total) if total > 0 else 0.0
+    def share(blocks):
+        # block sums, not pair sums: a pair's own excess is mostly its noise
+        pos = [max(b['excess'], 0.0) * b['n'] for b in blocks]
+        hot = [max(b['excess'], 0.0) * b['n'] for b in blocks if b['stands_out']]
+        return float(sum(hot) / sum(pos)) if sum(pos) > 0 else 0.0
 
     hot_t_mask = np.isin(tb[sel], [b['label'] for b in ct['blocks'] if b['stands_out']])
     hot_c_mask = np.isin(cl[sel], [b['label'] for b in cc['blocks'] if b['stands_out']])
     # concentrated: the standing-out blocks (or cells) hold most of the excess while being
     # a minority of the pairs
-    conc_t = bool(hot_t and share(hot_t_mask) >= 0.5 and hot_t_mask.mean() <= 0.5)
-    conc_c = bool(hot_c and share(hot_c_mask) >= 0.5 and hot_c_mask.mean() <= 0.5)
+    conc_t = bool(hot_t and share(ct['blocks']) >= 0.5 and hot_t_mask.mean() <= 0.5)
+    by_place = 0.0
+    if conc_t:
+        # a stationary local error shows in time too when the motion visits its place at
+        # some times only: predict the hot blocks' excess from the same cells at other times
+        from scipy.spatial import cKDTree
+
+        ex, ps = excess[sel], pts[sel]
+        cold = ~hot_t_mask
+        pred = np.zeros(int(hot_t_mask.sum()))
+        seen = np.zeros(int(hot_t_mask.sum()), dtype=bool)
+        if cold.sum() >= 20:
+            # the nearest pairs recorded at other times, close by: same place, other time
+            radius = 0.1 * float(np.max(np.ptp(ps, axis=0)))
+            tree = cKDTree(ps[cold])
+            dist, nn = tree.query(ps[hot_t_mask], k=10, distance_upper_bound=radius)
+            ok = np.isfinite(dist)
+            seen = ok.sum(axis=1) >= 5
+            vals = np.where(ok, ex[cold][np.minimum(nn, cold.sum() - 1)], 0.0)
+            pred = np.where(seen, vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1), 0.0)
+        if seen.mean() < 0.5:
+            # the motion never came back to these places: time and place cannot be told
+            # apart, so nothing is claimed about time
+            pred = np.full(len(pred), np.inf)
+        else:
+            pred = pred[seen]
+            hot_idx = np.flatnonzero(hot_t_mask)[seen]
+            hot_t_mask = np.zeros_like(hot_t_mask)
+            hot_t_mask[hot_idx] = True
+        e_hot = float(ex[hot_t_mask].mean()) if hot_t_mask.any() else 0.0
+        by_place = float(min(pred.mean() / e_hot, 1e3)) if e_hot > 0 else 1.0
+        conc_t = by_place < 0.5
+    conc_c = bool(hot_c and share(cc['blocks']) >= 0.5 and hot_c_mask.mean() <= 0.5)
     parts = []
     if conc_t:
         parts.append('time ' + ', '.join(f'{b["from_s"]:.0f}-{b["to_s"]:.0f} s'
@@ -205,8 +238,9 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
         parts.append('workspace cells at ' + '; '.join(
             '[' + ', '.join(f'{v:.2f}' for v in c['centre_m']) + '] m' for c in hot_c[:4]))
     return {'time_blocks': time_blocks, 'cells': cells, 'concentrated_in_time': conc_t,
-            'concentrated_in_workspace': conc_c, 'share_in_time_blocks': share(hot_t_mask),
-            'share_in_cells': share(hot_c_mask), 'concentrated': conc_t or conc_c,
+            'concentrated_in_workspace': conc_c, 'explained_by_place': by_place,
+            'share_in_time_blocks': share(ct['blocks']),
+            'share_in_cells': share(cc['blocks']), 'concentrated': conc_t or conc_c,
             'text': '; '.join(parts)}
 
 

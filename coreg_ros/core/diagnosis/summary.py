@@ -165,9 +165,26 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
                 'text': 'per axis ' + ', '.join(f'{v * 100:+.3f}' for v in theta)
                         + f' % (± {np.max(sd) * 100:.3f} %)'}
     if name == 'link_flex':
-        b, s = float(theta[0]), float(sd[0])
-        return {'sag_mm': b * 1e3, 'sigma_mm': s * 1e3,
-                'text': f'{b * 1e3:.2f} ± {s * 1e3:.2f} mm sag'}
+        C = (cov[sl, sl] * infl) if cov is not None else np.full((len(theta),) * 2, np.nan)
+        u = theta[0:3]
+        b = float(np.linalg.norm(u))
+        g = u / b if b > 0 else np.array([0.0, 0.0, -1.0])
+        s = float(np.sqrt(max(g @ C[0:3, 0:3] @ g, 0.0)))
+        out = {'sag_mm': b * 1e3, 'sigma_mm': s * 1e3}
+        text = f'{b * 1e3:.2f} ± {s * 1e3:.2f} mm sag'
+        if len(theta) == 6:
+            w = theta[3:6]
+            tilt = float(np.linalg.norm(w))
+            gw = w / tilt if tilt > 0 else g
+            st = float(np.sqrt(max(gw @ C[3:6, 3:6] @ gw, 0.0)))
+            # gravity's direction from the better determined of the two vectors
+            if tilt / max(st, 1e-30) > b / max(s, 1e-30):
+                g = gw * np.sign(float(gw @ u)) if b > 0 else gw
+            out.update(tilt_deg=float(np.degrees(tilt)), sigma_tilt_deg=float(np.degrees(st)))
+            text += f', {np.degrees(tilt):.3f} ± {np.degrees(st):.3f} deg tilt'
+        out['gravity_in_a_base'] = g.tolist()
+        out['text'] = text + ' (gravity in A base ' + ', '.join(f'{v:+.2f}' for v in g) + ')'
+        return out
     if name == 'backlash':
         w = 2.0 * theta * 1e3
         ws = 2.0 * sd * 1e3
@@ -181,6 +198,7 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
         pts = model.data.b_points[:, 0, :]
         pts = pts[:: max(1, len(pts) // 2000)]
         size = _field_size(eff, pts, theta)
+        whole = _field_size(eff, pts, theta, rigid=False)
         draws = []
         if cov is not None:
             rng = np.random.default_rng(0)
@@ -193,7 +211,9 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
                 pass
         s = float(np.std([d[0] for d in draws])) if draws else float('nan')
         return {'max_mm': size[0], 'sigma_max_mm': s, 'rms_mm': size[1],
-                'text': f'{size[0]:.2f} ± {s:.2f} mm at most over the workspace'}
+                'whole_field_max_mm': whole[0],
+                'text': f'{size[0]:.2f} ± {s:.2f} mm at most beyond what a rigid registration '
+                        f'absorbs (whole field {whole[0]:.2f} mm)'}
     if name == 'noise_scale':
         f = float(np.exp(0.5 * var.log_s2))
         s = 0.5 * f * vsd('log_s2')
@@ -220,7 +240,12 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
     return {'text': ''}
 
 
-def _field_size(eff, pts: np.ndarray, theta: np.ndarray) -> tuple:
-    d = eff.field(pts, theta[:18])
+def _field_size(eff, pts: np.ndarray, theta: np.ndarray, rigid: bool = True) -> tuple:
+    """Largest and RMS size (mm) of the field, without its rigid part unless ``rigid``."""
+    from coreg_ros.core.diagnosis.effects import rigid_part
+
+    d = eff.field(pts, theta[:eff.n_pos])
+    if rigid:
+        d = d - rigid_part(pts, d)
     norm = np.linalg.norm(d, axis=1) * 1e3
     return float(norm.max()), float(np.sqrt(np.mean(norm ** 2)))

@@ -1,0 +1,82 @@
+"""Physical models real rigs need and non-stationary gaps (issue 11, items 3-5)."""
+
+import numpy as np
+import pytest
+
+from coreg_ros.core.diagnosis import diagnose_streams
+from coreg_ros.core.settings import Settings
+from coreg_ros.sim import simulate_recording
+from coreg_ros.sim.effect_library import (
+    FieldDistortion,
+    LinkFlex,
+    NonStationary,
+    SharedClock,
+    parse_effect,
+)
+
+
+def _report(effects, seed=5, duration=40.0, model='full_pose'):
+    rec = simulate_recording(seed, duration, model, effects=effects)
+    return rec, diagnose_streams(rec.stream_a, list(rec.streams_b), Settings(model=model)).report
+
+
+@pytest.mark.parametrize('seed', [5, 12])
+def test_pivoting_flex_with_any_gravity_is_named_link_flex(seed):
+    rng = np.random.default_rng(seed)
+    g = rng.standard_normal(3)
+    g /= np.linalg.norm(g)
+    rec, r = _report([LinkFlex(1.5, gravity=tuple(g))], seed=seed)
+    first = r['effects'][0]
+    assert first['name'] == 'link_flex' and first['kind'] == 'structured'
+    est = first['estimate']
+    assert est['sag_mm'] == pytest.approx(1.5, rel=0.2)
+    tilt = np.degrees(rec.truth.effects[0]['tilt_max_rad'])
+    assert est['tilt_deg'] == pytest.approx(tilt, rel=0.2)
+    # gravity's direction estimated (up to sign: sag and tilt only fix the axis)
+    cos = abs(float(np.dot(est['gravity_in_a_base'], g)))
+    assert cos > np.cos(np.radians(15))
+    assert r['gap_after']['rms_rotation_deg'] < 1.1 * r['gap_after']['stated_floor_rotation_deg']
+
+
+def test_dipole_field_followed_without_a_spurious_second_effect():
+    rec, r = _report([FieldDistortion(5.0, shape='dipole')])
+    names = [e['name'] for e in r['effects']]
+    assert names[0] == 'field_distortion' and 'outliers' not in names
+    est = r['effects'][0]['estimate']
+    # the size is the part a rigid registration cannot absorb, the whole field beside it
+    assert est['max_mm'] == pytest.approx(5.0, rel=0.2)
+    assert est['whole_field_max_mm'] >= est['max_mm']
+    assert r['gap_after']['share_of_excess_explained'] > 0.6
+
+
+def test_non_stationary_distortion_says_when_and_that_nothing_stationary_explains_it():
+    rec, r = _report([NonStationary(5.0, window=(0.5, 0.7))])
+    row = next(e for e in r['effects'] if e['name'] == 'non_stationary')
+    assert row['kind'] == 'structured'
+    text = row['estimate']['text']
+    assert ('no stationary effect explains it' in text
+            or 'structured/non-stationary error here' in text)
+    assert 'outliers' not in [e['name'] for e in r['effects']]
+    assert '20-24 s' in row['estimate']['where'] or '24-28 s' in row['estimate']['where']
+
+
+def test_a_stationary_field_is_not_called_non_stationary():
+    _, r = _report([parse_effect('field_distortion=4')])
+    assert 'non_stationary' not in [e['name'] for e in r['effects']]
+
+
+def test_shared_host_clock_gives_an_offset_and_never_a_drift():
+    rec, r = _report([SharedClock(0.016), NonStationary(4.0)])
+    names = [e['name'] for e in r['effects']]
+    assert names[0] == 'time_offset' and 'clock_drift' not in names
+    assert r['effects'][0]['estimate']['tau_s'] == pytest.approx(0.016, abs=5e-4)
+    lat = r['stamps']['devices'][1]['latency']
+    assert lat is not None and lat['median_s'] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_real_drift_is_kept_with_its_per_block_trend():
+    _, r = _report([parse_effect('clock_drift=300')])
+    row = r['effects'][0]
+    assert row['name'] == 'clock_drift'
+    check = row['per_block_offsets']
+    assert check['accepted'] and check['trend_ppm'] == pytest.approx(300, rel=0.35)
