@@ -17,7 +17,7 @@ setup(
     ],
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML',
-                      'ruamel.yaml'],
+                      'ruamel.yaml', 'rich>=13'],
     extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib']},
     zip_safe=True,
     maintainer='coreg_ros developers',

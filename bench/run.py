@@ -245,6 +245,8 @@ def main(argv=None) -> int:
                              '(the 60k-pair diagnosis timing always runs)')
     parser.add_argument('--no-diagnosis', action='store_true', help='skip the diagnosis timing')
     parser.add_argument('--no-profile', action='store_true')
+    parser.add_argument('--watchdog-hours', type=float, default=72.0,
+                        help='stable hours simulated for the watchdog false-alarm rate (0: skip)')
     parser.add_argument('--readme', type=Path, help='also write the markdown tables here')
     args = parser.parse_args(argv)
     started = time.perf_counter()
@@ -289,6 +291,9 @@ def main(argv=None) -> int:
                  jobs=2, timing=True)
     if not args.no_mc:
         _section(results, 'montecarlo', mc.run_all, args.mc_scale, args.mc_workers, log=log)
+    if args.watchdog_hours > 0:
+        from bench import watchdog_bench
+        _section(results, 'watchdog', watchdog_bench.run, args.watchdog_hours)
     results['total_seconds'] = time.perf_counter() - started
 
     tables = ['### Estimators (full pose, default noise; ours vs scipy.optimize.least_squares)',
@@ -298,6 +303,9 @@ def main(argv=None) -> int:
     if isinstance(mc_reports, list):
         tables += [f'### Monte Carlo (fixed truth and motion, noise redrawn per trial; '
                    f'scale {args.mc_scale:g})', '', mc.markdown_table(mc_reports), '']
+    if isinstance(results.get('watchdog'), dict):
+        tables += ['### Watchdog (stable streams and steps at 100 Hz)', '',
+                   results['watchdog']['table'], '']
     target_md, target_rows = targets_table(rows, results)
     results['targets'] = target_rows
     tables += ['### Targets', '', target_md, '']

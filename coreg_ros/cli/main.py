@@ -178,10 +178,13 @@ def cmd_simulate(args) -> int:
         kwargs['sigma_a'] = tuple(args.sigma_a)
     if args.sigma_b:
         kwargs['sigma_b'] = tuple(args.sigma_b)
+    from coreg_ros.sim.changes import apply_changes, parse_change
     from coreg_ros.sim.effect_library import parse_effect
     effects = [parse_effect(text) for text in args.effect or ()]
+    changes = [parse_change(text) for text in args.change or ()]
     rec = simulate_recording(args.seed, args.duration, args.model, rate_a=args.rate_a,
                              rate_b=args.rate_b, motion=args.motion, effects=effects, **kwargs)
+    rec = apply_changes(rec, changes, seed=args.seed)
     write_pose_bag(args.out_bag, rec.streams, storage=args.storage)
     truth_path = truth_path_for(args.out_bag)
     truth = rec.truth.as_dict()
@@ -243,11 +246,17 @@ def build_parser() -> argparse.ArgumentParser:
                         'clock_drift=100 (ppm), timestamp_jitter=0.005 (s), '
                         'field_distortion=5 (mm), distance_noise=4 (exponent), scale=0.005, '
                         'link_flex=1 (mm), outliers=0.02, backlash=0.3 (mm), noise_scale=2')
+    p.add_argument('--change', action='append', metavar='SPEC',
+                   help='a change mid-recording (repeatable; TIME in s from the start): '
+                        "t0_step=2mm@30 (A's base moves in B's base), t1_step=0.5deg@30 (the "
+                        'marker slips on the tool), t0_step=1mm+0.2deg:z@45 (sizes add; axis '
+                        "optional, else random), clock_step=0.01@30 (B's clock jumps, s or ms), "
+                        "noise_step=2@30 (B's noise × 2)")
     p.set_defaults(func=cmd_simulate)
 
     # the other front ends add their own subcommands (each imports its heavy parts lazily)
-    from coreg_ros.cli import convert, diagnose, plan, ros_commands
-    for module in (diagnose, convert, plan, ros_commands):
+    from coreg_ros.cli import convert, diagnose, plan, ros_commands, watch
+    for module in (diagnose, convert, plan, ros_commands, watch):
         module.register(sub)
     return parser
 
