@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from coreg_ros.bag.posebag import write_pose_bag
 from coreg_ros.cli.diagnose import draw_case, summarize_validation, validate
@@ -51,6 +52,8 @@ def test_draw_case_ranges():
     for c in cases:
         if c['effect']:
             parse_effect(c['spec'])  # every drawn effect is valid for the simulator
+            if c['second']:
+                parse_effect(c['second']['spec'])
             assert c['size'] in ('small', 'medium', 'large')
 
 
@@ -59,7 +62,9 @@ def test_validate_tiny(tmp_path):
     s = out['summary']
     assert s['cases'] == 2
     cm = s['confusion_matrix']
-    assert len(cm['counts']) == 11 and len(cm['counts'][0]) == 12
+    # truths: none, the ten effects, non_stationary, shared_clock; answers add
+    # non_stationary and not_separable
+    assert len(cm['counts']) == 13 and len(cm['counts'][0]) == 13
     assert sum(map(sum, cm['counts'])) == 2
     for r in out['results']:
         assert r['effect'] is None or r['spec']
@@ -69,18 +74,39 @@ def test_validate_tiny(tmp_path):
 
 def test_summary_counts_not_separable_apart():
     base = {'gap_after': {'position_rms_to_floor': 1.0}, 'gap_detected': True, 'seconds': 1.0,
-            'named': ['time_offset'], 'value': 0.01}
+            'named': ['time_offset'], 'value': 0.01, 'size_ratio': 1.05,
+            'kinds': ['structured']}
     results = [
-        dict(base, effect='time_offset', size='large', outcome='time_offset'),
-        dict(base, effect='backlash', size='large', outcome='not_separable'),
-        dict(base, effect='scale', size='medium', outcome='none', named=[], value=0.01),
+        dict(base, effect='time_offset', size='large', outcome='time_offset', correct=True),
+        dict(base, effect='backlash', size='large', outcome='not_separable', correct=False),
+        dict(base, effect='scale', size='medium', outcome='none', named=[], value=0.01,
+             correct=False, size_ratio=None),
         dict(base, effect=None, size=None, outcome='none', named=[], gap_detected=False,
-             value=None),
+             value=None, correct=False),
+        dict(base, effect='noise_scale', size='large', outcome='outliers', named=['outliers'],
+             value=2.0, correct=False, size_ratio=None),
     ]
     s = summarize_validation(results)
-    assert s['medium_large_named_correctly_share'] == 0.5
+    assert s['medium_large_named_correctly_share'] == pytest.approx(1 / 3)
     assert s['medium_large_not_separable'] == 1
     assert s['false_alarm_rate_clean'] == 0.0
+    # a noise truth answered with a structured effect is counted
+    assert s['noise_reported_as_structured'] == 1 and s['noise_cases'] == 1
+    assert s['size_accuracy_medium_large']['time_offset']['within_20pct'] == 1.0
+
+
+def test_two_effect_cases_and_size_ratios():
+    from coreg_ros.cli.diagnose import _size_ratio
+    rng = np.random.default_rng(4)
+    cases = [draw_case(rng) for _ in range(300)]
+    two = [c for c in cases if c['second']]
+    assert 20 < len(two) < 80
+    assert all(c['second']['effect'] != c['effect'] for c in two)
+    assert any(c['effect'] == 'timestamp_jitter' and c['kwargs']['gaps'] for c in cases)
+    assert any(c['effect'] == 'time_offset' and abs(c['value']) >= 0.1 for c in cases)
+    assert _size_ratio('noise_scale', {'factor': 2.0}, 2.0) == pytest.approx(1.0)
+    assert _size_ratio('scale', {'scale': [0.02, 0, 0]}, [0.01, 0, 0]) == pytest.approx(2.0)
+    assert _size_ratio('non_stationary', {'where': ''}, 3.0) is None
 
 
 def test_validate_command(tmp_path, capsys, monkeypatch):
