@@ -83,3 +83,14 @@ def test_large_offset_found_by_the_coarse_search_beside_another_error(tau):
     # the gap before is measured at the offset the user gave (none)
     assert r['gap_before']['chi2_per_dof_at_stated_noise'] > 50
     assert r['gap_after']['share_of_excess_explained'] > 0.9
+
+
+def test_stamps_rounded_to_milliseconds_are_not_jitter():
+    # a CSV export in ms: a 30 Hz device's intervals alternate 33 and 34 ms
+    t = np.round(np.arange(2000) * (1e9 / 30.0) / 1e6).astype(np.int64) * 1_000_000
+    rep = stamp_timing(_stream(t), 'B')
+    assert rep['quantum_s'] == pytest.approx(1e-3)
+    assert not rep['jittered'] and 'rounded to 1 ms' in rep['text']
+    rng = np.random.default_rng(1)
+    noisy = t + np.round(rng.normal(0, 2e-3, t.size) * 1e3).astype(np.int64) * 1_000_000
+    assert stamp_timing(_stream(np.sort(noisy)), 'B')['jittered']

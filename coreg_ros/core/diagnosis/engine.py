@@ -704,7 +704,7 @@ def _stamp_rows(stamps: dict, rows: list) -> None:
         rows.append(row)
     else:
         # a noise answer ahead of it was the jitter seen through the residuals
-        rows[:] = [row] + [r for r in rows if r['name'] != 'noise_scale']
+        rows[:] = [row] + rows
 
 
 def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) -> dict:
@@ -745,7 +745,8 @@ def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) 
     emap = gp.excess_map(data, after.quad, counted)
     out['map'] = emap
     ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
-    if (emap['concentrated_in_time'] and ex_after > 0.02
+    stated_excess = gap_after['chi2_per_dof_at_stated_noise'] - 1.0
+    if (emap['concentrated_in_time'] and ex_after > 0.02 and stated_excess > 0.02
             and not any(r['name'] == 'non_stationary' for r in rows)):
         rows.append({'name': 'non_stationary', 'kind': 'structured',
                      'estimate': {'where': emap['text'],
@@ -824,6 +825,10 @@ def _verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
                 f'than stated ({"; ".join(parts)}); nothing is explained, the noise is '
                 f'described: {numbers}')
     verb = 'gap explained by' if share >= 0.5 else 'gap partly explained by'
+    if before['chi2_per_dof_at_stated_noise'] < 1.05:
+        # nothing in excess of the stated noise: an effect can be real without a gap
+        return (f'found {"; ".join(parts)}; the recording is within the stated noise, so '
+                f'there is no excess to explain: {numbers}')
     if share < 0.05:
         verb = 'effects found but the gap did not shrink:'
     return f'{verb} {"; ".join(parts)} ({share * 100:.0f} % of the excess): {numbers}'

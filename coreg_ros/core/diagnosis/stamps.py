@@ -63,6 +63,18 @@ def _phase_period(stamps: np.ndarray, guess: float) -> tuple[float, float]:
     return p2, float(sigma)
 
 
+def _quantum(stamps: np.ndarray) -> float:
+    """Largest power of ten (s, 1 ns to 1 s) all stamps are multiples of, from the first."""
+    rel = stamps - stamps[0]
+    q = 0.0
+    for k in range(1, 10):
+        if np.all(rel % (10 ** k) == 0):
+            q = 10.0 ** k * 1e-9
+        else:
+            break
+    return q
+
+
 def stamp_timing(stream: PoseStream, device: str) -> dict:
     """
     Interval statistics, drops, gaps, backward and duplicate stamps of one device.
@@ -121,14 +133,28 @@ def stamp_timing(stream: PoseStream, device: str) -> dict:
         dropped = int(np.sum(k[regular] - 1.0))
     t_rel = (stamps[1:][d > 0] - stamps[0]).astype(float) * 1e-9
     gaps = [[float(t_rel[i] - pos[i]), float(pos[i])] for i in np.flatnonzero(gap)]
+    quantum = _quantum(stamps)
+    floor = max(JITTER_MIN_S, JITTER_MIN_SHARE * nominal)
+    if quantum >= 1e-6 and not irregular:
+        # stamps rounded to a quantum (CSV exports in ms): intervals take a few values and
+        # the median absolute deviation says little; the rounding itself scatters each stamp
+        # by q/√12, which is not jitter
+        # intervals under half a period are bunched samples, counted apart, not scatter
+        r = (pos - k * nominal)[regular & (pos >= 0.5 * nominal)]
+        lo, hi = np.percentile(r, [1, 99])
+        scatter = float(np.std(r[(r >= lo) & (r <= hi)]))
+        floor = max(floor, 1.5 * quantum / np.sqrt(12.0))
     jitter = scatter / np.sqrt(2.0)
-    jittered = bool(jitter > max(JITTER_MIN_S, JITTER_MIN_SHARE * nominal))
+    jittered = bool(jitter > floor)
     out.update(nominal_interval_s=nominal, nominal_rate_hz=1.0 / nominal,
                interval_scatter_s=float(scatter), stamp_jitter_s=float(jitter),
-               jittered=jittered, irregular=bool(irregular), dropped=dropped,
+               jittered=jittered, irregular=bool(irregular), quantum_s=quantum,
+               bunched=int(np.sum(pos < 0.5 * nominal)) if not irregular else 0,
+               dropped=dropped,
                drop_share=float(dropped / max(n + dropped, 1)), gaps=gaps)
     rec = stream.receive_stamps
-    if rec is not None and len(rec) == n:
+    if rec is not None and len(rec) == n and not np.array_equal(rec, stamps):
+        # (receive stamps equal to the header stamps carry no receive time)
         lat = (np.asarray(rec, dtype=np.int64) - stamps).astype(float) * 1e-9
         out['latency'] = {'median_s': float(np.median(lat)), 'sigma_s': _robust_sd(lat),
                           'min_s': float(lat.min()), 'max_s': float(lat.max()),
@@ -140,6 +166,8 @@ def stamp_timing(stream: PoseStream, device: str) -> dict:
 def _text(t: dict) -> str:
     parts = [f'{t["nominal_rate_hz"]:.2f} Hz nominal, interval scatter '
              f'{t["interval_scatter_s"] * 1e3:.4f} ms']
+    if t.get('quantum_s', 0.0) >= 1e-6:
+        parts.append(f'stamps rounded to {t["quantum_s"] * 1e3:g} ms')
     if t['jittered']:
         parts.append(f'stamp jitter {t["stamp_jitter_s"] * 1e3:.3f} ms'
                      + (' or more (stamps reordered: read from the residuals)'
@@ -149,6 +177,8 @@ def _text(t: dict) -> str:
     if t['gaps']:
         longest = max(g[1] for g in t['gaps'])
         parts.append(f'{len(t["gaps"])} gaps (longest {longest:.2f} s)')
+    if t.get('bunched'):
+        parts.append(f'{t["bunched"]} intervals under half a period')
     if t['backward'] or t['duplicate']:
         parts.append(f'{t["backward"]} backward and {t["duplicate"]} duplicate stamps')
     if t['latency'] is not None:
