@@ -72,15 +72,30 @@ def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
     from coreg_ros.bag.posebag import write_pose_bag
     from coreg_ros.core.errors import BagError
+    from coreg_ros.ros.persistence import SampleJournal, read_journal
     from coreg_ros.ros.tools import RosSession, record_streams
 
     out = Path(args.out_bag)
-    if out.exists():
-        raise BagError(f'{str(out)!r} exists already; choose a new bag name')
-    with RosSession('coreg_record') as session:
-        streams = record_streams(session, args.topics, duration=args.duration)
+    partial = out.with_name(out.name + '.partial')
+    if args.recover:
+        if not partial.is_dir():
+            raise BagError(f'no interrupted recording at {partial}; nothing to recover')
+        streams = read_journal(partial, args.topics)
+    else:
+        if out.exists():
+            raise BagError(f'{str(out)!r} exists already; choose a new bag name')
+        if partial.exists():
+            raise BagError(f'{partial} holds an interrupted recording; recover it with coreg '
+                           f'record {out} --topics ... --recover, or delete it')
+        # written as it goes (a killed recorder loses at most a second), merged at the end
+        journal = SampleJournal(partial, storage='mcap')
+        print(f'recording to {out} (written as it goes to {partial})')
+        with RosSession('coreg_record') as session:
+            streams = record_streams(session, args.topics, duration=args.duration,
+                                     on_flush=journal.append, flush_period=1.0)
     n = {t: len(s) for t, s in streams.items()}
     write_pose_bag(out, streams, storage=args.storage)
+    SampleJournal(partial).remove()
     print(f'wrote {out}: ' + ', '.join(f'{t} {k}' for t, k in n.items()))
     return 0
 
@@ -133,6 +148,9 @@ def register(subparsers) -> None:
     p.add_argument('--topics', nargs='+', required=True, help='PoseStamped topics')
     p.add_argument('--duration', type=positive, help='seconds (default: until Ctrl-C)')
     p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    p.add_argument('--recover', action='store_true',
+                   help='write OUT_BAG from the samples an interrupted recording left in '
+                        'OUT_BAG.partial')
     p.set_defaults(func=cmd_record)
 
     p = subparsers.add_parser('call', help='call a coreg_node service and print the answer')

@@ -248,12 +248,18 @@ def _auto_qos(node: Node, topic: str) -> QoSProfile:
 
 def record_streams(session: RosSession, topics: Iterable[str], *,
                    duration: Optional[float] = None, wait_publishers: float = 2.0,
-                   log: Callable[[str], None] = print) -> dict[str, PoseStream]:
+                   log: Callable[[str], None] = print,
+                   on_flush: Optional[Callable[[dict], None]] = None,
+                   flush_period: float = 0.5) -> dict[str, PoseStream]:
     """
     Record PoseStamped topics until ``duration`` (s) has passed or the session shuts down.
 
     The QoS follows the publishers found within ``wait_publishers`` seconds (reliable if all
     are reliable); the record time (receive time, ns) goes to ``receive_stamps``.
+
+    ``on_flush(streams)``, when given, receives the samples that arrived since its last call
+    every ``flush_period`` seconds and once at the end (so a caller can write them as they
+    arrive: a killed recorder then loses at most one period).
 
     Returns
     -------
@@ -282,18 +288,36 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
             for t in topics]
     log(f'recording {", ".join(topics)}'
         + (f' for {duration:g} s' if duration else ' until Ctrl-C'))
-    session.spin_until(lambda: False, duration)
+    flushed = {t: 0 for t in topics}
+
+    def flush() -> None:
+        new = {t: _rows_stream(rows[t][flushed[t]:], frames.get(t, '')) for t in topics}
+        for t in topics:
+            flushed[t] += len(new[t])
+        on_flush(new)
+
+    end = math.inf if duration is None else time.monotonic() + duration
+    while session.ok():
+        left = end - time.monotonic()
+        if left <= 0:
+            break
+        session.spin_until(lambda: False, min(left, flush_period) if on_flush else left)
+        if on_flush:
+            flush()
     for s in subs:
         node.destroy_subscription(s)
-    streams = {}
-    for t in topics:
-        table = np.array(rows[t], dtype=float).reshape(-1, 9)
-        stamps = np.array([r[0] for r in rows[t]], dtype=np.int64)
-        recv = np.array([r[8] for r in rows[t]], dtype=np.int64)
-        streams[t] = PoseStream(stamps=stamps, position=table[:, 1:4].copy(),
-                                quat_wxyz=table[:, 4:8].copy(), frame_id=frames.get(t, ''),
-                                receive_stamps=recv)
-    return streams
+    if on_flush:
+        flush()
+    return {t: _rows_stream(rows[t], frames.get(t, '')) for t in topics}
+
+
+def _rows_stream(rows: list, frame_id: str) -> PoseStream:
+    """PoseStream of received rows (stamp, x y z, w x y z, receive time)."""
+    table = np.array(rows, dtype=float).reshape(-1, 9)
+    return PoseStream(stamps=np.array([r[0] for r in rows], dtype=np.int64),
+                      position=table[:, 1:4].copy(), quat_wxyz=table[:, 4:8].copy(),
+                      frame_id=frame_id,
+                      receive_stamps=np.array([r[8] for r in rows], dtype=np.int64))
 
 
 # --- call, echo, diagnostics -----------------------------------------------------------------
