@@ -117,6 +117,7 @@ class Outcome:
     command: str = ''
     tail: str = ''
     info: dict = field(default_factory=dict)
+    fault: str = ''
 
     def fail(self, verdict: str, why: str, command: str = '', output: str = '') -> None:
         """Record a failure; the first traceback, else hang, else wrong one is kept."""
@@ -124,6 +125,39 @@ class Outcome:
         if rank[verdict] < rank[self.verdict]:
             self.verdict, self.why, self.command = verdict, why, command
             self.tail = _tail(output)
+            self.fault = fault_key(self.kind, verdict, why, output)
+
+
+def _exception_name(output: str) -> str:
+    """Class name of the exception a traceback in ``output`` ends with ('' if none)."""
+    lines = output.splitlines()
+    starts = [i for i, ln in enumerate(lines) if ln.startswith('Traceback (most recent')]
+    for ln in lines[starts[-1] + 1:] if starts else ():
+        if ln and not ln[0].isspace():
+            return ln.split(':', 1)[0].rsplit('.', 1)[-1].strip()
+    return ''
+
+
+def fault_key(kind: str, verdict: str, why: str, output: str) -> str:
+    """
+    A short stable name of the fault behind a failure, to group failures and to tell known ones.
+
+    E.g. ``signal-during-imports``, ``swapped-topics-unwarned``,
+    ``node-traceback:InvalidParameterTypeException``, ``refusal-not-one-line:RuntimeWarning``.
+    """
+    if why.startswith(STARTUP_WHY):
+        return 'signal-during-imports'
+    if why.startswith('topics swapped'):
+        return 'swapped-topics-unwarned'
+    if why.startswith('node refusal'):
+        return 'node-refusal-not-one-line'
+    if 'not one line' in why:
+        return 'refusal-not-one-line' + (':RuntimeWarning' if 'RuntimeWarning' in output
+                                         else '')
+    if verdict == 'traceback':
+        who = 'node' if 'node' in why else kind
+        return f'{who}-traceback:{_exception_name(output) or "?"}'
+    return f'{kind}-{verdict}:' + ' '.join(w for w in why.split()[:4] if w.isalpha())
 
 
 def _tail(text: str, lines: int = 8, chars: int = 1200) -> str:
@@ -280,9 +314,9 @@ def _startup_interrupt(text: str) -> bool:
     ``KeyboardInterrupt`` and passes through module imports (``in <module>`` below the entry
     script) or ``build_parser`` (which imports the subcommands).
     """
+    if _exception_name(text) not in ('KeyboardInterrupt', 'ImportError'):
+        return False   # (a C extension interrupted while loading: 'initialization failed')
     lines = [ln.strip() for ln in text.strip().splitlines()]
-    if 'Traceback (most recent call last):' not in lines or not lines[-1] == 'KeyboardInterrupt':
-        return False
     start = len(lines) - 1 - lines[::-1].index('Traceback (most recent call last):')
     frames = [ln for ln in lines[start:] if ln.startswith('File ')]
     return any(f.endswith(('in <module>', 'in build_parser', 'in _find_and_load'))
@@ -1045,7 +1079,7 @@ def _signal_job(case: dict, workdir: Path) -> dict:
 
 
 #: Start of the reason given for a traceback on a signal during the imports.
-STARTUP_WHY = 'KeyboardInterrupt traceback during start-up imports'
+STARTUP_WHY = 'traceback of a signal during the start-up imports'
 
 
 def _traceback_why(who: str, output: str) -> str:
@@ -1222,10 +1256,18 @@ def run(n_per_kind: int, seed: int, *, with_ros: bool = True, log=print,
                 row['false_warnings'] = sum(bool(o.info.get('false_warning')) for o in outs)
                 row['caught_misstatements'] = sum(
                     1 for o in outs if ' told ' in o.desc and o.verdict != 'wrong')
+            faults = {}
+            for o in outs:
+                if o.verdict != 'ok':
+                    faults[o.fault] = faults.get(o.fault, 0) + 1
+            row['faults'] = faults
             results['kinds'][kind] = row
-            failing = sorted((o for o in outs if o.verdict != 'ok'),
-                             key=lambda o: bool(o.info.get('startup_interrupt')))
-            results['failures'] += [_public(o) for o in failing[:SHOWN]]
+            failing = [o for o in outs if o.verdict != 'ok']
+            first = {}
+            for o in failing:           # the first input of each fault, then the others
+                first.setdefault(o.fault, o)
+            shown = list(first.values()) + [o for o in failing if o not in first.values()]
+            results['failures'] += [_public(o) for o in shown[:SHOWN]]
         results['disagreement_examples'] = [
             {'index': o.index, 'desc': o.desc, 'cli_accepts': o.info.get('cli_accepts'),
              'node_accepts': o.info.get('node_accepts'), 'file': o.info.get('file')}
@@ -1265,9 +1307,15 @@ def table(results: dict) -> str:
     t = results['totals']
     lines.append(f'| **all** | {t["tried"]} | {t["traceback"]} | {t["hang"]} | {t["wrong"]} '
                  f'| seed {results["seed"]} | {results["seconds"]:.0f} s |')
+    if any(r.get('faults') for r in results['kinds'].values()):
+        lines += ['', 'faults (inputs):']
+    for kind, r in results['kinds'].items():
+        for key, count in sorted(r.get('faults', {}).items()):
+            lines.append(f'- {kind}: {key}: {count} input(s)')
     for f in results['failures']:
-        lines += ['', f'- {f["kind"]} seed {f["seed"]} index {f["index"]}: **{f["verdict"]}**: '
-                      f'{f["why"]}', f'  input: {f["desc"]}', f'  command: {f["command"]}']
+        lines += ['', f'- {f["kind"]} seed {f["seed"]} index {f["index"]}: **{f["verdict"]}** '
+                      f'({f["fault"]}): {f["why"]}', f'  input: {f["desc"]}',
+                  f'  command: {f["command"]}']
         lines += ['    ' + ln for ln in f['tail'].splitlines()]
     for d in results.get('disagreement_examples', []):
         lines += ['', f'- params index {d["index"]} ({d["desc"]}): CLI '
