@@ -296,8 +296,8 @@ def test_shared_clock_restamps_both_devices_without_drift(base):
     # constant: no trend over the recording
     half = len(db) // 2
     assert abs(np.median(db[:half]) - np.median(db[half:])) < 1e-5
-    assert np.array_equal(a.receive_stamps, a.stamps)
-    assert np.array_equal(b.receive_stamps, b.stamps)
+    lag = (b.receive_stamps - b.stamps) * 1e-9
+    assert np.all(lag >= 0) and np.median(lag) == pytest.approx(0.3e-3 * np.log(2), rel=0.2)
 
 
 def test_jitter_with_gaps_of_seconds(base):

@@ -430,8 +430,8 @@ class SharedClock:
     Both devices stamped on receipt by one host clock: a constant offset, never a drift.
 
     Header stamps = true sample time + the device's transport latency + a small positive
-    host scheduling delay (exponential, mean ``host_jitter_s``); the receive stamps carry the
-    same host times. ``latency_s`` is B's latency minus A's (A's is drawn in 1-5 ms): the
+    host scheduling delay (exponential, mean ``host_jitter_s``); the recorder's receive stamps
+    follow by an exponential 0.3 ms on average. ``latency_s`` is B's latency minus A's (A's is drawn in 1-5 ms): the
     offset the diagnosis should find (B stamped late by it), with no drift at all.
     """
 
@@ -456,7 +456,10 @@ class SharedClock:
             keep = np.ones(len(order), dtype=bool)
             keep[1:] = np.diff(stamps[order]) > 0
             idx = order[keep]
-            out[topic] = _select(_replace_stream(s, stamps=stamps, receive_stamps=stamps),
+            # the recorder receives each message a little after the driver stamped it
+            receive = stamps + np.round(rng.exponential(3e-4, len(stamps)) * 1e9).astype(
+                np.int64)
+            out[topic] = _select(_replace_stream(s, stamps=stamps, receive_stamps=receive),
                                  idx)
         self._found.update(latency_a_s=float(lat_a))
         return out

@@ -548,22 +548,34 @@ def _coarse_shift(stream_a, streams_b, settings, pairs, options) -> float:
         cands = coarse_offsets(stream_a, streams_b, angular=angular)
     except (ValueError, np.linalg.LinAlgError):
         return 0.0
-    far = [tau for tau, _ in cands if abs(tau - settings.time_offset) > COARSE_MIN_S]
-    if not far or len(pairs) < 50:
+    if not cands or abs(cands[0][0] - settings.time_offset) <= COARSE_MIN_S or len(pairs) < 50:
+        # the speeds correlate best near the given offset: the fine fit takes it from there
         return 0.0
+    far = [tau for tau, _ in cands[:2] if abs(tau - settings.time_offset) > COARSE_MIN_S]
+
+    def thin(p):
+        # the comparison needs a few thousand pairs, not all
+        step = max(1, len(p) // 4000)
+        if step == 1:
+            return p
+        return Pairs(stamps=p.stamps[::step], pos_a=p.pos_a[::step], quat_a=p.quat_a[::step],
+                     pos_b=p.pos_b[::step],
+                     quat_b=None if p.quat_b is None else p.quat_b[::step],
+                     a_var_scale=None if p.a_var_scale is None else p.a_var_scale[::step])
+
     with single_blas_thread():
         try:
-            here = calibrate(pairs, settings.updated(robust=False))
+            here = calibrate(thin(pairs), settings.updated(robust=False))
         except Exception:  # noqa: BLE001 - a refusal at the given offset: try the other
             here = None
         best, best_chi = 0.0, here.chi2 / max(here.dof, 1) if here is not None else np.inf
-        for tau in far[:2]:
+        for tau in far:
             moved = settings.updated(time_offset=tau)
             p2, _ = pair_for(stream_a, streams_b, moved)
             if len(p2) < max(50, 0.5 * len(pairs)):
                 continue
             try:
-                res = calibrate(p2, moved.updated(robust=False))
+                res = calibrate(thin(p2), moved.updated(robust=False))
             except Exception:  # noqa: BLE001 - unobservable or too few: not this one
                 continue
             chi = res.chi2 / max(res.dof, 1)

@@ -105,7 +105,10 @@ class Model:
         L_b = np.linalg.cholesky(data.cov_b)
         self.W_b = np.linalg.inv(L_b)
         pts = data.b_points
-        r = np.linalg.norm(pts, axis=2).mean(axis=1)
+        if 'noise_source' not in data.cache:
+            data.cache['noise_source'] = vm.noise_source(data)
+        self.source = data.cache['noise_source']
+        r = np.linalg.norm(pts - self.source, axis=2).mean(axis=1)
         self.log_g = np.log(np.maximum(r, 1e-9) / max(float(np.median(r)), 1e-9))
 
     @property

@@ -223,6 +223,7 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
         edge = float((r.max()) ** var.k)
         return {'exponent': float(var.k), 'sigma': vsd('k'),
                 'edge_to_centre': edge, 'level': float(np.exp(0.5 * var.log_c)),
+                'source_m': [float(v) for v in model.source],
                 'text': f'exponent {var.k:.2f} ± {vsd("k"):.2f} (edge/centre σ × {edge:.2f})'}
     if name == 'timestamp_jitter':
         sig = float(np.sqrt(var.beta))

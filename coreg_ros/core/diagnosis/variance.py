@@ -315,3 +315,59 @@ def weights(var: VarState, st: PairStats):
     lam2 = np.exp(2.0 * var.log_lam)
     w = p_in + (1.0 - p_in) / lam2
     return D, c, w
+
+
+def noise_source(data) -> np.ndarray:
+    """
+    Where B's noise grows from: B's base, or a point around the workspace that fits better.
+
+    An EM tracker's noise grows with the distance from its field generator, an optical
+    tracker's with the depth from its camera: usually B's base, but not always (a generator
+    mounted apart from the frame's origin). Candidates are B's base and points in 26
+    directions at 1.2-4 workspace radii from its centre; each is scored by the rank
+    correlation of the base fit's squared position errors with the log distance from it
+    (noise grows away from the source: only positive correlations count). Another point
+    replaces B's base only when it correlates clearly better (by 0.05 and 4/√n).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        The source in B's base frame, m.
+
+    """
+    from scipy import stats
+
+    origin = np.zeros(3)
+    e = data.cache.get('base_errors')
+    if e is None:
+        return origin
+    pts = data.b_points[:, 0, :]
+    step = max(1, len(pts) // 4000)
+    p = pts[::step]
+    k = data.spec.n_markers
+    rows = list(range(3 * k)) if not data.spec.has_q1 else [0, 1, 2]
+    q = np.sum(e[::step][:, rows] ** 2, axis=1)
+    rq = stats.rankdata(q)
+
+    def score(s):
+        d = np.log(np.maximum(np.linalg.norm(p - s, axis=1), 1e-9))
+        if np.ptp(d) <= 0:
+            return -1.0
+        return float(np.corrcoef(stats.rankdata(d), rq)[0, 1])
+
+    centre = p.mean(axis=0)
+    spread = float(np.max(np.linalg.norm(p - centre, axis=1))) or 1.0
+    grid = np.array([(i, j, kk) for i in (-1, 0, 1) for j in (-1, 0, 1) for kk in (-1, 0, 1)
+                     if (i, j, kk) != (0, 0, 0)], dtype=float)
+    grid /= np.linalg.norm(grid, axis=1, keepdims=True)
+    base_score = score(origin)
+    best, best_score = origin, base_score
+    for d in grid:
+        for dist in (1.2, 2.0, 4.0):
+            s = centre + dist * spread * d
+            sc = score(s)
+            if sc > best_score:
+                best, best_score = s, sc
+    # 80 candidates: a chance correlation of a few 1/√n must not move the source
+    margin = max(0.05, 4.0 / np.sqrt(len(p)))
+    return best if best_score > base_score + margin and best_score > margin else origin
