@@ -431,8 +431,9 @@ class SharedClock:
 
     Header stamps = true sample time + the device's transport latency + a small positive
     host scheduling delay (exponential, mean ``host_jitter_s``); the recorder's receive stamps
-    follow by an exponential 0.3 ms on average. ``latency_s`` is B's latency minus A's (A's is drawn in 1-5 ms): the
-    offset the diagnosis should find (B stamped late by it), with no drift at all.
+    follow by an exponential 0.3 ms on average. ``latency_s`` is B's latency minus A's (A's
+    is drawn in 1-5 ms): the offset the diagnosis should find (B stamped late by it), with no
+    drift at all.
     """
 
     latency_s: float
