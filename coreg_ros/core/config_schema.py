@@ -40,6 +40,14 @@ NODE_DEFAULTS = {
     'publish_markers': True,
     'fused_rate_limit': 50.0,
     'marker_magnification': 1.0,
+    'fuse_when_stale': False,
+    'guidance': True,
+    'target_sigma_position': 1e-4,
+    'target_sigma_rotation': 1e-3,
+    'target_sigma_time': 0.0,
+    'auto_calibrate': False,
+    'watchdog': True,
+    'auto_recalibrate': False,
 }
 
 #: Every key with its default: the calibration keys first, in the order of Settings.

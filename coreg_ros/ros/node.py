@@ -17,7 +17,10 @@ Publications
     so late subscribers get the last result; ``/diagnostics`` at 1 Hz (with messages lost in
     the middleware or missing from the stamps, swapped frame ids, a wrong message type on a
     topic, and storage errors). Once a calibration exists, ``~/fused_pose`` and
-    ``~/uncertainty_markers`` (``ros.uncertainty_outputs``).
+    ``~/uncertainty_markers`` (``ros.uncertainty_outputs``). The live checks
+    (``ros.live_checks``) add two statuses to each /diagnostics message: guidance while
+    collecting (``<node>: guidance``) and the watchdog of the published calibration
+    (``<node>: watchdog``); and publish ``~/calibration_stale``.
 Persistence
     The result is stored atomically in ``storage_dir`` under a name of the node and its
     configuration (model, topics, frames) and republished at start-up only by a node of that
@@ -64,6 +67,7 @@ from coreg_ros.core.settings import Settings
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import REASONS, GapCounter, StreamBuffer, reason_hint
 from coreg_ros.ros.convert import ns_to_stamp, pose_stamped_values, uncertain_pose_to_msg
+from coreg_ros.ros.live_checks import LiveChecks
 from coreg_ros.ros.parameters import (
     CALIBRATION_KEYS,
     check_params_files,
@@ -194,6 +198,7 @@ class CoregNode(Node):
         self.create_timer(1.0, self._guarded_timer('diagnostics', self._publish_diagnostics))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.uncertainty = UncertaintyOutputs(self)
+        self.live = LiveChecks(self)
         self._republish_stored()
         self._start_journal()
         self.create_timer(FLUSH_PERIOD, self._guarded_timer('journal', self.flush_journal))
@@ -303,23 +308,43 @@ class CoregNode(Node):
         return {t: b.snapshot() for t, b in self.buffers.items()}
 
     def _on_calibrate(self, request, response):
+        response.success, response.message = self.calibrate_and_publish()
+        return response
+
+    def calibrate_and_publish(self, streams: Optional[dict] = None, prior=None,
+                              what: str = 'calibrate') -> tuple[bool, str]:
+        """
+        Calibrate, judge, publish and store (``~/calibrate``, ``auto_calibrate``...).
+
+        Parameters
+        ----------
+        streams : dict of topic to PoseStream, optional
+            The samples (default: a snapshot of everything held).
+        prior : Prior, optional
+            Default: ``prior_file``, else the stored result if ``use_last_result_as_prior``.
+        what : str
+            Who asks, for the log lines.
+
+        Returns
+        -------
+        (success, message) : (bool, str)
+            As the Trigger answer; never raises.
+
+        """
         t0 = time.monotonic()
         try:
             settings = self.current_settings()
-            prior = self._prior()
-            streams = self.snapshot()
+            prior = self._prior() if prior is None else prior
+            streams = self.snapshot() if streams is None else streams
             result, report = calibrate_streams(
                 streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings,
                 prior, frames=(self.config.frame_base_a, self.config.frame_base_b))
         except CoregError as e:
-            response.success, response.message = False, str(e)
-            self.get_logger().warning(f'calibrate refused: {e}')
-            return response
+            self.get_logger().warning(f'{what} refused: {e}')
+            return False, str(e)
         except Exception as e:  # a bug must not kill the node: answer, log the traceback
-            self.get_logger().error(f'calibrate failed: {traceback.format_exc()}')
-            response.success = False
-            response.message = f'internal error ({type(e).__name__}: {e}); see the node log'
-            return response
+            self.get_logger().error(f'{what} failed: {traceback.format_exc()}')
+            return False, f'internal error ({type(e).__name__}: {e}); see the node log'
         seconds = time.monotonic() - t0
         chi2_dof = result.chi2 / result.dof if result.dof > 0 else float('nan')
         timing = result.time_offset
@@ -335,16 +360,16 @@ class CoregNode(Node):
         publish_anyway = inconsistent and bool(
             self.get_parameter('publish_inconsistent').value)
         if not result.success and not publish_anyway:
-            response.success = False
-            response.message = (
+            message = (
                 f'not published: {result.verdict} ({report.summary()}); set '
                 f'publish_inconsistent:=true to publish it anyway' if inconsistent else
                 f'no convergence after {result.iterations} iterations: {result.message}; '
                 f'{report.summary()}')
-            self.get_logger().warning(f'calibrate: {response.message}')
-            return response
+            self.get_logger().warning(f'{what}: {message}')
+            return False, message
         stamp_ns = self._publish_result(result.base_to_base, result.tool_to_marker)
         self.uncertainty.set_result(result)
+        self.live.set_result(result)
         try:
             with self._io_lock:
                 path = persistence.save_result(
@@ -357,11 +382,10 @@ class CoregNode(Node):
             stored = f'NOT stored: {self._storage_failed("store the result", e)}'
         p0 = result.base_to_base.position
         p1 = result.tool_to_marker.position
-        response.success = not inconsistent
         offset = '' if timing is None else (
             f'time offset {timing.value_s * 1e3:.3f} ± {timing.sigma_s * 1e3:.3f} ms, '
             if timing.estimated else f'time offset {timing.value_s * 1e3:.3f} ms (given), ')
-        response.message = (
+        message = (
             ('PUBLISHED ALTHOUGH INCONSISTENT: ' + result.verdict + '; ' if inconsistent
              else '') +
             f'{result.n_pairs} pairs, {settings.method}/{settings.model}: chi2/dof '
@@ -369,8 +393,8 @@ class CoregNode(Node):
             f'{result.iterations} iterations, '
             f'{seconds:.2f} s; base_to_base p [{p0[0]:.4f}, {p0[1]:.4f}, {p0[2]:.4f}] m, '
             f'tool_to_marker p [{p1[0]:.4f}, {p1[1]:.4f}, {p1[2]:.4f}] m; {stored}')
-        self.get_logger().info(f'calibrated: {response.message}')
-        return response
+        self.get_logger().info(f'calibrated ({what}): {message}')
+        return not inconsistent, message
 
     def _prior(self):
         """Return the prior of the next calibration: prior_file, else the stored result."""
@@ -397,6 +421,7 @@ class CoregNode(Node):
                 self.journal.remove()
                 self.journal = None
         self._start_journal()
+        self.live.reset()
         response.success = True
         response.message = f'forgot {held} samples; the published result is kept'
         return response
@@ -464,6 +489,7 @@ class CoregNode(Node):
         stamp_ns = persistence.stamp_ns_of(doc)
         self._publish_result(base_to_base, tool_to_marker, stamp_ns)
         self.uncertainty.set_stored(doc, base_to_base, tool_to_marker)
+        self.live.set_stored(doc, base_to_base, tool_to_marker)
         r = doc['result']
         dof = r.get('dof') or 0
         self._last = {'n_pairs': r.get('n_pairs'), 'success': r.get('success'),
@@ -769,7 +795,8 @@ class CoregNode(Node):
     def _publish_diagnostics(self) -> None:
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [self.diagnostics()]
+        live = self.live.tick()  # guidance and watchdog (they never raise)
+        msg.status = [self.diagnostics(), *live]
         self.pub_diag.publish(msg)
 
 

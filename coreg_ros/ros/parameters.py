@@ -106,6 +106,30 @@ PARAMETERS = (
     ('marker_magnification', DEFAULTS['marker_magnification'],
      _desc('display gain on the ellipsoid semi-axes and on tan of the cone half-angles '
            '(1 = true size)', floats=_float_range(1e-3, 1e6))),
+    ('fuse_when_stale', DEFAULTS['fuse_when_stale'],
+     _desc('keep publishing ~/fused_pose when the watchdog finds the calibration stale '
+           '(flagged on ~/calibration_stale); false: stop it until a new calibration')),
+    # Live checks (coreg_ros.ros.live_checks), changeable at run time.
+    ('guidance', DEFAULTS['guidance'],
+     _desc('publish guidance while collecting on /diagnostics: the sigma a calibration would '
+           'have now against the targets, and the motion that helps most')),
+    ('target_sigma_position', DEFAULTS['target_sigma_position'],
+     _desc('guidance target: sigma of every position component, m',
+           floats=_float_range(1e-9, 10.0))),
+    ('target_sigma_rotation', DEFAULTS['target_sigma_rotation'],
+     _desc('guidance target: sigma of every rotation component, rad',
+           floats=_float_range(1e-9, 3.2))),
+    ('target_sigma_time', DEFAULTS['target_sigma_time'],
+     _desc('guidance target: sigma of the clock offset, s; 0.0 = no target',
+           floats=_float_range(0.0, 10.0))),
+    ('auto_calibrate', DEFAULTS['auto_calibrate'],
+     _desc('calibrate (as ~/calibrate) once guidance says ready and no calibration exists')),
+    ('watchdog', DEFAULTS['watchdog'],
+     _desc('check every new pair against the published calibration; /diagnostics goes WARN '
+           'then ERROR naming the change (T0, T1, clock, noise) when it no longer fits')),
+    ('auto_recalibrate', DEFAULTS['auto_recalibrate'],
+     _desc('after a change of T0, T1 or the clock, recalibrate on the samples since the '
+           'change with what still holds as a prior; published only if the fit passes')),
 )
 
 if [name for name, _, _ in PARAMETERS] != list(DEFAULTS):  # one table of keys, one of types

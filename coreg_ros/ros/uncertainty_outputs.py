@@ -24,7 +24,8 @@ Once a calibration exists (fresh from ``~/calibrate`` or stored and loaded at st
 Parameters (``coreg_ros.ros.parameters``; changeable at run time)
     ``publish_fused_pose``, ``publish_markers`` (bool), ``fused_rate_limit`` (Hz; 0 = every
     pair), ``marker_magnification`` (display gain on the ellipsoid semi-axes and on tan of
-    the cone half-angles; 1 = true size).
+    the cone half-angles; 1 = true size), ``fuse_when_stale`` (keep fusing when the watchdog
+    of ``ros.live_checks`` finds the calibration stale; by default ``~/fused_pose`` stops).
 
 Threads: the work runs in a timer of the services thread, never in the subscription callbacks.
 Each tick copies the newest samples of each buffer (``A_WINDOW``, ``B_WINDOW``), pairs the B
@@ -74,7 +75,7 @@ CONE_SEGMENTS = 24
 WARN_PERIOD = 5.0
 
 OUTPUT_KEYS = ('publish_fused_pose', 'publish_markers', 'fused_rate_limit',
-               'marker_magnification')
+               'marker_magnification', 'fuse_when_stale')
 
 #: Ellipsoid colour per namespace; cones are red, green, blue for the x, y, z axes.
 ELLIPSOID_RGBA = {'base_to_base': (1.0, 0.8, 0.1, 0.5), 'tool_to_marker': (0.1, 0.8, 1.0, 0.5),
@@ -223,11 +224,15 @@ class UncertaintyOutputs:
         self._warned = -WARN_PERIOD
         self._marker_time = -1.0  # monotonic time of the last fused MarkerArray
         self.published = 0  # fused poses published since start-up
+        #: the watchdog found the calibration stale (``ros.live_checks``): no fused poses
+        #: unless ``fuse_when_stale``
+        self.stale = False
         values = {k: node.get_parameter(k).value for k in OUTPUT_KEYS}
         self.fused_on = bool(values['publish_fused_pose'])
         self.markers_on = bool(values['publish_markers'])
         self.rate = float(values['fused_rate_limit'])
         self.magnification = float(values['marker_magnification'])
+        self.fuse_when_stale = bool(values['fuse_when_stale'])
         self.timer = node.create_timer(self._period(), self._tick, autostart=False)
         node.add_post_set_parameters_callback(self._on_parameters)
 
@@ -294,6 +299,7 @@ class UncertaintyOutputs:
         self.fused_on = bool(changed.get('publish_fused_pose', self.fused_on))
         self.markers_on = bool(changed.get('publish_markers', self.markers_on))
         self.rate = float(changed.get('fused_rate_limit', self.rate))
+        self.fuse_when_stale = bool(changed.get('fuse_when_stale', self.fuse_when_stale))
         if 'marker_magnification' in changed:
             self.magnification = float(changed['marker_magnification'])
             self._build_calibration_markers()
@@ -347,7 +353,7 @@ class UncertaintyOutputs:
         fused = fused_stream(cal, pairs, settings.sigma_a, settings.sigma_b)
         frame = self.node.config.frame_base_b
         n = 0
-        if self.fused_on:
+        if self.fused_on and not (self.stale and not self.fuse_when_stale):
             publish = self.pub_fused.publish
             for i in range(len(fused)):
                 publish(uncertain_pose_to_msg(fused.pose(i), frame,

@@ -1,0 +1,209 @@
+"""
+Guidance and the watchdog in the live node, with real rclpy: recordings played into coreg_node
+(``coreg play``), /diagnostics and ``~/fused_pose`` read as a user would.
+"""
+
+import subprocess
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+import numpy as np
+import pytest
+from ros_fixtures import *  # noqa: F401,F403
+from ros_fixtures import PY, run_cli
+from std_msgs.msg import Bool
+
+from coreg_ros.bag.posebag import write_pose_bag
+from coreg_ros.core import guidance as gd
+from coreg_ros.core import watchdog as wd
+from coreg_ros.core.types import PoseStream
+from coreg_ros.ros.live_checks import STALE_QOS
+from coreg_ros.ros.tools import LATCHED_QOS, wait_for_message, wait_for_result
+from coreg_ros.ros.uncertainty_outputs import FUSED_QOS
+from coreg_ros.sim import simulate_recording
+from coreg_ros.sim.changes import apply_changes
+
+pytestmark = pytest.mark.ros
+
+NODE = 'coreg_node'
+# the noise of the sample recording (the simulator's default), pairs at 100 Hz
+RATE = 100.0
+
+
+def _slice(stream: PoseStream, lo_ns: int, hi_ns: int) -> PoseStream:
+    keep = (stream.stamps >= lo_ns) & (stream.stamps < hi_ns)
+    return PoseStream(stream.stamps[keep], stream.position[keep], stream.quat_wxyz[keep],
+                      stream.frame_id)
+
+
+def _bags(tmp_path, rec, cuts_s):
+    """Write the recording's spans [cuts_s[k], cuts_s[k + 1]) as bags; return their paths."""
+    paths = []
+    for k in range(len(cuts_s) - 1):
+        lo, hi = (rec.start_ns + int(c * 1e9) for c in cuts_s[k:k + 2])
+        path = tmp_path / f'part{k}'
+        write_pose_bag(path, {t: _slice(s, lo, hi) for t, s in rec.streams.items()})
+        paths.append(path)
+    return paths
+
+
+class Collector:
+    """Record the node's statuses by concern, the fused poses and the stale flag as they come."""
+
+    def __init__(self, session):
+        self.session = session
+        self.statuses = {'coregistration': [], gd.STATUS_NAME: [], wd.STATUS_NAME: []}
+        self.fused = []  # monotonic receipt times
+        self.stale = []
+        node = session.node
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
+        node.create_subscription(PoseWithCovarianceStamped, f'/{NODE}/fused_pose',
+                                 lambda m: self.fused.append(time.monotonic()), FUSED_QOS)
+        node.create_subscription(Bool, f'/{NODE}/calibration_stale',
+                                 lambda m: self.stale.append(bool(m.data)), STALE_QOS)
+
+    def _on_diag(self, msg) -> None:
+        now = time.monotonic()
+        for s in msg.status:
+            concern = s.name.split(': ', 1)[-1]
+            if s.name.startswith(f'{NODE}:') and concern in self.statuses:
+                level = s.level[0] if isinstance(s.level, (bytes, bytearray)) else int(s.level)
+                self.statuses[concern].append(
+                    (now, level, s.message, {kv.key: kv.value for kv in s.values}))
+
+    def last(self, concern):
+        got = self.statuses[concern]
+        return got[-1] if got else None
+
+    def spin(self, seconds: float, done=lambda: False) -> bool:
+        return self.session.spin_until(done, seconds)
+
+    def play(self, domain, bag, rate: float, timeout: float = 90.0) -> None:
+        """Play a bag into the node (``coreg play``) while collecting."""
+        proc = subprocess.Popen([PY, '-m', 'coreg_ros.cli.ros_commands', 'play', str(bag),
+                                 '--rate', str(rate), '--wait', '20'], env=domain.env(),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            self.spin(timeout, lambda: proc.poll() is not None)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        out, err = proc.communicate()
+        assert proc.returncode == 0, out + err
+
+    def settled_guidance(self, timeout: float = 15.0) -> dict:
+        """Guidance values once its pair count stopped growing (the feed released all)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            got = [v for _, _, _, v in self.statuses[gd.STATUS_NAME]]
+            if (len(got) >= 3 and gd.KEY_WORST in got[-1]
+                    and got[-1][gd.KEY_PAIRS] == got[-2][gd.KEY_PAIRS] == got[-3][gd.KEY_PAIRS]):
+                return got[-1]
+            self.spin(1.0)
+        raise AssertionError(f'guidance never settled: {self.last(gd.STATUS_NAME)}')
+
+
+def _sigmas(values, name):
+    return np.array([float(v) for v in values[gd.KEY_SIGMA_PREFIX + name].split()])
+
+
+def _cov_sd(msg):
+    return np.sqrt(np.diag(np.reshape(msg.pose.covariance, (6, 6))))
+
+
+def _calibrate(domain, node):
+    called = run_cli(domain, 'call', 'calibrate', '--timeout', 60)
+    assert called.returncode == 0 and 'success' in called.stdout, (
+        called.stdout + called.stderr + node.log())
+    return called.stdout
+
+
+def test_guidance_sigma_is_the_calibrations_and_a_stable_recording_raises_no_alarm(
+        ros_domain, ros_session, start_node, tmp_path):
+    rec = simulate_recording(71, 90.0, rate_a=RATE, rate_b=RATE)
+    collecting, stable = _bags(tmp_path, rec, [0.0, 30.0, 90.0])
+    node = start_node({'qos_reliable': True})
+    watch = Collector(ros_session)
+    watch.play(ros_domain, collecting, rate=4.0)
+    guidance = watch.settled_guidance()
+    assert watch.last(wd.STATUS_NAME) is None  # no calibration yet: nothing to watch
+    n_guided = int(guidance[gd.KEY_PAIRS])
+    answer = _calibrate(ros_domain, node)
+    n_pairs = int(answer.split(' pairs')[0].split()[-1])
+    assert abs(n_guided - n_pairs) <= 0.01 * n_pairs, (n_guided, answer)
+    base = wait_for_result(ros_session, f'/{NODE}/base_to_base', timeout=5)
+    tool = wait_for_result(ros_session, f'/{NODE}/tool_to_marker', timeout=5)
+    # the σ guidance showed before the calibration is the σ the calibration reports (10 %)
+    reported = {'p0': _cov_sd(base)[:3], 'theta0': _cov_sd(base)[3:],
+                'p1': _cov_sd(tool)[:3], 'theta1': _cov_sd(tool)[3:]}
+    for name, sd in reported.items():
+        ratio = _sigmas(guidance, name) / sd
+        assert np.all(np.abs(ratio - 1.0) < 0.10), (name, ratio, answer)
+    tau_sd = float(answer.split('time offset ')[1].split(' ± ')[1].split(' ms')[0]) * 1e-3
+    ratio = _sigmas(guidance, 'time_offset')[0] / tau_sd
+    assert abs(ratio - 1.0) < 0.10, (ratio, answer)
+
+    # watched from now on: a stable recording (60 s at 100 Hz) raises no alarm
+    watch.spin(2.0)
+    before = len(watch.statuses[wd.STATUS_NAME])
+    fused_before = len(watch.fused)
+    watch.play(ros_domain, stable, rate=4.0)
+    watch.spin(3.0)
+    states = watch.statuses[wd.STATUS_NAME][before:]
+    assert states and all(level == wd.OK for _, level, _, _ in states), [
+        m for _, level, m, _ in states if level != wd.OK]
+    values = states[-1][3]
+    assert int(values[wd.KEY_CHECKED]) > 0.98 * 60 * RATE, values
+    assert values[wd.KEY_STALE] == 'false' and values[wd.KEY_CHANGE] == 'none'
+    assert 0.8 < float(values[wd.KEY_MEAN_D2]) < 1.25, values
+    assert len(watch.fused) - fused_before > 100  # fusing goes on
+    assert watch.stale and watch.stale[-1] is False
+    assert node.alive(), node.log()
+
+
+def test_t0_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_session,
+                                                                  start_node, tmp_path):
+    change_s = 43.0
+    rec = apply_changes(simulate_recording(72, 56.0, rate_a=RATE, rate_b=RATE),
+                        [f't0_step=2mm@{change_s}'], seed=72)
+    change = rec.truth.effects[-1]
+    before, after = _bags(tmp_path, rec, [0.0, 40.0, 56.0])
+    first = start_node({'qos_reliable': True})
+    watch = Collector(ros_session)
+    watch.play(ros_domain, before, rate=4.0)
+    watch.spin(2.0)
+    _calibrate(ros_domain, first)
+    assert first.stop() == 0, first.log()
+    # a restarted node watches the stored calibration it republishes
+    node = start_node({'qos_reliable': True, 'storage_dir': str(first.storage)}, name='again')
+    assert wait_for_result(ros_session, f'/{NODE}/base_to_base', timeout=20) is not None
+    n0 = len(watch.statuses[wd.STATUS_NAME])
+    watch.play(ros_domain, after, rate=1.0)  # real time: the node checks once a second
+    watch.spin(2.0)
+    states = watch.statuses[wd.STATUS_NAME][n0:]
+    levels = [level for _, level, _, _ in states]
+    assert wd.ERROR in levels, (states[-1], node.log())
+    # OK while the calibration holds, then WARN (alarm), then ERROR (attributed), latched
+    first_bad = next(i for i, lv in enumerate(levels) if lv != wd.OK)
+    first_error = levels.index(wd.ERROR)
+    assert first_bad >= 2 and levels[first_bad] == wd.WARN, levels
+    assert all(lv == wd.ERROR for lv in levels[first_error:]), levels
+    t_error, _, message, values = states[first_error]
+    final = states[-1][3]
+    assert final[wd.KEY_CHANGE] == 't0', final
+    assert 'T0 moved' in message and final[wd.KEY_STALE] == 'true'
+    assert '~/fused_pose stopped' in states[-1][2]
+    alarm_s = (int(final[wd.KEY_ALARM_STAMP]) - change['start_ns']) * 1e-9
+    assert 0.0 <= alarm_s < 5.0, final
+    size, sigma = (float(v) for v in final[wd.KEY_TRANSLATION].split(' ± '))
+    truth_mm = np.linalg.norm(change['translation_m']) * 1e3
+    assert abs(size - truth_mm) < 3.0 * sigma, final
+    # ~/fused_pose fused until the change was found, and stopped then (data kept coming)
+    assert any(t < t_error for t in watch.fused)
+    assert not [t for t in watch.fused if t > t_error + 1.0], (t_error, watch.fused[-5:])
+    assert watch.stale[-1] is True
+    assert wait_for_message(ros_session, Bool, f'/{NODE}/calibration_stale', STALE_QOS,
+                            5.0).data is True
+    assert LATCHED_QOS.durability == STALE_QOS.durability
+    assert node.alive(), node.log()
