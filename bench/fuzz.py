@@ -23,6 +23,10 @@ with ``[seed, kind number, index]``):
     SIGINT or SIGTERM (sometimes twice) at a random moment of ``coreg play``, ``coreg record``,
     ``coreg echo`` or ``coreg_node``, sometimes with a partner process on the same domain.
 
+Inputs are reproducible on the same source tree: the parameter files start from the keys of
+``config/coreg.yaml`` and the recordings come from ``coreg_ros.sim``, so a failing parameter file
+is also listed in full (``input_file``).
+
 Every input ends as ``ok``, ``traceback`` (an exception escaping ``main()``, or ``Traceback`` in
 a subprocess's output), ``hang`` (no exit within the time limit; 10 s after a signal) or
 ``wrong`` (a result the fuzzer knows is wrong: a misstated unit or quaternion order that
@@ -1284,6 +1288,8 @@ def run(n_per_kind: int, seed: int, *, with_ros: bool = True, log=print,
 def _public(o: Outcome) -> dict:
     d = asdict(o)
     d['info'] = {k: v for k, v in d['info'].items() if k != 'file'}
+    if 'file' in o.info:   # the parameter file itself: its keys follow config/coreg.yaml
+        d['input_file'] = o.info['file']
     return d
 
 
@@ -1316,7 +1322,10 @@ def table(results: dict) -> str:
         lines += ['', f'- {f["kind"]} seed {f["seed"]} index {f["index"]}: **{f["verdict"]}** '
                       f'({f["fault"]}): {f["why"]}', f'  input: {f["desc"]}',
                   f'  command: {f["command"]}']
-        lines += ['    ' + ln for ln in f['tail'].splitlines()]
+        if f.get('input_file'):
+            lines.append(f'  file: {len(f["input_file"].splitlines())} lines (input_file in '
+                         f'the JSON results)')
+        lines += ['  output (tail):'] + ['    ' + ln for ln in f['tail'].splitlines()]
     for d in results.get('disagreement_examples', []):
         lines += ['', f'- params index {d["index"]} ({d["desc"]}): CLI '
                       f'{"accepts" if d["cli_accepts"] else "refuses"}, node '

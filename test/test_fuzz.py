@@ -17,7 +17,7 @@ if str(ROOT) not in sys.path:
 from bench import fuzz  # noqa: E402
 
 #: Inputs per kind, and the seed (fixed: a failure here is reproducible from the table).
-N_PER_KIND = 6
+N_PER_KIND = 8
 SEED = 2024
 
 
@@ -51,6 +51,13 @@ KNOWN_FAULTS = {
     'node-refusal-not-one-line':
         "coreg_node refuses a parameter file with YAML anchors/aliases in two lines (rcl's "
         '"Will not support aliasing" message keeps its newline); the CLI accepts the file',
+    'signals-traceback:RCLError':
+        'a signal while coreg record waits for publishers (or while RosSession creates its '
+        'node) ends in an RCLError traceback: the context is invalid but record goes on to '
+        'create subscriptions',
+    'csv-traceback:LinAlgError':
+        'coreg calibrate of a recording with one position of 1e300 m (accepted by coreg '
+        'convert as finite) ends in a LinAlgError traceback (SVD did not converge)',
     'refusal-not-one-line:RuntimeWarning':
         'coreg calibrate of a bag with an inf quaternion prints a numpy RuntimeWarning '
         '(overflow) before its one-line error',
