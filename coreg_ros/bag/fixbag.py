@@ -8,7 +8,7 @@ Repair a PoseStamped recording: sort by header stamp, drop repeated stamps, spli
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -36,6 +36,8 @@ class FixReport:
         The clock jumps split at: topic, header stamp before and after (ns).
     skipped_topics : list of str
         Topics not copied (not PoseStamped).
+    salvage_stopped : list of str
+        Where reading a damaged storage file stopped (``salvage``).
 
     """
 
@@ -44,6 +46,7 @@ class FixReport:
     dropped: dict
     jumps: list
     skipped_topics: list
+    salvage_stopped: list = field(default_factory=list)
 
 
 def _take(stream: PoseStream, index: np.ndarray,
@@ -81,7 +84,8 @@ def find_jumps(stream: PoseStream, jump_ns: int) -> np.ndarray:
 
 
 def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
-            split_at_jump: Optional[float] = None, storage: str = 'sqlite3') -> FixReport:
+            split_at_jump: Optional[float] = None, storage: str = 'sqlite3',
+            salvage: bool = False) -> FixReport:
     """
     Write a repaired copy of the PoseStamped topics of a rosbag2 recording.
 
@@ -102,6 +106,9 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
         after the jump, so each part holds one clock segment of every device.
     storage : {'sqlite3', 'mcap'}
         Storage of the new bag(s).
+    salvage : bool
+        Read the storage file(s) directly (``coreg_ros.bag.salvage``): a recording cut short
+        (no metadata.yaml, a truncated mcap or sqlite3 file) gives what it still holds.
 
     Returns
     -------
@@ -115,18 +122,25 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
         If the recording cannot be read, has no PoseStamped topic, or a new bag exists.
 
     """
-    if not (sort or drop_duplicates or split_at_jump is not None):
-        raise ConfigError('nothing to do; pass --sort, --drop-duplicates and/or '
+    if not (sort or drop_duplicates or salvage or split_at_jump is not None):
+        raise ConfigError('nothing to do; pass --salvage, --sort, --drop-duplicates and/or '
                           '--split-at-jump SECONDS')
     if split_at_jump is not None and not (np.isfinite(split_at_jump) and split_at_jump > 0):
         raise ConfigError(f'--split-at-jump must be a positive number of seconds, got '
                           f'{split_at_jump}')
-    types = list_topics(src)
-    topics = [t for t, ty in types.items() if POSE_STAMPED in ty.split(', ')]
-    skipped = [t for t in types if t not in topics]
-    if not topics:
-        raise BagError(f'bag {str(src)!r} has no {POSE_STAMPED} topic; nothing to fix')
-    streams = read_pose_bag(src, topics)
+    stopped = []
+    if salvage:
+        from coreg_ros.bag.salvage import salvage_streams
+        found = salvage_streams(src)
+        streams, stopped = found.streams, found.stopped
+        topics, skipped = list(streams), []
+    else:
+        types = list_topics(src)
+        topics = [t for t, ty in types.items() if POSE_STAMPED in ty.split(', ')]
+        skipped = [t for t in types if t not in topics]
+        if not topics:
+            raise BagError(f'bag {str(src)!r} has no {POSE_STAMPED} topic; nothing to fix')
+        streams = read_pose_bag(src, topics)
     reordered, dropped = {}, {}
     for t in topics:
         if sort:
@@ -160,4 +174,4 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
         write_pose_bag(part, chunk, storage=storage)
         outputs.append((part, {t: len(s) for t, s in chunk.items()}))
     return FixReport(outputs=outputs, reordered=reordered, dropped=dropped, jumps=jumps,
-                     skipped_topics=skipped)
+                     skipped_topics=skipped, salvage_stopped=stopped)

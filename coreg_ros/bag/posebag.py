@@ -49,7 +49,7 @@ _MAX_HEADER_STAMP = 2**31 * 10**9
 _WRITE_CHUNK = 65536
 
 #: How to salvage a damaged storage file, by storage identifier (for error messages).
-_SALVAGE = {'mcap': '`mcap recover`', 'sqlite3': 'the sqlite3 `.recover` command'}
+_SALVAGE = '`coreg fix-bag BAG NEW_BAG --salvage`'
 
 PathLike = Union[str, os.PathLike]
 
@@ -74,8 +74,8 @@ def _check_bag_dir(path: Path) -> None:
     if not (path / 'metadata.yaml').is_file():
         raise BagError(
             f'{str(path)!r} has no metadata.yaml, so it is not a (closed) rosbag2 directory; '
-            f'pass the right directory, or rebuild the metadata of an interrupted recording '
-            f'with `ros2 bag reindex {path}`')
+            f'pass the right directory, or recover an interrupted recording with '
+            f'`coreg fix-bag {path} NEW_BAG --salvage`')
 
 
 class _OpenBag:
@@ -109,15 +109,14 @@ def _open_failure(path: Path, err: Exception) -> str:
         files = info['rosbag2_bagfile_information']['relative_file_paths']
     except Exception:  # any failure here means the metadata itself is the problem
         return (f'metadata.yaml of bag {str(path)!r} is unreadable ({_describe(err)}); restore '
-                f'it, or rebuild it from the storage file with `ros2 bag reindex {path}`')
+                f'it, or read the storage file directly with '
+                f'`coreg fix-bag {path} NEW_BAG --salvage`')
     missing = [f for f in files if not (path / Path(f).name).exists()]
     if missing:
         return (f'bag {str(path)!r} lacks its storage file(s) {", ".join(missing)}; copy the '
                 f'whole bag directory, not only metadata.yaml')
-    tool = _SALVAGE.get(info['rosbag2_bagfile_information'].get('storage_identifier'),
-                        'a recovery tool for its storage format')
     return (f'storage file of bag {str(path)!r} is truncated or corrupt ({_describe(err)}); '
-            f're-record it, or salvage what is readable with {tool}')
+            f're-record it, or salvage what is readable with {_SALVAGE}')
 
 
 def _describe(err: BaseException) -> str:
@@ -244,8 +243,7 @@ def read_pose_bag(path: PathLike, topics: Iterable[str]) -> dict[str, PoseStream
         except Exception as err:  # truncated or corrupt storage or message bytes
             raise BagError(
                 f'bag {str(path)!r} is truncated or corrupt ({_describe(err)}); re-record it, or '
-                f'salvage what is readable (`mcap recover` for .mcap, the sqlite3 `.recover` '
-                f'command for .db3)') from err
+                f'salvage what is readable with {_SALVAGE}') from err
     streams = {}
     for topic in wanted:
         stamps, logs, values = columns[topic]

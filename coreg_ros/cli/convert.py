@@ -532,7 +532,9 @@ def cmd_fix_bag(args) -> int:
 
     report = fix_bag(args.bag, args.out_bag, sort=args.sort,
                      drop_duplicates=args.drop_duplicates, split_at_jump=args.split_at_jump,
-                     storage=args.storage)
+                     storage=args.storage, salvage=args.salvage)
+    for line in report.salvage_stopped:
+        print(f'  salvage: {line}')
     for topic, n in report.reordered.items():
         print(f'  {topic}: {n} messages were out of stamp order, now sorted')
     for topic, n in report.dropped.items():
@@ -553,13 +555,18 @@ def register_fix_bag(subparsers) -> None:
     from coreg_ros.cli.argtypes import positive
 
     p = subparsers.add_parser(
-        'fix-bag', help='sort a bag by stamp, drop repeated stamps or split it at a clock jump',
-        description='Write a repaired copy of the PoseStamped topics of a rosbag2: sorted by '
+        'fix-bag', help='salvage a damaged bag, sort it by stamp, drop repeated stamps or split '
+                        'it at a clock jump',
+        description='Write a repaired copy of the PoseStamped topics of a rosbag2: what a '
+                    'damaged recording still holds (--salvage), sorted by '
                     'header stamp (--sort), without messages whose stamp repeats '
                     '(--drop-duplicates), or split where a stamp jumps by more than S seconds '
                     '(--split-at-jump S: OUT_BAG_1, OUT_BAG_2, ...).')
     p.add_argument('bag', help='rosbag2 directory to repair (left unchanged)')
     p.add_argument('out_bag', help='rosbag2 directory to create')
+    p.add_argument('--salvage', action='store_true',
+                   help='read the storage file(s) directly: a recording cut short (no '
+                        'metadata.yaml, a truncated .mcap or .db3) gives what it still holds')
     p.add_argument('--sort', action='store_true', help='sort each topic by header stamp')
     p.add_argument('--drop-duplicates', action='store_true',
                    help='drop messages whose header stamp repeats an earlier one (keep first)')
