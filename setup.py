@@ -26,8 +26,8 @@ setup(
     license='BSD-3-Clause',
     entry_points={
         'console_scripts': [
-            'coreg = coreg_ros.cli.main:main',
-            'coreg_node = coreg_ros.ros.node:main',
+            'coreg = coreg_ros.entry:coreg',
+            'coreg_node = coreg_ros.entry:coreg_node',
         ],
     },
 )

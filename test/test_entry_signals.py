@@ -1,0 +1,45 @@
+"""A Ctrl-C while the commands are still importing is one line and exit 130, never a traceback."""
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from coreg_ros.ros.domain import reserve_domain_id
+
+BIN = Path(sys.executable).parent
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize('command', [
+    ['coreg', 'play', str(ROOT / 'bags/sample_full_pose'), '--wait', '0'],
+    ['coreg', 'calibrate', str(ROOT / 'bags/sample_full_pose')],
+    ['coreg_node'],
+])
+@pytest.mark.parametrize('delay', [0.15, 0.4, 0.8])
+def test_sigint_while_starting(command, delay):
+    exe = BIN / command[0]
+    if not exe.exists():
+        pytest.skip(f'{exe} is not installed (pip install -e .)')
+    with reserve_domain_id() as domain:
+        env = domain.env()
+        env['HOME'] = str(Path(os.environ.get('TMPDIR', '/tmp')))
+        proc = subprocess.Popen([str(exe), *command[1:]], env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            pytest.fail(f'{command[0]} did not exit within 20 s of SIGINT: {err[-500:]}')
+    assert 'Traceback' not in err, err
+    if proc.returncode != 0:  # it may also have finished, or shut down cleanly on the signal
+        assert proc.returncode in (1, 130), (proc.returncode, err)
+        if command[0] == 'coreg':  # the node may have logged its start-up already
+            assert err.strip().count('\n') <= 1, err
