@@ -5,6 +5,12 @@ Measures messages lost between the publisher and the buffer (goal 0), the CPU us
 process while streaming, and the time of a ``~/calibrate`` call (goal < 2 s at 60k pairs).
 Runnable alone (``python bench/bench_node.py --duration 60``: prints a table and writes
 bench/results/node.json); ``run(duration)`` returns the numbers as a dict.
+
+The live checks (``coreg_ros.ros.live_checks``): ``--guidance on|off`` and ``--watchdog on|off``
+set the node's two switches; ``--calibrated-first S`` streams S seconds of the same motion and
+calibrates before the measured streaming, so the watchdog checks every measured pair against a
+published calibration (and ``~/fused_pose`` runs, as in use). ``--compare-live`` runs that
+twice, with both switches off and on, and reports the CPU ratio (goal < 1.3, 0 dropped).
 """
 
 import argparse
@@ -43,9 +49,20 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICKS
 
 
-def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False) -> dict:
+def _span(stream, lo_ns: int, hi_ns: int):
+    from coreg_ros.core.types import PoseStream
+    keep = (stream.stamps >= lo_ns) & (stream.stamps < hi_ns)
+    return PoseStream(stream.stamps[keep], stream.position[keep], stream.quat_wxyz[keep],
+                      stream.frame_id)
+
+
+def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False,
+        guidance: bool = True, watchdog: bool = True, calibrated_first: float = 0.0) -> dict:
     """
     Stream two topics at ``rate_hz`` for ``duration`` s into a fresh coreg_node; calibrate.
+
+    With ``calibrated_first`` > 0, that many seconds of the same recording are streamed and
+    calibrated first (not measured); ``guidance`` and ``watchdog`` are the node's switches.
 
     Returns
     -------
@@ -55,13 +72,20 @@ def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False)
         (service round trip) and ``estimator_seconds`` (as the node reports it), ``success``.
 
     """
-    rec = simulate_recording(1, duration, rate_a=rate_hz, rate_b=rate_hz)
+    total = duration + calibrated_first
+    rec = simulate_recording(1, total, rate_a=rate_hz, rate_b=rate_hz)
+    cut = rec.start_ns + int(round(calibrated_first * 1e9))
+    end = rec.start_ns + int(round(total * 1e9)) + 1
+    first = {t: _span(s, rec.start_ns, cut) for t, s in rec.streams.items()}
+    measured = {t: _span(s, cut, end) for t, s in rec.streams.items()}
     sent = {t: len(s) for t, s in rec.streams.items()}
     folder = Path(tempfile.mkdtemp(prefix='coreg_bench_'))
     params = folder / 'params.yaml'
     params.write_text(yaml.safe_dump({'coreg_node': {'ros__parameters': {
         'storage_dir': str(folder / 'store'), 'qos_reliable': reliable,
-        'buffer_capacity': int(rate_hz * duration * 1.2) + 1000}}}))
+        'buffer_capacity': int(rate_hz * total * 1.2) + 1000,
+        'guidance': bool(guidance), 'watchdog': bool(watchdog)}}}))
+    first_calibration = None
     with reserve_domain_id() as domain, open(folder / 'node.log', 'w') as log:
         node = subprocess.Popen([sys.executable, '-m', 'coreg_ros.ros.node', '--ros-args',
                                  '--params-file', str(params)], env=domain.env(), stdout=log,
@@ -69,12 +93,20 @@ def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False)
         try:
             with RosSession('coreg_bench', domain_id=domain.domain_id, signals=False) as s:
                 cpu0, t0 = None, None
+                if calibrated_first > 0:
+                    play_streams(s, first, rate=1.0, wait_subscribers=30.0, log=lambda m: None)
+                    want = {f'{t} received': len(v) for t, v in first.items()}
+                    wait_for_diagnostics(s, timeout=10.0, accept=lambda st: all(
+                        int(diagnostics_values(st)[k]) >= v for k, v in want.items()))
+                    first_calibration = call_trigger(s, service_name('calibrate'),
+                                                     timeout=120.0)
+                    time.sleep(2.0)  # the watchdog starts on the next diagnostics tick
 
                 def started(msg):  # play logs once before the first message, once after
                     nonlocal cpu0, t0
                     if t0 is None:
                         cpu0, t0 = _cpu_seconds(node.pid), time.monotonic()
-                play_streams(s, rec.streams, rate=1.0, wait_subscribers=30.0, log=started)
+                play_streams(s, measured, rate=1.0, wait_subscribers=30.0, log=started)
                 want = {f'{t} received': n for t, n in sent.items()}
                 status = wait_for_diagnostics(
                     s, timeout=5.0, accept=lambda st: all(
@@ -83,6 +115,7 @@ def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False)
                 cpu = _cpu_seconds(node.pid) - cpu0
                 status = status or wait_for_diagnostics(s, timeout=3.0)
                 values = diagnostics_values(status)
+                live = _live_statuses(s)
                 received = {t: int(values[f'{t} received']) for t in sent}
                 accepted = {t: int(values[f'{t} accepted']) for t in sent}
                 buffer_drops = sum(int(values[f'{t} dropped oldest']) for t in sent)
@@ -96,6 +129,10 @@ def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False)
     estimator = re.search(r'iterations, ([\d.]+) s', message)
     return {
         'duration_s': duration, 'rate_hz': rate_hz,
+        'guidance': bool(guidance), 'watchdog': bool(watchdog),
+        'calibrated_first_s': calibrated_first,
+        'first_calibration': None if first_calibration is None else list(first_calibration),
+        'live': live,
         'qos': 'reliable' if reliable else 'sensor_data',
         'sent': sum(sent.values()), 'received': sum(received.values()),
         'dropped': sum(sent.values()) - sum(accepted.values()) + buffer_drops,
@@ -107,25 +144,83 @@ def run(duration: float = 60.0, rate_hz: float = 1000.0, reliable: bool = False)
     }
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--duration', type=float, default=60.0)
-    parser.add_argument('--rate', type=float, default=1000.0)
-    parser.add_argument('--reliable', action='store_true', help='reliable instead of sensor QoS')
-    args = parser.parse_args(argv)
-    r = run(args.duration, args.rate, args.reliable)
-    rows = [('streams', f'2 x {r["rate_hz"]:g} Hz for {r["duration_s"]:g} s ({r["qos"]} QoS)'),
+def _live_statuses(session) -> dict:
+    """The guidance and watchdog statuses of the next /diagnostics message (level, message)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from coreg_ros.ros.tools import wait_for_message
+    msg = wait_for_message(session, DiagnosticArray, '/diagnostics', 10, 3.0)
+    out = {}
+    for st in [] if msg is None else msg.status:
+        concern = st.name.split(': ', 1)[-1]
+        if concern in ('guidance', 'watchdog'):
+            out[concern] = {'level': st.level[0] if isinstance(st.level, bytes) else st.level,
+                            'message': st.message}
+    return out
+
+
+def _on_off(text: str) -> bool:
+    if text not in ('on', 'off'):
+        raise argparse.ArgumentTypeError(f'expected on or off, got {text!r}')
+    return text == 'on'
+
+
+def _table(r: dict) -> list:
+    return [('streams', f'2 x {r["rate_hz"]:g} Hz for {r["duration_s"]:g} s ({r["qos"]} QoS)'),
+            ('guidance / watchdog', f'{"on" if r["guidance"] else "off"} / '
+                                    f'{"on" if r["watchdog"] else "off"}'
+                                    + (f' (calibrated on the first {r["calibrated_first_s"]:g} s)'
+                                       if r['calibrated_first_s'] else '')),
             ('messages sent / received', f'{r["sent"]} / {r["received"]}'),
             ('dropped (goal 0)', str(r['dropped'])),
             ('node CPU while streaming', f'{r["node_cpu_percent"]:.0f} % of one core'),
             ('calibrate call (goal < 2 s)', f'{r["calibrate_seconds"]:.2f} s '
                                             f'({r["n_pairs"]} pairs, success {r["success"]})'),
-            ('  of which in the estimator', f'{r["estimator_seconds"]} s')]
-    width = max(len(k) for k, _ in rows)
-    print('\n'.join(f'{k:<{width}}  {v}' for k, v in rows))
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(r, indent=2) + '\n')
-    print(f'written to {RESULTS}')
+            ('  of which in the estimator', f'{r["estimator_seconds"]} s')] + [
+            (f'{k} status', f'{v["level"]}: {v["message"][:90]}') for k, v in r['live'].items()]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--duration', type=float, default=60.0)
+    parser.add_argument('--rate', type=float, default=1000.0)
+    parser.add_argument('--reliable', action='store_true', help='reliable instead of sensor QoS')
+    parser.add_argument('--guidance', type=_on_off, default=True, metavar='on|off',
+                        help="the node's guidance switch (default on)")
+    parser.add_argument('--watchdog', type=_on_off, default=True, metavar='on|off',
+                        help="the node's watchdog switch (default on)")
+    parser.add_argument('--calibrated-first', type=float, default=0.0, metavar='S',
+                        help='stream S s and calibrate before the measured streaming (the '
+                             'watchdog then checks every measured pair); default 0')
+    parser.add_argument('--compare-live', action='store_true',
+                        help='run with guidance and watchdog off, then on (calibrated first: '
+                             '10 s unless --calibrated-first), and report the CPU ratio')
+    args = parser.parse_args(argv)
+    if args.compare_live:
+        first = args.calibrated_first or 10.0
+        runs = [run(args.duration, args.rate, args.reliable, on, on, first)
+                for on in (False, True)]
+        for r in runs:
+            rows = _table(r)
+            width = max(len(k) for k, _ in rows)
+            print('\n'.join(f'{k:<{width}}  {v}' for k, v in rows) + '\n')
+        off, on = runs
+        ratio = on['node_cpu_percent'] / off['node_cpu_percent']
+        print(f'CPU with guidance and watchdog on / off: {on["node_cpu_percent"]:.1f} % / '
+              f'{off["node_cpu_percent"]:.1f} % = {ratio:.2f}x (goal < 1.3); dropped '
+              f'{on["dropped"]} / {off["dropped"]} (goal 0)')
+        out = {'off': off, 'on': on, 'cpu_ratio': ratio}
+        path = RESULTS.with_name('node_live.json')
+    else:
+        out = run(args.duration, args.rate, args.reliable, args.guidance, args.watchdog,
+                  args.calibrated_first)
+        rows = _table(out)
+        width = max(len(k) for k, _ in rows)
+        print('\n'.join(f'{k:<{width}}  {v}' for k, v in rows))
+        path = RESULTS
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2) + '\n')
+    print(f'written to {path}')
     return 0
 
 

@@ -207,3 +207,36 @@ def test_t0_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros
                             5.0).data is True
     assert LATCHED_QOS.durability == STALE_QOS.durability
     assert node.alive(), node.log()
+
+
+def test_auto_calibrate_then_auto_recalibrate_after_a_t0_step(ros_domain, ros_session,
+                                                              start_node, tmp_path):
+    rec = apply_changes(simulate_recording(73, 75.0, rate_a=RATE, rate_b=RATE),
+                        ['t0_step=2mm@45'], seed=73)
+    change = rec.truth.effects[-1]
+    (bag,) = _bags(tmp_path, rec, [0.0, 75.0])
+    node = start_node({'qos_reliable': True, 'auto_calibrate': True,
+                       'auto_recalibrate': True})
+    watch = Collector(ros_session)
+    bases = []
+    ros_session.node.create_subscription(PoseWithCovarianceStamped, f'/{NODE}/base_to_base',
+                                         bases.append, LATCHED_QOS)
+    watch.play(ros_domain, bag, rate=4.0)
+    watch.spin(3.0)
+    log = node.log()
+    # calibrated once guidance said ready, long before the change; recalibrated after it
+    assert log.count('calibrated (auto_calibrate)') == 1, log
+    assert log.count('calibrated (auto_recalibrate)') == 1, log
+    assert len(bases) == 2, log
+    first, second = (np.array([m.pose.pose.position.x, m.pose.pose.position.y,
+                               m.pose.pose.position.z]) for m in bases)
+    sd = _cov_sd(bases[1])[:3]
+    moved = second - first
+    assert np.all(np.abs(moved - change['translation_m']) < 4 * sd + 1e-4), (moved, change)
+    levels = [level for _, level, _, _ in watch.statuses[wd.STATUS_NAME]]
+    assert wd.ERROR in levels
+    # the new calibration is watched afresh: the pairs fit it, fusion goes on
+    final = watch.last(wd.STATUS_NAME)
+    assert final[1] == wd.OK and final[3][wd.KEY_CHANGE] == 'none', final
+    assert watch.stale[-1] is False
+    assert node.alive(), log

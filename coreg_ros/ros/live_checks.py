@@ -360,9 +360,13 @@ class LiveChecks:
                                 (gd.KEY_READY, 'false'), (gd.KEY_SUMMARY, message)]
         g = self.guidance = guide.guidance()
         message = g.summary
+        values = g.diagnostic_values()
+        if g.ready and self.poses is not None:  # not 'calibrate now': one is published
+            values = [(k, 'ready: a calibration is published (~/calibrate refits on all the '
+                          'pairs held)' if k == gd.KEY_NEXT_TEXT else v) for k, v in values]
         if g.ready and self.poses is None and bool(self._param('auto_calibrate')):
             message += f'; auto_calibrate: {self._auto_calibrate()}'
-        return 0, message, g.diagnostic_values()
+        return 0, message, values
 
     def _auto_calibrate(self) -> str:
         now = time.monotonic()
