@@ -3,8 +3,9 @@ Console-script entry points (``coreg``, ``coreg_node``) that stay quiet under a 
 
 Importing numpy, scipy and rclpy takes about a second; a Ctrl-C in that second would end in a
 ``KeyboardInterrupt`` traceback from deep inside an import (or, inside rclpy's extension, an
-``ImportError``). The entry points import the real ``main`` with SIGINT only remembered, then
-exit with one line and code 130 if it came; a Ctrl-C after that is the command's own business,
+``ImportError``). The entry points import the real ``main`` with SIGINT and SIGTERM only
+remembered, then exit with one line and code 128 + the signal if one came (130 for SIGINT,
+143 for SIGTERM); a signal after that is the command's own business,
 and anything that still escapes it as ``KeyboardInterrupt`` is one line too. Only the
 standard library is imported here.
 """
@@ -18,14 +19,18 @@ import sys
 
 def _run(name: str, load: Callable[[], Callable[[], int]]) -> int:
     interrupted = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: interrupted.append(signum))
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, frame: interrupted.append(signum))
+                for s in held}
     try:
         main = load()
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     if interrupted:
-        print(f'{name}: interrupted while starting', file=sys.stderr)
-        return 130
+        print(f'{name}: {signal.Signals(interrupted[0]).name} while starting; stopped',
+              file=sys.stderr)
+        return 128 + int(interrupted[0])
     try:
         return int(main() or 0)
     except KeyboardInterrupt:

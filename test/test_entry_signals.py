@@ -40,6 +40,24 @@ def test_sigint_while_starting(command, delay):
             pytest.fail(f'{command[0]} did not exit within 20 s of SIGINT: {err[-500:]}')
     assert 'Traceback' not in err, err
     if proc.returncode != 0:  # it may also have finished, or shut down cleanly on the signal
-        assert proc.returncode in (1, 130), (proc.returncode, err)
+        assert proc.returncode in (1, 130, 143), (proc.returncode, err)
         if command[0] == 'coreg':  # the node may have logged its start-up already
             assert err.strip().count('\n') <= 1, err
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize('delay', [1.0, 2.0, 3.4])
+def test_record_stopped_while_waiting_for_publishers(tmp_path, sig, delay):
+    exe = BIN / 'coreg'
+    out = tmp_path / 'rec'
+    with reserve_domain_id() as domain:
+        proc = subprocess.Popen([str(exe), 'record', str(out), '--topics', '/nobody/a',
+                                 '/nobody/b'], env=domain.env(), stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.send_signal(sig)
+        out_text, err = proc.communicate(timeout=20)
+    assert 'Traceback' not in err and 'RCLError' not in err, err
+    assert proc.returncode in (0, 130, 143), (proc.returncode, err)
+    if proc.returncode:
+        assert not (tmp_path / 'rec.partial').exists()

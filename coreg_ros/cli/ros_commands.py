@@ -90,9 +90,14 @@ def cmd_record(args) -> int:
         # written as it goes (a killed recorder loses at most a second), merged at the end
         journal = SampleJournal(partial, storage='mcap')
         print(f'recording to {out} (written as it goes to {partial})')
-        with RosSession('coreg_record') as session:
-            streams = record_streams(session, args.topics, duration=args.duration,
-                                     on_flush=journal.append, flush_period=1.0)
+        try:
+            with RosSession('coreg_record') as session:
+                streams = record_streams(session, args.topics, duration=args.duration,
+                                         on_flush=journal.append, flush_period=1.0)
+        except KeyboardInterrupt:
+            if journal.n_chunks == 0:  # stopped before any sample: leave nothing behind
+                journal.remove()
+            raise
     n = {t: len(s) for t, s in streams.items()}
     write_pose_bag(out, streams, storage=args.storage)
     SampleJournal(partial).remove()

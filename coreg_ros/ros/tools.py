@@ -69,6 +69,12 @@ class RosSession:
             self.node = Node(name, context=self.context)
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
+        except RCLError as e:
+            stopped = not self.context.ok()
+            shutdown_quietly(self.context)
+            if stopped:  # a signal shut the context down while the node was being made
+                raise KeyboardInterrupt from e
+            raise
         except BaseException:  # e.g. Ctrl-C right now: do not leave the context running
             shutdown_quietly(self.context)
             raise
@@ -273,6 +279,8 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
         raise ToolError('no topics to record; pass --topics /device_a/pose /device_b/pose')
     session.spin_until(lambda: all(node.count_publishers(t) > 0 for t in topics),
                        wait_publishers)
+    if not session.ok():  # a signal while waiting for the publishers: nothing recorded yet
+        raise KeyboardInterrupt
     rows: dict[str, list] = {t: [] for t in topics}
     frames: dict[str, str] = {}
 
@@ -305,7 +313,8 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
         if on_flush:
             flush()
     for s in subs:
-        node.destroy_subscription(s)
+        with suppress(RCLError):  # the context may be gone already (a signal)
+            node.destroy_subscription(s)
     if on_flush:
         flush()
     return {t: _rows_stream(rows[t], frames.get(t, '')) for t in topics}
