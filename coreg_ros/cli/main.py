@@ -157,13 +157,14 @@ def cmd_calibrate(args) -> int:
     return 0 if result.success else EXIT_INCONSISTENT
 
 
-def config_frames(args) -> Optional[tuple]:
-    """(frame_base_a, frame_base_b) from --config, if it names them (to spot swapped devices)."""
-    if not getattr(args, 'config', None):
-        return None
-    from coreg_ros.cli.files import load_parameters
-    values = load_parameters(args.config)
-    frames = (values.get('frame_base_a'), values.get('frame_base_b'))
+def config_frames(args) -> tuple:
+    """(frame_base_a, frame_base_b): from --config, else the node's defaults (swap check)."""
+    from coreg_ros.core.config_schema import NODE_DEFAULTS
+    values = {}
+    if getattr(args, 'config', None):
+        from coreg_ros.cli.files import load_parameters
+        values = load_parameters(args.config)
+    frames = tuple(values.get(k, NODE_DEFAULTS[k]) for k in ('frame_base_a', 'frame_base_b'))
     return frames if all(isinstance(f, str) and f for f in frames) else None
 
 

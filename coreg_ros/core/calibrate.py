@@ -15,7 +15,12 @@ from scipy import stats
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.covariance import Prior, result_poses
-from coreg_ros.core.errors import InconsistentDataError, InputError, TooFewPairsError
+from coreg_ros.core.errors import (
+    ConvergenceError,
+    InconsistentDataError,
+    InputError,
+    TooFewPairsError,
+)
 from coreg_ros.core.estimator import Problem, Solution, solve_ols, solve_tls
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.linearized import PairData, normalised_squares
@@ -278,11 +283,16 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     # outliers are a property of the data: they are found without the prior, which is then
     # tested against the data (verdict.prior_check) instead of pulling pairs out of the fit
     with_priors = not (settings.robust and prior is not None)
-    sol = fitter.solve(keep, start, warm and start is not None, with_priors)
-    if settings.robust:
-        keep, sol = fitter.reject_outliers(sol, max_rejected_share)
-        if prior is not None:
-            sol = fitter.solve(keep, sol.params, warm=True)
+    try:
+        sol = fitter.solve(keep, start, warm and start is not None, with_priors)
+        if settings.robust:
+            keep, sol = fitter.reject_outliers(sol, max_rejected_share)
+            if prior is not None:
+                sol = fitter.solve(keep, sol.params, warm=True)
+    except np.linalg.LinAlgError as e:  # e.g. positions of 1e300 m: SVD does not converge
+        raise ConvergenceError(
+            f'the numbers do not allow a solution ({e}); check the data for absurd values '
+            f'(units, a corrupt sample) with coreg diagnose') from e
     result = _result(sol, spec, settings, len(pairs))
     return replace(result, inliers=keep,
                    rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])

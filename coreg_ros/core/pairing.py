@@ -22,6 +22,8 @@ from coreg_ros.core.errors import InputError
 from coreg_ros.core.quaternion import slerp, validate_quaternions
 from coreg_ros.core.types import PairingReport, Pairs, PoseStream
 
+#: Largest position (m) a tracker reading may have: beyond it the unit or the value is wrong.
+MAX_POSITION_M = 1e6
 #: Reasons a B sample is not paired, in the order they are tested (one reason per sample).
 UNPAIRED_REASONS = ('before_first_a', 'after_last_a', 'gap_too_large', 'marker_missing')
 
@@ -126,6 +128,14 @@ def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) 
         raise InputError(
             f'{name}: position contains NaN or inf at index {i} ({int((~finite).sum())} '
             f'sample(s) in all); drop those samples (tracking lost) before pairing')
+    huge = np.abs(position).max(axis=1) > MAX_POSITION_M
+    if huge.any():
+        i = int(np.flatnonzero(huge)[0])
+        raise InputError(
+            f'{name}: position {np.abs(position[i]).max():.3g} m from the base at index {i} '
+            f'({int(huge.sum())} sample(s) in all) is beyond {MAX_POSITION_M:g} m, no tracker '
+            f'reading in metres; check the units (coreg convert --units-a/-b) or drop those '
+            f'samples')
     if orientation:
         quat = validate_quaternions(quat, f'{name} quat_wxyz')
     return PoseStream(stamps=stamps, position=position, quat_wxyz=quat,

@@ -131,8 +131,10 @@ def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[P
             f'or the prior covariance is too small; recalibrate without --prior')
     consistent = not reasons
     verdict = '' if consistent else '; '.join(reasons) + '; run coreg diagnose for details'
-    swapped = roles_swapped(result, stream_a)
-    if swapped:
-        verdict = '; '.join(v for v in (verdict, 'warning: ' + swapped) if v)
+    warnings = [w for w in (roles_swapped(result, stream_a),
+                            None if not consistent else swapped_frames(
+                                stream_a, streams_b[0], frames)) if w]
+    for w in warnings:
+        verdict = '; '.join(v for v in (verdict, 'warning: ' + w) if v)
     return replace(result, fit_consistent=consistent, verdict=verdict, prior_check=checks,
                    success=bool(result.success and consistent))
