@@ -205,8 +205,8 @@ def test_unit_mismatch_named_and_not_a_success():
 def test_swapped_devices_named_from_frame_ids():
     rec = simulate_recording(10, 20.0, 'full_pose')
     a, bs = _streams(rec)
-    a2 = replace(bs[0], frame_id='device_a_base')
-    b2 = replace(a, frame_id='device_b_base')
+    a2 = replace(bs[0], frame_id='device_b_base')  # B's messages on topic A
+    b2 = replace(a, frame_id='device_a_base')
     result, _ = calibrate_streams(a2, [b2], Settings(sigma_a=(5e-4, 2e-3),
                                                      sigma_b=(2e-4, 5e-4)),
                                   frames=('device_a_base', 'device_b_base'))
