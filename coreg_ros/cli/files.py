@@ -94,8 +94,10 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
     Raises
     ------
     ConfigError
-        If the file is unreadable, not YAML, has no section of the node, or a value has the
-        wrong type (one line naming the key, the expected type and an example).
+        If the file is unreadable, not YAML (or uses anchors, which ROS refuses), or a value
+        has the wrong type or lies outside its range (one line naming the key, the expected
+        type and an example). A file without a section of the node is warned about and sets
+        nothing, as ROS treats it.
 
     """
     import yaml
@@ -104,7 +106,14 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
 
     try:
         with open(path, encoding='utf-8') as f:
-            doc = yaml.load(f, Loader=_yaml_loader()) or {}  # noqa: S506 - a SafeLoader
+            text = f.read()
+        for event in yaml.parse(text, Loader=_yaml_loader()):  # noqa: S506 - a SafeLoader
+            if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None):
+                line = event.start_mark.line + 1
+                raise ConfigError(f'config file {path} uses a YAML anchor or alias (& or *) at '
+                                  f'line {line}, which ROS parameter files do not support; '
+                                  f'write the values out')
+        doc = yaml.load(text, Loader=_yaml_loader()) or {}  # noqa: S506 - a SafeLoader
     except OSError as e:
         raise ConfigError(f'cannot read config file {path}: {e.strerror}') from e
     except yaml.YAMLError as e:
@@ -113,6 +122,8 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
         problem = getattr(e, 'problem', None) or str(e).splitlines()[0]
         raise ConfigError(f'config file {path} is not valid YAML{at}: {problem}; compare with '
                           f'config/coreg.yaml') from e
+    except ConfigError:
+        raise
     except (ValueError, TypeError) as e:  # e.g. an impossible date or number literal
         raise ConfigError(f'config file {path} is not valid YAML: {e}; compare with '
                           f'config/coreg.yaml') from e
@@ -128,8 +139,10 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
         values.update(params)
         found = True
     if not found:
-        raise ConfigError(f'config file {path} has no "{node_name}: ros__parameters:" section; '
-                          f'see config/coreg.yaml')
+        # as ROS does for the node: a file for other nodes sets nothing here (said, not fatal)
+        warn(f'config file {path} has no "{node_name}: ros__parameters:" section: the '
+             f'defaults apply; see config/coreg.yaml')
+        return {}
     checked, warnings = check_parameters(values, where=f'{path}: ')
     for line in warnings:
         warn(line)

@@ -53,7 +53,21 @@ NODE_DEFAULTS = {
 #: Every key with its default: the calibration keys first, in the order of Settings.
 DEFAULTS = {**Settings().as_dict(), **NODE_DEFAULTS}
 
-#: Keys ROS itself gives every node (not ours, never warned about).
+#: Allowed ranges (inclusive) of the numeric keys: the node's descriptors and the file check.
+RANGES = {
+    'max_gap': (1e-6, 10.0),
+    'time_offset': (-1e6, 1e6),
+    'min_pairs': (3, 1_000_000_000),
+    'max_iterations': (1, 100_000),
+    'buffer_capacity': (10, 100_000_000),
+    'fused_rate_limit': (0.0, 1000.0),
+    'marker_magnification': (1e-3, 1e6),
+    'target_sigma_position': (1e-9, 10.0),
+    'target_sigma_rotation': (1e-9, 3.2),
+    'target_sigma_time': (0.0, 10.0),
+}
+
+#: Keys ROS itself gives every node (not ours, never warned about), all booleans.
 ROS_KEYS = ('use_sim_time', 'start_type_description_service')
 ROS_PREFIXES = ('qos_overrides.',)
 
@@ -178,6 +192,14 @@ def check_value(key: str, value: Any, where: str = '') -> Any:
     return [float(v) for v in value]
 
 
+def _check_range(key: str, value: Any, where: str) -> None:
+    if key in RANGES:
+        lo, hi = RANGES[key]
+        if not lo <= value <= hi:
+            raise ConfigError(f'{where}{key} must lie in [{lo:g}, {hi:g}], got {value!r}; '
+                              f'e.g. {example(key)}')
+
+
 def is_ros_key(key: str) -> bool:
     """Tell whether ROS declares ``key`` on every node (use_sim_time, qos_overrides...)."""
     return key in ROS_KEYS or str(key).startswith(ROS_PREFIXES)
@@ -224,6 +246,11 @@ def check_parameters(values: Mapping[str, Any], where: str = '') -> tuple[dict, 
                               f'{example("max_gap")}')
         if key in DEFAULTS:
             checked[key] = check_value(key, value, where)
+            _check_range(key, checked[key], where)
+        elif key in ROS_KEYS and not isinstance(value, bool):
+            # ROS declares these booleans on every node and refuses anything else
+            raise ConfigError(f'{where}{key} must be true or false, got {_describe(value)}; '
+                              f'e.g. {key}: false')
         elif not is_ros_key(key):
             warnings.append(unknown_key_warning(key, where))
     return checked, warnings

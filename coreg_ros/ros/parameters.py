@@ -16,7 +16,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from coreg_ros.core.config_schema import DEFAULTS, check_parameters, example
+from coreg_ros.core.config_schema import DEFAULTS, RANGES, check_parameters, example
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.settings import Settings, settings_from_mapping
 
@@ -54,9 +54,9 @@ PARAMETERS = (
      _desc('device B noise std: [position m, rotation rad]', constraints='two numbers > 0')),
     ('max_gap', DEFAULTS['max_gap'],
      _desc('largest distance (s) from a B stamp to each A sample it is interpolated between',
-           floats=_float_range(1e-6, 10.0))),
+           floats=_float_range(*RANGES['max_gap']))),
     ('time_offset', DEFAULTS['time_offset'],
-     _desc("B's clock minus A's clock, s", floats=_float_range(-10.0, 10.0))),
+     _desc("B's clock minus A's clock, s", floats=_float_range(*RANGES['time_offset']))),
     ('estimate_time_offset', DEFAULTS['estimate_time_offset'],
      _desc('estimate the clock offset jointly with the transforms (time_offset is the start); '
            'false: use time_offset as given')),
@@ -65,9 +65,9 @@ PARAMETERS = (
     ('robust', DEFAULTS['robust'],
      _desc('reject pairs far outside the stated noise (outliers) before the final fit')),
     ('min_pairs', DEFAULTS['min_pairs'],
-     _desc('fewest pairs a calibration accepts', ints=_int_range(3, 1_000_000_000))),
+     _desc('fewest pairs a calibration accepts', ints=_int_range(*RANGES['min_pairs']))),
     ('max_iterations', DEFAULTS['max_iterations'],
-     _desc('iteration limit of the estimator', ints=_int_range(1, 100_000))),
+     _desc('iteration limit of the estimator', ints=_int_range(*RANGES['max_iterations']))),
     ('prior_file', DEFAULTS['prior_file'],
      _desc('a previous result (result.yaml or coreg calibrate --json) or a partial prior that '
            'calibrations refine (Ikits B.3); empty: none')),
@@ -79,7 +79,7 @@ PARAMETERS = (
            'default: ~/calibrate answers success=false with the reason)')),
     ('buffer_capacity', DEFAULTS['buffer_capacity'],
      _desc('samples kept per topic; the oldest are dropped when full', read_only=True,
-           ints=_int_range(10, 100_000_000))),
+           ints=_int_range(*RANGES['buffer_capacity']))),
     ('qos_reliable', DEFAULTS['qos_reliable'],
      _desc('false: sensor-data QoS (best effort), true: reliable', read_only=True)),
     ('frame_base_a', DEFAULTS['frame_base_a'], _desc("device A's base frame", read_only=True)),
@@ -102,10 +102,10 @@ PARAMETERS = (
            'the latest fused pose (transient local)')),
     ('fused_rate_limit', DEFAULTS['fused_rate_limit'],
      _desc('largest rate (Hz) of ~/fused_pose and of the fused markers (the newest pair '
-           'each time); 0.0 = every pair', floats=_float_range(0.0, 1000.0))),
+           'each time); 0.0 = every pair', floats=_float_range(*RANGES['fused_rate_limit']))),
     ('marker_magnification', DEFAULTS['marker_magnification'],
      _desc('display gain on the ellipsoid semi-axes and on tan of the cone half-angles '
-           '(1 = true size)', floats=_float_range(1e-3, 1e6))),
+           '(1 = true size)', floats=_float_range(*RANGES['marker_magnification']))),
     ('fuse_when_stale', DEFAULTS['fuse_when_stale'],
      _desc('keep publishing ~/fused_pose when the watchdog finds the calibration stale '
            '(flagged on ~/calibration_stale); false: stop it until a new calibration')),
@@ -115,13 +115,13 @@ PARAMETERS = (
            'have now against the targets, and the motion that helps most')),
     ('target_sigma_position', DEFAULTS['target_sigma_position'],
      _desc('guidance target: sigma of every position component, m',
-           floats=_float_range(1e-9, 10.0))),
+           floats=_float_range(*RANGES['target_sigma_position']))),
     ('target_sigma_rotation', DEFAULTS['target_sigma_rotation'],
      _desc('guidance target: sigma of every rotation component, rad',
-           floats=_float_range(1e-9, 3.2))),
+           floats=_float_range(*RANGES['target_sigma_rotation']))),
     ('target_sigma_time', DEFAULTS['target_sigma_time'],
      _desc('guidance target: sigma of the clock offset, s; 0.0 = no target',
-           floats=_float_range(0.0, 10.0))),
+           floats=_float_range(*RANGES['target_sigma_time']))),
     ('auto_calibrate', DEFAULTS['auto_calibrate'],
      _desc('calibrate (as ~/calibrate) once guidance says ready and no calibration exists')),
     ('watchdog', DEFAULTS['watchdog'],
@@ -261,12 +261,7 @@ def check_params_files(args: list[str], node_name: str) -> None:
     from coreg_ros.cli.files import load_parameters
 
     for path in params_files(args):
-        try:
-            load_parameters(path, node_name, warn=lambda line: None)
-        except ConfigError as e:
-            if f'has no "{node_name}: ros__parameters:"' in str(e):
-                continue  # a file for other nodes only: ROS applies none of it here
-            raise
+        load_parameters(path, node_name, warn=lambda line: None)
 
 
 def _plain(value):
