@@ -197,6 +197,12 @@ def other_table(results: dict) -> str:
                      f'{node["estimator_seconds"]} s) | success {node["success"]} |')
     elif node:
         lines.append(f'| node | – | {node} | – |')
+    fz = results.get('fuzz')
+    if isinstance(fz, dict):
+        t = fz['totals']
+        lines.append(f'| fuzz: params, csv, bag, signals (seed {fz["seed"]}) | {t["tried"]} inputs '
+                     f'| {fz["seconds"]:.0f} s | {t["traceback"]} tracebacks, {t["hang"]} hangs, '
+                     f'{t["wrong"]} known-wrong |')
     st = results.get('time_offset')
     if isinstance(st, dict):
         lines.append(f'| calibrate, τ estimated vs fixed | {st["n_pairs"]:,} pairs '
@@ -245,6 +251,7 @@ def main(argv=None) -> int:
                              '(the 60k-pair diagnosis timing always runs)')
     parser.add_argument('--no-diagnosis', action='store_true', help='skip the diagnosis timing')
     parser.add_argument('--no-profile', action='store_true')
+    parser.add_argument('--fuzz-n', type=int, default=60, help='fuzz inputs per kind (0: skip)')
     parser.add_argument('--watchdog-hours', type=float, default=72.0,
                         help='stable hours simulated for the watchdog false-alarm rate (0: skip)')
     parser.add_argument('--readme', type=Path, help='also write the markdown tables here')
@@ -291,6 +298,10 @@ def main(argv=None) -> int:
                  jobs=2, timing=True)
     if not args.no_mc:
         _section(results, 'montecarlo', mc.run_all, args.mc_scale, args.mc_workers, log=log)
+    if args.fuzz_n > 0:
+        from bench import fuzz
+        _section(results, 'fuzz', fuzz.run, args.fuzz_n, 12, with_ros=args.node_duration > 0,
+                 log=log)
     if args.watchdog_hours > 0:
         from bench import watchdog_bench
         _section(results, 'watchdog', watchdog_bench.run, args.watchdog_hours)
