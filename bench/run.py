@@ -200,8 +200,9 @@ def other_table(results: dict) -> str:
     fz = results.get('fuzz')
     if isinstance(fz, dict):
         t = fz['totals']
-        lines.append(f'| fuzz: params, csv, bag, signals (seed {fz["seed"]}) | {t["tried"]} inputs '
-                     f'| {fz["seconds"]:.0f} s | {t["traceback"]} tracebacks, {t["hang"]} hangs, '
+        lines.append(f'| fuzz: params, csv, bag, signals (seed {fz["seed"]}) '
+                     f'| {t["tried"]} inputs | {fz["seconds"]:.0f} s '
+                     f'| {t["traceback"]} tracebacks, {t["hang"]} hangs, '
                      f'{t["wrong"]} known-wrong |')
     st = results.get('time_offset')
     if isinstance(st, dict):
