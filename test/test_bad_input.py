@@ -160,7 +160,8 @@ def test_stream_duplicate_stamps(rec):
     a, b = rec.stream_a, rec.streams_b[0]
     st = a.stamps.copy()
     st[10] = st[9]
-    _both(replace(a, stamps=st), b, 'duplicate stamp', 'index 10', 'coreg fix-bag', '--drop-duplicates')
+    _both(replace(a, stamps=st), b, 'duplicate stamp', 'index 10', 'coreg fix-bag',
+          '--drop-duplicates')
 
 
 def test_stream_clock_jump_backwards(rec):
