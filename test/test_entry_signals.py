@@ -58,6 +58,7 @@ def test_record_stopped_while_waiting_for_publishers(tmp_path, sig, delay):
         proc.send_signal(sig)
         out_text, err = proc.communicate(timeout=20)
     assert 'Traceback' not in err and 'RCLError' not in err, err
-    assert proc.returncode in (0, 130, 143), (proc.returncode, err)
+    # killed by the signal before Python ran a line of ours (a loaded machine) is fine too
+    assert proc.returncode in (0, 130, 143, -sig), (proc.returncode, err)
     if proc.returncode:
         assert not (tmp_path / 'rec.partial').exists()

@@ -162,11 +162,30 @@ def test_guidance_sigma_is_the_calibrations_and_a_stable_recording_raises_no_ala
     assert node.alive(), node.log()
 
 
-def test_t0_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_session,
-                                                                  start_node, tmp_path):
+#: (change, attributed kind, /diagnostics key of its size, text in the message)
+STEPS = [('t0_step=2mm', 't0', wd.KEY_TRANSLATION, 'T0 moved'),
+         ('t0_step=0.5deg', 't0', wd.KEY_ROTATION, 'T0 moved'),
+         ('t1_step=2mm', 't1', wd.KEY_TRANSLATION, 'T1 moved'),
+         ('t1_step=0.5deg', 't1', wd.KEY_ROTATION, 'T1 moved'),
+         ('clock_step=10ms', 'clock', wd.KEY_CLOCK, 'clock offset changed')]
+
+
+def _true_size(change: dict, key: str) -> float:
+    """The injected size in the unit of the /diagnostics key (mm, degrees, ms)."""
+    if key == wd.KEY_TRANSLATION:
+        return float(np.linalg.norm(change['translation_m'])) * 1e3
+    if key == wd.KEY_ROTATION:
+        return float(np.degrees(np.linalg.norm(change['rotation_rad'])))
+    return abs(change['clock_s']) * 1e3
+
+
+@pytest.mark.parametrize('spec, kind, key, text', STEPS)
+def test_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_session,
+                                                              start_node, tmp_path, spec, kind,
+                                                              key, text):
     change_s = 43.0
     rec = apply_changes(simulate_recording(72, 56.0, rate_a=RATE, rate_b=RATE),
-                        [f't0_step=2mm@{change_s}'], seed=72)
+                        [f'{spec}@{change_s}'], seed=72)
     change = rec.truth.effects[-1]
     before, after = _bags(tmp_path, rec, [0.0, 40.0, 56.0])
     first = start_node({'qos_reliable': True})
@@ -191,14 +210,13 @@ def test_t0_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros
     assert all(lv == wd.ERROR for lv in levels[first_error:]), levels
     t_error, _, message, values = states[first_error]
     final = states[-1][3]
-    assert final[wd.KEY_CHANGE] == 't0', final
-    assert 'T0 moved' in message and final[wd.KEY_STALE] == 'true'
+    assert final[wd.KEY_CHANGE] == kind, final
+    assert text in message and final[wd.KEY_STALE] == 'true'
     assert '~/fused_pose stopped' in states[-1][2]
     alarm_s = (int(final[wd.KEY_ALARM_STAMP]) - change['start_ns']) * 1e-9
     assert 0.0 <= alarm_s < 5.0, final
-    size, sigma = (float(v) for v in final[wd.KEY_TRANSLATION].split(' ± '))
-    truth_mm = np.linalg.norm(change['translation_m']) * 1e3
-    assert abs(size - truth_mm) < 3.0 * sigma, final
+    size, sigma = (abs(float(v)) for v in final[key].split(' ± '))
+    assert abs(size - _true_size(change, key)) < 3.0 * sigma, final
     # ~/fused_pose fused until the change was found, and stopped then (data kept coming)
     assert any(t < t_error for t in watch.fused)
     assert not [t for t in watch.fused if t > t_error + 1.0], (t_error, watch.fused[-5:])

@@ -309,14 +309,18 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
         left = end - time.monotonic()
         if left <= 0:
             break
-        session.spin_until(lambda: False, min(left, flush_period) if on_flush else left)
-        if on_flush:
-            flush()
+        try:
+            session.spin_until(lambda: False, min(left, flush_period) if on_flush else left)
+            if on_flush:
+                flush()
+        except KeyboardInterrupt:  # a Ctrl-C while writing a chunk ends the recording too
+            session.interrupt()
     for s in subs:
         with suppress(RCLError):  # the context may be gone already (a signal)
             node.destroy_subscription(s)
     if on_flush:
-        flush()
+        with suppress(KeyboardInterrupt):  # every sample is returned to the caller anyway
+            flush()
     return {t: _rows_stream(rows[t], frames.get(t, '')) for t in topics}
 
 
