@@ -144,9 +144,13 @@ class FieldDistortion(MeanEffect):
     ``d(p) = Θ_p · [q(u), c(u)]`` with ``u = (p - centre) / spread`` (the workspace's centre
     and half-size), q the six degree-two and c the ten degree-three monomials: the cubic
     terms follow the steep side of a field whose source (a dipole-like disturbance) lies near
-    the workspace. For full pose also a rotation error ``Exp(Θ_r · q(u))`` on the left of B's
-    orientation (its metric is half of it). Constant and linear parts are left to T0 (and to
-    ``scale``). Its size is reported as the part a rigid registration cannot absorb.
+    the workspace. For full pose also a rotation error ``Exp(Θ_r · [1, u, q(u)])`` and a
+    dipole on the left of B's orientation (its metric is half of it). The constant part and a
+    rigid turn are left to T0; the linear part a rigid registration cannot absorb is the
+    field's too: a field free of sources in the workspace (the gradient of a harmonic
+    potential) has a symmetric, trace-free Jacobian, so five such linear terms are fitted (a
+    trace, a uniform scale, stays with ``scale``). Its size is reported as the part a rigid
+    registration cannot absorb.
     """
 
     name = 'field_distortion'
@@ -159,8 +163,8 @@ class FieldDistortion(MeanEffect):
         self.spread = float(np.max(np.linalg.norm(pts - self.centre, axis=1))) or 1.0
         self.rot = data.spec.has_q1
         self.source = _dipole_source(data, self.centre, self.spread)
-        self.n_pos = 3 * self.per_axis + 3
-        self.n = self.n_pos + (21 if self.rot else 0)
+        self.n_pos = 3 * self.per_axis + 3 + 5
+        self.n = self.n_pos + (33 if self.rot else 0)
 
     def dipole(self, points: np.ndarray) -> np.ndarray:
         """Field of a unit dipole moment along each axis at the source, (n, 3, 3), per m³."""
@@ -182,11 +186,18 @@ class FieldDistortion(MeanEffect):
             for ax in range(3):
                 J[:, 3 * j + ax, a * ax:a * ax + a] = q
             J[:, 3 * j:3 * j + 3, 3 * a:3 * a + 3] = self.dipole(ctx.f_pos[:, j, :])
+            J[:, 3 * j:3 * j + 3, 3 * a + 3:3 * a + 8] = self.linear(ctx.f_pos[:, j, :])
         if self.rot:
             q = _quadratic((ctx.f_pos[:, 0, :] - self.centre) / self.spread)
             for ax in range(3):
                 J[:, 3 + ax, self.n_pos + 6 * ax:self.n_pos + 6 * ax + 6] = 0.5 * q
             J[:, 3:6, self.n_pos + 18:self.n_pos + 21] = 0.5 * self.dipole(ctx.f_pos[:, 0, :])
+            # a rotation field's constant and linear parts: the orientation's error is not
+            # tied to the positions' as T0's turn is, so T0 cannot absorb them
+            u = (ctx.f_pos[:, 0, :] - self.centre) / self.spread
+            J[:, 3:6, self.n_pos + 21:self.n_pos + 24] = 0.5 * np.eye(3)[None]
+            for ax in range(3):
+                J[:, 3 + ax, self.n_pos + 24 + 3 * ax:self.n_pos + 27 + 3 * ax] = 0.5 * u
         return J @ theta, J
 
     def field(self, points: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -194,7 +205,17 @@ class FieldDistortion(MeanEffect):
         q = self.basis(points)
         a = self.per_axis
         poly = np.stack([q @ theta[a * ax:a * ax + a] for ax in range(3)], axis=1)
-        return poly + self.dipole(points) @ theta[3 * a:3 * a + 3]
+        return (poly + self.dipole(points) @ theta[3 * a:3 * a + 3]
+                + self.linear(points) @ theta[3 * a + 3:3 * a + 8])
+
+    def linear(self, points: np.ndarray) -> np.ndarray:
+        """Return the five symmetric trace-free linear maps of the centred positions, (n, 3, 5)."""
+        u = (points - self.centre) / self.spread
+        x, y, z = u[:, 0], u[:, 1], u[:, 2]
+        o = np.zeros_like(x)
+        return np.stack([np.stack([x, -y, o], axis=1), np.stack([o, y, -z], axis=1),
+                         np.stack([y, x, o], axis=1), np.stack([z, o, x], axis=1),
+                         np.stack([o, z, y], axis=1)], axis=2)
 
 
 def _dipole_matrix(r: np.ndarray) -> np.ndarray:
