@@ -51,7 +51,7 @@ LARGE_OFFSET_SHARE = 0.25
 SIZE_KEYS = {'time_offset': 'tau_s', 'clock_drift': 'ppm', 'timestamp_jitter': 'sigma_s',
              'field_distortion': 'max_mm', 'distance_noise': 'exponent', 'scale': 'scale',
              'link_flex': 'sag_mm', 'outliers': 'fraction', 'backlash': 'width_mm',
-             'noise_scale': 'factor', 'shared_clock': 'tau_s', 'non_stationary': None}
+             'noise_scale': 'factor', 'shared_clock': 'tau_s', 'non_stationary': 'max_mm'}
 SIZES = ('small', 'medium', 'large')
 #: Share of clean recordings among the validation cases.
 CLEAN_SHARE = 0.25

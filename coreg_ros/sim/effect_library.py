@@ -371,8 +371,9 @@ class NonStationary:
     A dipole disturbance at a random point just outside the workspace acts during one window
     of the recording (``window`` = (start, end) as shares of the duration, drawn when None:
     15-35 % of it), switched on and off over half a second each. ``max_mm`` is the largest
-    position error it causes (rotation ``max_mm · rotation_per_mm`` rad). Applied to B's
-    noise-free poses.
+    position error it causes (rotation ``max_mm · rotation_per_mm`` rad): over the samples
+    recorded while it acts, not over places the sensor visits only while it is away. Applied
+    to B's noise-free poses.
     """
 
     max_mm: float
@@ -401,16 +402,18 @@ class NonStationary:
         spread = float(np.max(np.linalg.norm(flat - centre, axis=1)))
         g_pos, source = _dipole(rng, centre, 0.7 * spread)
         g_rot, _ = _dipole(rng, centre, 0.7 * spread)
-        d = g_pos(flat).reshape(p.shape)
-        scale = self.max_mm * 1e-3 / float(np.max(np.linalg.norm(d, axis=2)))
-        d = scale * d * on[:, None, None]
+        d = g_pos(flat).reshape(p.shape) * on[:, None, None]
+        # sized by the largest error it does cause: while it acts, where the sensor then is
+        # (not where the sensor is only while the object is away)
+        peak = float(np.max(np.linalg.norm(d, axis=2))) if d.size else 0.0
+        d = (self.max_mm * 1e-3 / peak) * d if peak > 0 else d
         out = dict(streams)
         for j, x in enumerate(topics):
             out[x] = _replace_stream(streams[x], position=streams[x].position + d[:, j])
         if _full_pose(context):
-            w = g_rot(p[:, 0])
-            w = (self.max_mm * self.rotation_per_mm / float(np.max(np.linalg.norm(w, axis=1)))
-                 ) * w * on[:, None]
+            w = g_rot(p[:, 0]) * on[:, None]
+            peak_w = float(np.max(np.linalg.norm(w, axis=1))) if len(w) else 0.0
+            w = (self.max_mm * self.rotation_per_mm / peak_w) * w if peak_w > 0 else w
             s = out[topics[0]]
             out[topics[0]] = _replace_stream(s, quat_wxyz=quat.canonical(
                 quat.multiply(quat.exp(w), s.quat_wxyz)))

@@ -732,6 +732,21 @@ def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) 
     """
     out = {}
     flagged = ~counted
+    # under the fitted noise model: a noise that grows with range is stationary, not local
+    emap = gp.excess_map(data, after.quad, counted)
+    out['map'] = emap
+
+    def sized(estimate: dict, hot: np.ndarray) -> dict:
+        # how large the local error is where it acts (held-out errors, noise taken off)
+        size = gp.local_error_size(data, after.e, hot)
+        if size:
+            estimate.update(max_mm=size['max_mm'], rms_mm=size['rms_mm'],
+                            window_s=[size['from_s'], size['to_s']])
+            estimate['text'] += (f'; up to {size["max_mm"]:.2f} mm (RMS {size["rms_mm"]:.2f}'
+                                 f' mm) in {size["from_s"]:.0f}-{size["to_s"]:.0f} s')
+        return estimate
+
+    hot_t = gp.hot_time_mask(data, emap)
     row = next((r for r in rows if r['name'] == 'outliers'), None)
     if row is not None:
         cl = gp.flagged_clustering(data, flagged)
@@ -753,9 +768,8 @@ def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) 
                 'text': (f'structured/non-stationary error here: {where} '
                          f'({cl["count"]} pairs, {cl["share"] * 100:.1f} %, flagged in '
                          'clusters, not at random)')}
-    # under the fitted noise model: a noise that grows with range is stationary, not local
-    emap = gp.excess_map(data, after.quad, counted)
-    out['map'] = emap
+            # the flagged pairs are where it acts (the excess map counts them out)
+            row['estimate'] = sized(row['estimate'], flagged)
     ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
     stated_excess = gap_after['chi2_per_dof_at_stated_noise'] - 1.0
     if (emap['concentrated_in_time'] and ex_after > 0.02 and stated_excess > 0.02
@@ -769,6 +783,13 @@ def _structure_checks(data, final, after, counted, rows: list, gap_after: dict) 
                                            'stationary effect explains it')},
                      'held_out_gain': 0.0, 'held_out_gain_per_residual': 0.0,
                      'blocks_improved': 0, 'blocks': 0})
+        rows[-1]['estimate'] = sized(rows[-1]['estimate'], hot_t)
+    ns = next((r for r in rows if r['name'] == 'non_stationary'), None)
+    if ns is not None and rows[0]['name'] in ('distance_noise', 'noise_scale'):
+        # a local structured error goes before noise descriptions of it (a noise effect
+        # never explains the gap)
+        rows.remove(ns)
+        rows.insert(0, ns)
     return out
 
 

@@ -303,3 +303,48 @@ def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -
     out['clustered'] = out['in_time'] or out['in_workspace']
     out['where'] = '; '.join(where)
     return out
+
+
+def local_error_size(data, e: np.ndarray, hot: np.ndarray, window: int = 5) -> dict:
+    """
+    Size of an error that acts at some times only: the largest held-out position error there.
+
+    The held-out position errors of B's first marker are smoothed over ``window`` samples
+    (the disturbance follows the sensor's path, the noise does not) and their largest norm
+    among the ``hot`` pairs is taken; the same statistic of the noise alone, read from the
+    other pairs at the same count, is taken off in quadrature.
+
+    Returns
+    -------
+    dict
+        ``max_mm``, ``rms_mm`` (the hot pairs' smoothed error, noise taken off),
+        ``noise_mm`` (what was taken off), ``from_s``/``to_s`` (the hot pairs' span).
+
+    """
+    hot = np.asarray(hot, dtype=bool)
+    if hot.sum() < window or (~hot).sum() < window:
+        return {}
+    p = e[:, 0:3]
+    kernel = np.ones(window) / window
+    s = np.stack([np.convolve(p[:, i], kernel, mode='same') for i in range(3)], axis=1)
+    norm = np.linalg.norm(s, axis=1) * 1e3
+    # the cold pairs' smoothed error: its level at the count of independent hot samples
+    cold = norm[~hot]
+    n_eff = max(hot.sum() / window, 1.0)
+    noise_max = float(np.quantile(cold, max(0.0, 1.0 - 1.0 / n_eff)))
+    noise_rms = float(np.sqrt(np.mean(cold ** 2)))
+    peak = float(norm[hot].max())
+    rms = float(np.sqrt(np.mean(norm[hot] ** 2)))
+    t = np.quantile(data.t[hot], [0.02, 0.98])
+    return {'max_mm': float(np.sqrt(max(peak ** 2 - noise_max ** 2, 0.0))),
+            'rms_mm': float(np.sqrt(max(rms ** 2 - noise_rms ** 2, 0.0))),
+            'noise_mm': noise_max, 'from_s': float(t[0]), 'to_s': float(t[1])}
+
+
+def hot_time_mask(data, emap: dict) -> np.ndarray:
+    """Pairs in the time blocks of an excess map that stand out."""
+    hot = np.zeros(data.n, dtype=bool)
+    for b in emap.get('time_blocks', []):
+        if b['stands_out']:
+            hot |= (data.t >= b['from_s']) & (data.t <= b['to_s'])
+    return hot
