@@ -94,3 +94,20 @@ def test_flagged_pairs_in_one_time_block_are_structure_not_outliers():
     burst[(data.t > 10) & (data.t < 13)] = True
     cl = gp.flagged_clustering(data, burst)
     assert cl['clustered'] and cl['in_time'] and '8-12 s' in cl['where'] + '12-16 s'
+
+
+def test_a_local_error_is_sized_where_it_acts_with_the_noise_taken_off():
+    rec = simulate_recording(3, 40.0)
+    pairs, _ = pair_for(rec.stream_a, list(rec.streams_b), Settings())
+    data = prepare(pairs, Settings(), rec.stream_a)
+    rng = np.random.default_rng(1)
+    e = rng.normal(scale=5e-4, size=(data.n, data.m))        # 0.5 mm noise
+    hot = (data.t > 10) & (data.t < 16)
+    bump = np.exp(-0.5 * ((data.t - 13.0) / 1.0) ** 2) * 4e-3
+    e[:, 0] += np.where(hot, bump, 0.0)
+    size = gp.local_error_size(data, e, hot)
+    assert size['max_mm'] == pytest.approx(4.0, rel=0.2)
+    assert 9.5 < size['from_s'] < size['to_s'] < 16.5
+    # noise alone is small
+    assert gp.local_error_size(data, rng.normal(scale=5e-4, size=e.shape),
+                               hot)['max_mm'] < 0.8

@@ -58,6 +58,27 @@ def test_non_stationary_distortion_says_when_and_that_nothing_stationary_explain
             or 'structured/non-stationary error here' in text)
     assert 'outliers' not in [e['name'] for e in r['effects']]
     assert '20-24 s' in row['estimate']['where'] or '24-28 s' in row['estimate']['where']
+    # how large and when: the largest error it causes, within its window (20-28 s)
+    assert row['estimate']['max_mm'] == pytest.approx(5.0, rel=0.2)
+    lo, hi = row['estimate']['window_s']
+    assert 18.0 < lo < hi < 30.0
+
+
+def test_field_linear_terms_are_symmetric_trace_free_and_not_rigid():
+    from coreg_ros.core.diagnosis.effects import FieldDistortion as Field
+    from coreg_ros.core.diagnosis.effects import rigid_part
+
+    eff = Field()
+    eff.centre, eff.spread = np.zeros(3), 1.0
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(200, 3))
+    maps = eff.linear(pts)                                   # (n, 3, 5)
+    for k in range(5):
+        M, *_ = np.linalg.lstsq(pts, maps[:, :, k], rcond=None)
+        assert np.allclose(M, M.T) and abs(np.trace(M)) < 1e-9
+        # none of it is a rigid motion: a rigid registration cannot absorb it
+        d = maps[:, :, k]
+        assert np.linalg.norm(d - rigid_part(pts, d)) > 0.9 * np.linalg.norm(d)
 
 
 def test_a_stationary_field_is_not_called_non_stationary():
