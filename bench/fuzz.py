@@ -1118,10 +1118,10 @@ def _judge_signal_result(case: dict, res: dict, workdir: Path) -> None:
         except Exception as e:  # noqa: BLE001 - any failure to read it back is the finding
             res['wrong'].append(f'record said it wrote {workdir / "rec"} but it cannot be read '
                                 f'({type(e).__name__}: {e})')
-    if case['target'] == 'node' and code not in (0, 130, -2, -15, None) \
+    if case['target'] == 'node' and code not in (0, 130, 143, -2, -15, None) \
             and not res['exited_before'] and not res['traceback']:
         res['wrong'].append(f'node exit code {code} after {case["signal"].name}')
-    if case['target'] in ('play', 'record', 'echo') and code not in (0, 1, 130, -2, -15) \
+    if case['target'] in ('play', 'record', 'echo') and code not in (0, 1, 130, 143, -2, -15) \
             and not res['traceback']:
         res['wrong'].append(f'{case["target"]} exit code {code} after {case["signal"].name}')
 
