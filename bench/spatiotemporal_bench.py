@@ -42,3 +42,9 @@ def bench_time_offset(n_pairs: int = 100_000, tau: float = 0.012, repeats: int =
             'estimate_s': t.value_s, 'sigma_s': t.sigma_s,
             'error_sigmas': abs(t.value_s - tau) / t.sigma_s, 'fixed_success': fixed.success,
             'estimated_success': auto.success}
+
+
+if __name__ == '__main__':
+    import json
+
+    print(json.dumps(bench_time_offset(), indent=1))

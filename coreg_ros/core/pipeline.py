@@ -29,7 +29,13 @@ from coreg_ros.core.calibrate import (
     output_covariance,
 )
 from coreg_ros.core.covariance import Prior, result_poses, tangent_map
-from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
+from coreg_ros.core.errors import (
+    ConvergenceError,
+    CoregError,
+    InconsistentDataError,
+    TooFewPairsError,
+    UnobservableError,
+)
 from coreg_ros.core.linearized import PairData
 from coreg_ros.core.models import SPECS, Parameters
 from coreg_ros.core.pairing import pair_streams, validated_streams
@@ -45,13 +51,13 @@ from coreg_ros.core.timing import (
 )
 from coreg_ros.core.trajectory import VELOCITY_HALF_WINDOW, Trajectory
 from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
-from coreg_ros.core.verdict import judge
+from coreg_ros.core.verdict import judge, unit_mismatch
 
 #: A step of τ below this (s) is applied without re-pairing (the pairs are linear in τ over
 #: it: ½ a δτ² is 0.5 µm at 1 m/s² acceleration).
 LINEAR_STEP_S = 1e-3
 #: B samples of the subsample on which the offset candidates are compared and refined.
-SUBSAMPLE_B = 2000
+SUBSAMPLE_B = 1500
 #: Gauss-Newton rounds on τ (each re-pairs and refits).
 MAX_ROUNDS = 8
 #: Candidates refined after their first round.
@@ -116,11 +122,18 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
 
     """
     streams_b = _b_list(streams_b)
-    if settings.estimate_time_offset:
-        result, report = _spatiotemporal(stream_a, streams_b, settings, prior)
-    else:
-        result, report = _fixed(stream_a, streams_b, settings, prior,
-                                TimeOffset(settings.time_offset, message='given'))
+    try:
+        if settings.estimate_time_offset:
+            result, report = _spatiotemporal(stream_a, streams_b, settings, prior)
+        else:
+            result, report = _fixed(stream_a, streams_b, settings, prior,
+                                    TimeOffset(settings.time_offset, message='given'))
+    except (UnobservableError, InconsistentDataError, ConvergenceError) as e:
+        # positions in other units make every fit fail somehow: name the cause, not the symptom
+        units = unit_mismatch(stream_a, streams_b[0])
+        if units and 'likely in' not in str(e):
+            raise type(e)(f'{e}; but first: {units}') from e
+        raise
     return judge(result, stream_a, streams_b, settings, prior, frames), report
 
 
@@ -264,7 +277,8 @@ def _refine(ctx: _Context, streams_b: list, rnd: _Round) -> _Round:
 def _candidates(ctx: _Context) -> list:
     """Return the given τ, then the coarse search's peaks, without near-duplicates."""
     angular = ctx.settings.model != 'position_only'
-    found = [tau for tau, _ in coarse_offsets(ctx.stream_a, ctx.streams_b, angular=angular)]
+    found = [tau for tau, _ in coarse_offsets(ctx.stream_a, ctx.streams_b, angular=angular,
+                                              trajectory_a=ctx.trajectory)]
     out = []
     for tau in [float(ctx.settings.time_offset)] + found:
         if all(abs(tau - t) > SAME_CANDIDATE_S for t in out):
@@ -283,9 +297,10 @@ def _spatiotemporal(stream_a, streams_b, settings, prior):
         method='ols', max_iterations=min(int(settings.max_iterations), TRIAL_ITERATIONS)))
     # one round per candidate, then the best few refined: a wrong lag is far off at once
     firsts = []
+    plain = replace(trial, settings=trial.settings.updated(robust=False))
     for tau in _candidates(ctx):
-        try:
-            firsts.append(_round(trial, sub_b, tau, kappa0, None))
+        try:  # scored by the median residual: robust without rejecting
+            firsts.append(_round(plain, sub_b, tau, kappa0, None))
         except CoregError:
             continue
     firsts.sort(key=_Round.score)

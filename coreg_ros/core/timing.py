@@ -40,11 +40,11 @@ MAX_SIGMA_S = 0.010
 #: The velocity signature must carry this many times the information A's noise alone would.
 MIN_SIGNAL_TO_NOISE = 4.0
 #: Candidates of the coarse search that are refined by the fit.
-MAX_CANDIDATES = 4
+MAX_CANDIDATES = 3
 #: Smallest share of the shorter signal two signals must overlap at a lag.
 MIN_OVERLAP_SHARE = 0.3
 #: Every how many pairs the noise share of the velocity signature is evaluated.
-NOISE_STRIDE = 8
+NOISE_STRIDE = 32
 #: Half-width (s) of the central differences of the coarse speed signals.
 COARSE_HALF_WINDOW = 0.1
 #: Largest number of grid samples of one coarse signal (bounds time and memory).
@@ -81,7 +81,8 @@ def _frame_of_markers(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> np.ndar
     return quat.from_matrix(np.stack([x, y, z], axis=2))
 
 
-def _speed(stream_or_streams, origin_ns: int, step: float, angular: bool):
+def _speed(stream_or_streams, origin_ns: int, step: float, angular: bool,
+           trajectory: Optional[Trajectory] = None):
     """(start s, speed on a uniform grid): |ω| (rad/s) if ``angular`` else |v| (m/s)."""
     streams = stream_or_streams if isinstance(stream_or_streams, (list, tuple)) else [
         stream_or_streams]
@@ -97,7 +98,7 @@ def _speed(stream_or_streams, origin_ns: int, step: float, angular: bool):
         pts = [tr.pose(grid)[0] for tr in trajs]
         traj = Trajectory(grid, pts[0], _frame_of_markers(*pts))
     else:
-        traj = Trajectory(t, first.position, first.quat_wxyz)
+        traj = trajectory or Trajectory(t, first.position, first.quat_wxyz)
     v, w = traj.velocity(grid, half)
     return grid, np.linalg.norm(w if angular else v, axis=1)
 
@@ -137,7 +138,8 @@ def _windowed_correlation(a: np.ndarray, b: np.ndarray, min_overlap: int):
 
 
 def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
-                   angular: bool, max_candidates: int = MAX_CANDIDATES) -> list:
+                   angular: bool, max_candidates: int = MAX_CANDIDATES,
+                   trajectory_a: Optional[Trajectory] = None) -> list:
     """
     Candidate offsets τ (s) from the cross-correlation of the devices' speeds, best first.
 
@@ -151,6 +153,8 @@ def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
         Correlate angular speeds (B has an orientation, or three markers) rather than the
         speeds of the tool and marker origins (position-only B).
     max_candidates : int
+    trajectory_a : Trajectory, optional
+        A's trajectory on its own clock, seconds from its first stamp, if already built.
 
     Returns
     -------
@@ -163,7 +167,7 @@ def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
     step = _grid_step(stream_a, *streams_b)
     if min(len(stream_a), len(streams_b[0])) < 4:
         return []
-    ta, a = _speed(stream_a, int(stream_a.stamps[0]), step, angular)
+    ta, a = _speed(stream_a, int(stream_a.stamps[0]), step, angular, trajectory_a)
     b_arg = streams_b if len(streams_b) == 3 else streams_b[0]
     tb, b = _speed(b_arg, int(streams_b[0].stamps[0]), step, angular)
     if len(a) < 8 or len(b) < 8 or np.std(a) == 0 or np.std(b) == 0:
