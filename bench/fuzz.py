@@ -243,6 +243,10 @@ def run_cli(argv: list, timeout: float = CLI_TIMEOUT) -> CliRun:
     return run
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _cmdline(argv) -> str:
     return ' '.join(str(a) for a in argv)
 
@@ -255,9 +259,11 @@ class Proc:
         self.log_path = log
         self._log = open(log, 'w')  # noqa: SIM115 - closed in finish()
         self.started = time.monotonic()
+        # SIGINT as a user's terminal has it: a fuzz started in the background of a
+        # non-interactive shell inherits it ignored, and so would every child
         self.proc = subprocess.Popen(self.argv, env=env, cwd=cwd, stdout=self._log,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=_default_sigint)
 
     def alive(self) -> bool:
         return self.proc.poll() is None
