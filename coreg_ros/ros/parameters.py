@@ -72,8 +72,8 @@ PARAMETERS = (
      _desc('a previous result (result.yaml or coreg calibrate --json) or a partial prior that '
            'calibrations refine (Ikits B.3); empty: none')),
     ('use_last_result_as_prior', DEFAULTS['use_last_result_as_prior'],
-     _desc("refine the node's own stored result (its result_<node>_<hash>.yaml in storage_dir) when no "
-           'prior_file is given')),
+     _desc("refine the node's own stored result (its result_<node>_<hash>.yaml in "
+           'storage_dir) when no prior_file is given')),
     ('publish_inconsistent', DEFAULTS['publish_inconsistent'],
      _desc('publish a calibration whose fit contradicts the stated noise (it is refused by '
            'default: ~/calibrate answers success=false with the reason)')),
