@@ -185,15 +185,12 @@ def _last_pair(pairs: Pairs) -> Pairs:
 
 def stored_result_dict(result: CalibrationResult) -> dict:
     """
-    Return ``result_to_dict(result)`` plus the 12×12 ``cov_joint`` of (T0, T1) (144 numbers).
+    Return what the node stores: ``result_to_dict(result)``, the 12×12 ``cov_joint`` included.
 
-    What the node stores: a node restarted on the stored result then fuses with the cross
-    terms of T0 and T1 too, exactly as right after the calibration.
+    A node restarted on the stored result then fuses with the cross terms of T0 and T1 too,
+    exactly as right after the calibration (and the result serves as a prior with them).
     """
-    out = result_to_dict(result)
-    if result.cov_joint is not None:
-        out['cov_joint'] = [float(v) for v in np.ravel(result.cov_joint)]
-    return out
+    return result_to_dict(result)
 
 
 # --------------------------------------------------------------------------- the outputs
