@@ -33,7 +33,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.linearized import Chunk, PairData, chunks
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.trajectory import Trajectory
-from coreg_ros.core.types import PoseStream, TimeOffset  # noqa: F401 (re-exported)
+from coreg_ros.core.types import PoseStream
 
 #: Largest posterior σ of τ (s) for which τ counts as determined by the motion.
 MAX_SIGMA_S = 0.010
