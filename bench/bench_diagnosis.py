@@ -50,21 +50,21 @@ def time_large(n_pairs: int = N_PAIRS, seed: int = 7, effect: str = 'time_offset
 
 def run(cases: int = 200, seed: int = 2024, jobs: int = 1, timing: bool = True) -> dict:
     """Run the timing and the validation; returns a JSON-friendly dict."""
-    from coreg_ros.cli.diagnose import validate
+    from coreg_ros.sim.validation import validate
 
     out = {}
     if timing:
         out['runtime'] = time_large()
     if cases > 0:
         t0 = time.perf_counter()
-        val = validate(cases, seed, jobs=jobs)
+        val = validate(cases, seed, workers=jobs)
         out['validation'] = {'cases': cases, 'seed': seed, 'seconds': time.perf_counter() - t0,
                              'summary': val['summary'], 'results': val['results']}
     return out
 
 
 def main(argv=None) -> int:
-    from coreg_ros.cli.diagnose import _jsonable, format_validation
+    from coreg_ros.sim.validation import _jsonable, format_validation
 
     p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     p.add_argument('--cases', type=int, default=200)

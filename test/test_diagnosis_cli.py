@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from coreg_ros.bag.posebag import write_pose_bag
-from coreg_ros.cli.diagnose import draw_case, summarize_validation, validate
 from coreg_ros.cli.main import main
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.effect_library import parse_effect
+from coreg_ros.sim.validation import draw_case, summarize_validation, validate
 
 KEYS = {'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after', 'location',
         'verdict'}
@@ -96,7 +96,7 @@ def test_summary_counts_not_separable_apart():
 
 
 def test_two_effect_cases_and_size_ratios():
-    from coreg_ros.cli.diagnose import _size_ratio
+    from coreg_ros.sim.validation import _size_ratio
     rng = np.random.default_rng(4)
     cases = [draw_case(rng) for _ in range(300)]
     two = [c for c in cases if c['second']]
@@ -110,7 +110,7 @@ def test_two_effect_cases_and_size_ratios():
 
 
 def test_validate_command(tmp_path, capsys, monkeypatch):
-    import coreg_ros.cli.diagnose as d
+    import coreg_ros.sim.validation as d
     monkeypatch.setattr(d, 'DURATION', (15.0, 16.0))
     out = tmp_path / 'val.json'
     assert main(['validate-diagnosis', '--cases', '1', '--seed', '5', '--json', str(out),

@@ -229,7 +229,7 @@ def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
         ('Candidate ranking', _plot_candidates(plt, report, out)),
         ('Before and after', _plot_before_after(plt, report, out)),
     ]
-    from coreg_ros.cli.diagnose import format_diagnosis
+    from coreg_ros.core.diagnosis.text import format_diagnosis
     summary = html.escape(format_diagnosis(report))
     parts = [f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{html.escape(title)}'
              '</title><style>body{font-family:sans-serif;max-width:1100px;margin:auto}'
