@@ -39,18 +39,11 @@ import numpy as np
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
+from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import MODELS
 
 #: Dimension of ψ per model.
 CRLB_DIMENSION = {'full_pose': 12, 'position_only': 9, 'three_marker': 15}
-
-
-def _skew(u: np.ndarray) -> np.ndarray:
-    out = np.zeros(u.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -u[..., 2], u[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = u[..., 2], -u[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -u[..., 1], u[..., 0]
-    return out
 
 
 def model_jacobians(model: str, p0, q0, markers, pos_a, quat_a):
@@ -104,10 +97,10 @@ def model_jacobians(model: str, p0, q0, markers, pos_a, quat_a):
         u = Ra @ markers[j]  # R_A p_j, (N, 3)
         r0v = (pos_a + u) @ R0.T  # R0 v
         f_psi[:, rows, 0:3] = np.eye(3)
-        f_psi[:, rows, 3:6] = -_skew(r0v)  # Exp(δθ0) R0 v ≈ R0 v - [R0 v]× δθ0
+        f_psi[:, rows, 3:6] = -skew(r0v)  # Exp(δθ0) R0 v ≈ R0 v - [R0 v]× δθ0
         f_psi[:, rows, 6 + 3 * j:9 + 3 * j] = R0Ra
         f_x[:, rows, 0:3] = R0
-        f_x[:, rows, 3:6] = -R0 @ _skew(u)  # R0 Exp(δθA) R_A p_j
+        f_x[:, rows, 3:6] = -R0 @ skew(u)  # R0 Exp(δθA) R_A p_j
     if full:
         f_psi[:, 3:6, 3:6] = np.eye(3)  # Exp(δθ0) R0 R_A R1
         f_psi[:, 3:6, 9:12] = R0Ra  # R0 R_A Exp(δθ1) R1 = Exp(R0 R_A δθ1) R0 R_A R1

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.so3 import skew
 
 S0 = slice(3, 6)
 S1 = slice(9, 12)
@@ -188,16 +189,6 @@ def output_error(params: Parameters, pos_a, quat_a, pos_b, quat_b) -> np.ndarray
         return e_pos
     e_rot, _ = quat.rotation_error(pred_quat, quat_b)
     return np.concatenate([e_pos, e_rot], axis=1)
-
-
-def skew(u: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [u]×, shape (..., 3) -> (..., 3, 3)."""
-    u = np.asarray(u, dtype=float)
-    out = np.zeros(u.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -u[..., 2], u[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = u[..., 2], -u[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -u[..., 1], u[..., 0]
-    return out
 
 
 def error_rotation_jacobian(q_model: np.ndarray, q_meas: np.ndarray):

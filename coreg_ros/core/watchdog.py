@@ -53,7 +53,8 @@ from coreg_ros.core.guidance import (
     effective_covariance,
     jacobians,
 )
-from coreg_ros.core.models import S0, S1, SPECS, Parameters, skew, tangent_of_chart
+from coreg_ros.core.models import S0, S1, SPECS, Parameters, tangent_of_chart
+from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import CalibrationResult
 
 #: Residual covariance inflation the CUSUM is tuned to (λ: d² ≈ λ χ²_m under the change).

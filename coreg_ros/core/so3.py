@@ -1,0 +1,57 @@
+"""
+Small SO(3) algebra shared by the estimator, the uncertainty algebra and the diagnosis.
+
+Rotation vectors φ (rad) with ``Exp(φ)`` about the fixed axes, as in DESIGN.md §3.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """
+    Cross-product matrix ``[v]×`` with ``[v]× u = v × u``.
+
+    Parameters
+    ----------
+    v : array_like, shape (..., 3)
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+
+    """
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """
+    Left Jacobian of SO(3): ``Exp(φ + δ) ≈ Exp(J_l(φ) δ) · Exp(φ)``.
+
+    Its inverse gives ``Log(Exp(δ) · Exp(φ)) ≈ φ + J_l(φ)⁻¹ δ``, used to move a covariance
+    between tangent charts in ``fuse``.
+
+    Parameters
+    ----------
+    phi : array_like, shape (..., 3)
+        Rotation vectors, rad.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+
+    """
+    phi = np.asarray(phi, dtype=float)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    small = th < 1e-5
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
+    b = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (ths - np.sin(ths)) / ths ** 3)
+    K = skew(phi)
+    return np.eye(3) + a * K + b * (K @ K)
