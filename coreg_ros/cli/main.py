@@ -100,7 +100,7 @@ def cmd_calibrate(args) -> int:
     from coreg_ros.bag.posebag import read_pose_bag
     from coreg_ros.cli.convert import direction_guard
     from coreg_ros.cli.files import write_json
-    from coreg_ros.cli.text import format_result
+    from coreg_ros.core.result_text import format_result
     from coreg_ros.core.directions import check_directions
     from coreg_ros.core.errors import InconsistentDataError
     from coreg_ros.core.pipeline import calibrate_streams

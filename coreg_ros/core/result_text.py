@@ -1,4 +1,4 @@
-"""Human-readable rendering of calibration results."""
+"""Human-readable rendering of calibration results (what `coreg calibrate` prints, `result.summary()`)."""
 
 from __future__ import annotations
 
