@@ -1,3 +1,75 @@
-"""coreg_ros: coregistration of two pose measurement devices (Ikits 2000) for ROS 2."""
+"""
+coreg_ros: coregistration of two pose measurement devices (Ikits 2000) for ROS 2.
+
+For Python users, the package itself is the front door::
+
+    import coreg_ros as cr
+    res = cr.calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz, sigma_a=(2e-4, 5e-4),
+                       sigma_b=(5e-4, 2e-3), method='tls')
+    print(res.summary())
+
+Names are imported on first use (PEP 562), so ``coreg --help`` and the ROS entry points do not
+pay for numpy and scipy before they need them.
+"""
+
+from importlib import import_module
 
 __version__ = '0.1.0'
+
+#: Public name -> the module that defines it.
+_HOMES = {
+    # calibration
+    'calibrate': 'coreg_ros.api',
+    'model_of': 'coreg_ros.api',
+    'calibrate_streams': 'coreg_ros.core.pipeline',
+    'calibrate_pairs': ('coreg_ros.core.calibrate', 'calibrate'),
+    'pair_streams': 'coreg_ros.core.pairing',
+    'Settings': 'coreg_ros.core.settings',
+    'PoseStream': 'coreg_ros.core.types',
+    'Pairs': 'coreg_ros.core.types',
+    'PairingReport': 'coreg_ros.core.types',
+    'CalibrationResult': 'coreg_ros.core.types',
+    'UncertainPose': 'coreg_ros.core.types',
+    'TimeOffset': 'coreg_ros.core.types',
+    'STATUS': 'coreg_ros.core.types',
+    'Prior': 'coreg_ros.core.covariance',
+    # uncertainty (Hoff & Vincent 2000)
+    'compose': 'coreg_ros.core.uncertainty',
+    'chain': 'coreg_ros.core.uncertainty',
+    'invert': 'coreg_ros.core.uncertainty',
+    'fuse': 'coreg_ros.core.uncertainty',
+    'through_calibration': 'coreg_ros.core.uncertainty',
+    'propagate_point': 'coreg_ros.core.uncertainty',
+    'ellipsoid_axes': 'coreg_ros.core.uncertainty',
+    'axis_cones': 'coreg_ros.core.uncertainty',
+    'pose_error': 'coreg_ros.core.uncertainty',
+    'nees': 'coreg_ros.core.uncertainty',
+    # the gap diagnosis
+    'diagnose': 'coreg_ros.core.diagnosis',
+    'diagnose_streams': 'coreg_ros.core.diagnosis',
+    # errors
+    'CoregError': 'coreg_ros.core.errors',
+    'InputError': 'coreg_ros.core.errors',
+    'TooFewPairsError': 'coreg_ros.core.errors',
+    'UnobservableError': 'coreg_ros.core.errors',
+    'ConvergenceError': 'coreg_ros.core.errors',
+    'InconsistentDataError': 'coreg_ros.core.errors',
+    'BagError': 'coreg_ros.core.errors',
+    'ConfigError': 'coreg_ros.core.errors',
+}
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str):
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    module, attr = home if isinstance(home, tuple) else (home, name)
+    value = getattr(import_module(module), attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -291,7 +291,7 @@ def check_pair_directions(pairs: Pairs, settings: Settings, *, max_pairs: int = 
         trial = _inverted(pairs, invert_a, invert_b)
         try:
             result = calibrate(trial, ols)
-            chi2_dof = result.chi2 / result.dof if result.dof > 0 else float('inf')
+            chi2_dof = result.reduced_chi2 if result.dof > 0 else float('inf')
             fit = DirectionFit(invert_a, invert_b, float(chi2_dof), _rms_position(result, trial),
                                len(trial))
         except CoregError as e:

@@ -91,7 +91,7 @@ def result_to_dict(result: CalibrationResult) -> dict:
                              'share': len(stamps) / result.n_pairs if result.n_pairs else 0.0,
                              'stamps_ns': stamps}
     if result.fit_consistent is False and result.dof > 0:
-        factor = max(1.0, float(result.chi2) / result.dof)
+        factor = max(1.0, result.reduced_chi2)
         out['rescaled_covariance'] = {
             'factor': factor,
             **{name: None if pose.covariance is None else

@@ -1,4 +1,4 @@
-"""Human-readable rendering of calibration results (what `coreg calibrate` prints, `result.summary()`)."""
+"""Human-readable rendering of a calibration result (`coreg calibrate`, `result.summary()`)."""
 
 from __future__ import annotations
 
@@ -63,9 +63,9 @@ def format_result(result: CalibrationResult, report: PairingReport | None = None
     out = [f'model {result.model}, method {result.method.upper()}: {state}: {result.message}']
     if report is not None:
         out.append(f'pairing: {report.summary()}')
-    ratio = result.chi2 / result.dof if result.dof > 0 else float('nan')
-    out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, chi2/dof = {ratio:.3f}, '
-               f'p = {result.p_value:.3g}: {fit_verdict(result.p_value)}')
+    out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, '
+               f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: '
+               f'{fit_verdict(result.p_value)}')
     if result.verdict:
         out.append(f'verdict: {result.verdict}')
     if result.time_offset is not None:

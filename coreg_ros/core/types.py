@@ -217,6 +217,15 @@ class UncertainPose:
     covariance: Optional[np.ndarray] = None
 
 
+#: The ``status`` values of a calibration and what each means.
+STATUS = {
+    1: 'converged: every step component below xtol posterior standard deviations',
+    2: 'converged: the cost no longer decreases by more than ftol (relative)',
+    0: 'stopped at the iteration limit before converging',
+    -1: 'no damping reduced the cost although the step was not small: the model does not fit',
+}
+
+
 @dataclass(frozen=True)
 class CalibrationResult:
     """
@@ -226,7 +235,17 @@ class CalibrationResult:
     ----------
     success : bool
     status : int
-        1 converged (step small), 2 converged (cost change small), 0 iteration limit.
+        How the Levenberg-Marquardt iterations ended (``STATUS`` holds this table):
+
+        ====  =====================================================================
+         1    converged: every step component below ``xtol`` posterior σ
+         2    converged: the cost no longer decreases by more than ``ftol``
+         0    stopped at the iteration limit before converging
+        -1    no damping reduced the cost although the step was not small: the
+              model does not fit the data (stream directions, units)
+        ====  =====================================================================
+
+        ``success`` also needs a posterior covariance and a consistent fit.
     message : str
     model, method : str
     n_pairs : int
@@ -299,6 +318,16 @@ class CalibrationResult:
     fit_consistent: Optional[bool] = None
     verdict: str = ''
     prior_check: Optional[dict] = None
+
+    @property
+    def reduced_chi2(self) -> float:
+        """chi2 / dof (≈ 1 when the stated noise is right; nan without degrees of freedom)."""
+        return self.chi2 / self.dof if self.dof > 0 else float('nan')
+
+    def summary(self, pairing: Optional[PairingReport] = None) -> str:
+        """Return the text ``coreg calibrate`` prints (with the pairing report, if given)."""
+        from coreg_ros.core.result_text import format_result
+        return format_result(self, pairing)
 
     @property
     def n_rejected(self) -> int:

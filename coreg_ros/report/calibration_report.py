@@ -334,7 +334,7 @@ def render_html(result: CalibrationResult, figures: dict, captions: Sequence[str
     """Assemble the report page (figures as {name: png bytes})."""
     status = ('<span class="ok">success</span>' if result.success
               else '<span class="bad">FAILED</span>')
-    ratio = result.chi2 / result.dof if result.dof > 0 else float('nan')
+    ratio = result.reduced_chi2
     parts = [
         '<!DOCTYPE html>', '<html><head><meta charset="utf-8">',
         f'<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>',
