@@ -22,7 +22,7 @@ import time
 from typing import Optional
 
 from coreg_ros.cli.argtypes import positive
-from coreg_ros.core import guidance as g
+from coreg_ros.core.guidance import keys as g
 from coreg_ros.core import watchdog as w
 
 #: Name suffix of the node's main status (``coreg_ros.ros.node``).
