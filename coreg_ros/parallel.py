@@ -31,7 +31,7 @@ BLAS_THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'
 #: How long to wait for a Dask scheduler to answer, s.
 CONNECT_TIMEOUT_S = 10.0
 #: The longest error text kept per failed case (one line).
-MAX_ERROR_CHARS = 300
+MAX_ERROR_CHARS = 600
 
 Progress = Callable[[float, str], None]
 

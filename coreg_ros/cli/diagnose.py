@@ -46,22 +46,46 @@ class Progress:
 
 # ----------------------------------------------------------------------------------- diagnose
 
-def cmd_diagnose(args) -> int:
-    """Diagnose the gap between a recording and the model with the stated noise."""
-    from coreg_ros.bag.posebag import read_pose_bag
-    from coreg_ros.cli.files import write_json
-    from coreg_ros.cli.main import settings_from_args
-    from coreg_ros.core.diagnosis import diagnose_streams
-    from coreg_ros.core.diagnosis.text import format_diagnosis
+def diagnose_bag(bag, settings, progress=None):
+    """
+    Read one recording and diagnose it as ``coreg diagnose --json`` does.
 
-    settings = settings_from_args(args)
-    streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
-    progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
+    Parameters
+    ----------
+    bag : str or Path
+        rosbag2 directory.
+    settings : Settings
+    progress : callable, optional
+        ``progress(fraction, text)`` of the diagnosis.
+
+    Returns
+    -------
+    (Diagnosis, dict)
+        The diagnosis (for the HTML report) and its JSON document (``report`` with the settings
+        and the bag path added).
+
+    """
+    from coreg_ros.bag.posebag import read_pose_bag
+    from coreg_ros.core.diagnosis import diagnose_streams
+
+    streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
     diag = diagnose_streams(streams[settings.topic_a], [streams[t] for t in settings.topic_b],
                             settings, progress=progress)
     report = diag.report
     report['settings'] = settings.as_dict()
-    report['bag'] = str(args.bag)
+    report['bag'] = str(bag)
+    return diag, report
+
+
+def cmd_diagnose(args) -> int:
+    """Diagnose the gap between a recording and the model with the stated noise."""
+    from coreg_ros.cli.files import write_json
+    from coreg_ros.cli.main import settings_from_args
+    from coreg_ros.core.diagnosis.text import format_diagnosis
+
+    settings = settings_from_args(args)
+    progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
+    diag, report = diagnose_bag(args.bag, settings, progress)
     print(f'{PROG} diagnose: {args.bag} ({report["n_pairs"]} pairs, '
           f'{report["duration_s"]:.1f} s, model {report["model"]})')
     print(format_diagnosis(report))
@@ -75,19 +99,73 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+class PlainProgress:
+    """``progress(fraction, text)`` for a log: one line on stderr per tenth of the cases."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self.next = 0.1
+
+    def __call__(self, fraction: float, text: str = '') -> None:
+        """Print a line when ``fraction`` passes the next tenth."""
+        if fraction + 1e-12 >= self.next:
+            print(f'{self.label}: {text}', file=sys.stderr, flush=True)
+            while self.next <= fraction + 1e-12:
+                self.next += 0.1
+
+
+def case_progress(label: str, quiet: bool):
+    """
+    Choose the progress of a many-case command: None, a no-op, or :class:`PlainProgress`.
+
+    None lets ``coreg_ros.parallel.run_cases`` draw its rich bar (stderr is a terminal);
+    ``--quiet`` is a no-op callback (no bar, no lines); a log gets a line per tenth.
+    """
+    if quiet:
+        return lambda fraction, text='': None
+    return None if sys.stderr.isatty() else PlainProgress(label)
+
+
+def report_failures(command: str, failed: list) -> None:
+    """One line per failed case on stderr (seed or bag, and the error)."""
+    if failed:
+        print(f'{PROG} {command}: {len(failed)} case(s) failed:', file=sys.stderr)
+        for f in failed:
+            print(f'  {f}', file=sys.stderr)
+
+
 def cmd_validate(args) -> int:
     """Score the diagnosis on simulated recordings with hidden effects."""
     from coreg_ros.cli.files import write_json
+    from coreg_ros.parallel import CaseFailure, failures
     from coreg_ros.sim.validation import _jsonable, format_validation, validate
 
-    progress = Progress(f'{PROG} validate-diagnosis', enabled=None if not args.quiet else False)
-    out = validate(args.cases, args.seed, progress, workers=args.jobs)
-    print(f'{PROG} validate-diagnosis: {args.cases} cases, seed {args.seed}')
+    progress = case_progress(f'{PROG} validate-diagnosis', args.quiet)
+    out = validate(args.cases, args.seed, progress, workers=args.workers,
+                   scheduler=args.scheduler)
+    failed = failures(out['results'])
+    print(f'{PROG} validate-diagnosis: {args.cases} cases, seed {args.seed}'
+          + (f', {len(failed)} failed' if failed else ''))
     print(format_validation(out['summary']))
     if args.json:
-        write_json(args.json, json.loads(json.dumps(out, default=_jsonable)))
+        doc = dict(out, results=[r.as_dict() if isinstance(r, CaseFailure) else r
+                                 for r in out['results']])
+        write_json(args.json, json.loads(json.dumps(doc, default=_jsonable)))
         print(f'validation written to {args.json}')
-    return 0
+    report_failures('validate-diagnosis', failed)
+    return 1 if failed else 0
+
+
+def add_parallel_options(p: argparse.ArgumentParser) -> None:
+    """``--workers N`` and ``--scheduler ADDRESS`` (coreg_ros.parallel)."""
+    from coreg_ros.parallel import default_workers
+
+    p.add_argument('--workers', type=_positive_int, default=default_workers(), metavar='N',
+                   help=f"local processes to run the cases in (default: the machine's cores, "
+                        f'{default_workers()} here)')
+    p.add_argument('--scheduler', metavar='ADDRESS',
+                   help='run the cases on an existing Dask distributed cluster instead, e.g. '
+                        "tcp://host:8786 (needs pip install 'coreg_ros[dask]')")
 
 
 def _positive_int(text: str) -> int:
@@ -116,8 +194,9 @@ def register(sub) -> None:
                        help='score the diagnosis on simulated recordings with hidden effects')
     p.add_argument('--cases', type=_positive_int, default=40, help='recordings (default 40)')
     p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
-    p.add_argument('--jobs', type=_positive_int, default=1,
-                   help='processes to run cases in (default 1)')
+    add_parallel_options(p)
+    p.add_argument('--jobs', type=_positive_int, dest='workers', default=argparse.SUPPRESS,
+                   help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument('--json', metavar='OUT', help='also write every case and the summary')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(func=cmd_validate)

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 import sys
-from typing import Optional
+from typing import Any, Optional
 
 from coreg_ros.cli.argtypes import finite, positive
 from coreg_ros.core.errors import CoregError
@@ -30,9 +31,10 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(1, f'{self.prog}: error: {message}; see {self.prog} --help\n')
 
 
-def add_calibration_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by ``calibrate`` and (later) ``diagnose``: topics, model, noise."""
-    p.add_argument('bag', help='rosbag2 directory (sqlite3 or mcap)')
+def add_calibration_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
+    """Options shared by ``calibrate``, ``diagnose`` and ``batch``: topics, model, noise."""
+    if bag:
+        p.add_argument('bag', help='rosbag2 directory (sqlite3 or mcap)')
     p.add_argument('--config', help='ROS parameter YAML (e.g. config/coreg.yaml); flags win')
     p.add_argument('--topic-a', help='device A PoseStamped topic (default /device_a/pose)')
     p.add_argument('--topic-b', nargs='+', metavar='T',
@@ -93,18 +95,103 @@ def settings_from_args(args):
         robust=None if robust is None else robust == 'on')
 
 
+@dataclass
+class CalibrationRun:
+    """
+    What ``coreg calibrate`` computes for one bag (``calibrate_bag``), before any printing.
+
+    Attributes
+    ----------
+    result : CalibrationResult
+    report : PairingReport
+    check : DirectionReport or None
+        The direction check after a bad fit (None when it did not run).
+    data : dict
+        The ``--json`` document: the result, pairing counts, settings, direction check.
+    exit_code : int
+        0 consistent, EXIT_INCONSISTENT fit not matching the noise, 1 refused (a stream the
+        wrong way round, or the estimator failed).
+
+    """
+
+    result: Any
+    report: Any
+    check: Any
+    data: dict
+    exit_code: int
+
+    @property
+    def wrong_way(self) -> bool:
+        """A stream fits far better inverted: the fit is refused."""
+        return self.check is not None and self.check.flagged
+
+
+def calibrate_bag(bag, settings, prior=None, frames=None,
+                  direction_check: bool = True) -> CalibrationRun:
+    """
+    Read, pair and calibrate one recording as ``coreg calibrate --json`` does.
+
+    Parameters
+    ----------
+    bag : str or Path
+        rosbag2 directory.
+    settings : Settings
+    prior : optional
+        A loaded prior (``load_prior``).
+    frames : tuple, optional
+        (frame_base_a, frame_base_b) for the swap check (``config_frames``).
+    direction_check : bool
+        Check the stream directions after a bad fit (``--no-direction-check`` turns it off).
+
+    Raises
+    ------
+    CoregError
+        The bag cannot be read, too few pairs, data refused as a whole (naming a stream given
+        the wrong way round when that explains it).
+
+    """
+    from types import SimpleNamespace
+
+    from coreg_ros.bag.posebag import read_pose_bag
+    from coreg_ros.cli.convert import direction_guard
+    from coreg_ros.core.directions import check_directions
+    from coreg_ros.core.errors import InconsistentDataError
+    from coreg_ros.core.pipeline import calibrate_streams
+    from coreg_ros.core.result_io import result_to_dict
+
+    streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
+    stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
+    try:
+        result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames)
+    except InconsistentDataError as e:
+        # data refused as a whole: a stream given the wrong way round is a cheap explanation
+        check = check_directions(stream_a, streams_b, settings) if direction_check else None
+        if check is not None and check.flagged:
+            raise InconsistentDataError(f'{check.message} ({e})') from e
+        raise
+    check = direction_guard(SimpleNamespace(no_direction_check=not direction_check), stream_a,
+                            streams_b, settings, result)
+    data = result_to_dict(result)
+    data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
+                       'unpaired': dict(report.unpaired)}
+    data['settings'] = settings.as_dict()
+    if check is not None:
+        data['direction_check'] = check.as_dict()
+    run = CalibrationRun(result, report, check, data, 0)
+    if run.wrong_way or not (result.success or result.fit_consistent is False):
+        run.exit_code = 1
+    else:
+        run.exit_code = 0 if result.success else EXIT_INCONSISTENT
+    return run
+
+
 def cmd_calibrate(args) -> int:
     """Calibrate a recording offline and print (and optionally write) the result."""
     import json
 
-    from coreg_ros.bag.posebag import read_pose_bag
-    from coreg_ros.cli.convert import direction_guard
     from coreg_ros.cli.files import write_json
+    from coreg_ros.core.result_io import load_prior
     from coreg_ros.core.result_text import format_result
-    from coreg_ros.core.directions import check_directions
-    from coreg_ros.core.errors import InconsistentDataError
-    from coreg_ros.core.pipeline import calibrate_streams
-    from coreg_ros.core.result_io import load_prior, result_to_dict
     from coreg_ros.report.calibration_report import points_from_flat
 
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
@@ -112,22 +199,11 @@ def cmd_calibrate(args) -> int:
     settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
     prior = load_prior(args.prior) if args.prior else None
-    streams = read_pose_bag(args.bag, [settings.topic_a, *settings.topic_b])
-    stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
-    try:
-        result, report = calibrate_streams(stream_a, streams_b, settings, prior,
-                                           frames=config_frames(args))
-    except InconsistentDataError as e:
-        # data refused as a whole: a stream given the wrong way round is a cheap explanation
-        check = None if args.no_direction_check else check_directions(
-            stream_a, streams_b, settings)
-        if check is not None and check.flagged:
-            raise InconsistentDataError(f'{check.message} ({e})') from e
-        raise
-    check = direction_guard(args, stream_a, streams_b, settings, result)
-    wrong_way = check is not None and check.flagged
+    run = calibrate_bag(args.bag, settings, prior, frames=config_frames(args),
+                        direction_check=not args.no_direction_check)
+    result, report, check = run.result, run.report, run.check
     print(f'{PROG} calibrate: {args.bag}', file=out)
-    if wrong_way:
+    if run.wrong_way:
         print(f'{PROG} calibrate: error: {check.message} (or --no-direction-check to fit the '
               f'data as given)', file=sys.stderr)
     else:
@@ -135,16 +211,10 @@ def cmd_calibrate(args) -> int:
         if check is not None:
             print(f'direction check: {check.message}', file=out)
     if args.json:
-        data = result_to_dict(result)
-        data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
-                           'unpaired': dict(report.unpaired)}
-        data['settings'] = settings.as_dict()
-        if check is not None:
-            data['direction_check'] = check.as_dict()
         if args.json == '-':
-            print(json.dumps(data, indent=2))
+            print(json.dumps(run.data, indent=2))
         else:
-            write_json(args.json, data)
+            write_json(args.json, run.data)
             print(f'result written to {args.json}', file=out)
     if args.report:
         from coreg_ros.report.calibration_report import write_calibration_report
@@ -152,9 +222,7 @@ def cmd_calibrate(args) -> int:
             result, args.report, report=report, points=points,
             points_frame=args.points_frame, title=f'{PROG} calibrate {args.bag}')
         print(f'report written to {page}', file=out)
-    if wrong_way or not (result.success or result.fit_consistent is False):
-        return 1
-    return 0 if result.success else EXIT_INCONSISTENT
+    return run.exit_code
 
 
 def config_frames(args) -> tuple:
@@ -256,8 +324,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate)
 
     # the other front ends add their own subcommands (each imports its heavy parts lazily)
-    from coreg_ros.cli import convert, diagnose, plan, ros_commands, watch
-    for module in (diagnose, convert, plan, ros_commands, watch):
+    from coreg_ros.cli import batch, convert, diagnose, plan, ros_commands, watch
+    for module in (diagnose, batch, convert, plan, ros_commands, watch):
         module.register(sub)
     return parser
 
