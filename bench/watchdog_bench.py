@@ -42,8 +42,8 @@ from coreg_ros.core.watchdog import (  # noqa: E402
     DESIGN_INFLATION,
     OK,
     Watchdog,
-    _llr_constants,
     cusum_threshold,
+    llr_constants,
     run_length,
 )
 from coreg_ros.sim import DEFAULT_START_NS, simulate_recording  # noqa: E402
@@ -127,7 +127,7 @@ def false_alarms(hours: float, seed: int = 2024, log=print) -> dict:
     """Stable streams through one watchdog; alarms per hour; the design checked."""
     truth, result, settings = _calibration(seed)
     wd = Watchdog(result, SIGMA_A, SIGMA_B)
-    a, b, clip = _llr_constants(wd.m, DESIGN_INFLATION)
+    a, b, clip = llr_constants(wd.m, DESIGN_INFLATION)
     segment = 600.0
     n_segments = max(1, int(np.ceil(hours * 3600.0 / segment)))
     alarms, pairs, low_alarms, low_s = 0, 0, 0, 0.0

@@ -8,7 +8,7 @@ import pytest
 
 from coreg_ros.bag.posebag import write_pose_bag
 from coreg_ros.cli.main import EXIT_INCONSISTENT, main
-from coreg_ros.core.directions import invert_poses
+from coreg_ros.core.so3 import invert_poses
 from coreg_ros.sim import simulate_recording
 
 A, B = '/device_a/pose', '/device_b/pose'

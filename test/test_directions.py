@@ -13,9 +13,9 @@ from coreg_ros.core.directions import (
     DirectionFit,
     DirectionReport,
     check_directions,
-    invert_poses,
 )
 from coreg_ros.core.settings import Settings
+from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim import simulate_recording
 

@@ -20,8 +20,8 @@ from coreg_ros.core.watchdog import (
     WARN,
     Calibration,
     Watchdog,
-    _llr_constants,
     cusum_threshold,
+    llr_constants,
     recalibration_prior,
     run_length,
 )
@@ -68,7 +68,7 @@ def _watch(watchdog, rec, settings, result, chunk=100):
 
 
 def _monte_carlo_run_length(h, m, noncentrality, runs, rng):
-    a, b, clip = _llr_constants(m, DESIGN_INFLATION)
+    a, b, clip = llr_constants(m, DESIGN_INFLATION)
     s = np.zeros(runs)
     alive = np.ones(runs, dtype=bool)
     length = np.zeros(runs)
@@ -325,7 +325,7 @@ def test_random_directions_follow_the_seed():
 
 def test_chi_square_clip_leaves_the_step_detectable():
     # a 2 mm step at the sample recording's noise is a noncentrality of about 13 per pair
-    _, _, clip = _llr_constants(6, DESIGN_INFLATION)
+    _, _, clip = llr_constants(6, DESIGN_INFLATION)
     assert clip == pytest.approx(stats.chi2.isf(1e-3, 6))
     delay = run_length(cusum_threshold(6), 6, noncentrality=13.0)
     assert delay < 0.5 * RATE  # pairs: well under 5 s at 100 Hz

@@ -19,15 +19,18 @@ from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 import re
 import sys
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.directions import DirectionReport, check_directions, invert_poses
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B
+from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
+
+if TYPE_CHECKING:  # the fit machinery is imported when a fit is checked, not by `coreg --help`
+    from coreg_ros.core.directions import DirectionReport
 
 #: Quaternion column orders accepted by ``--quaternion-order``.
 QUATERNION_ORDERS = ('xyzw', 'wxyz')
@@ -597,4 +600,6 @@ def direction_guard(args, stream_a: PoseStream, streams_b, settings,
     p = float(result.p_value)
     if np.isfinite(p) and p >= DIRECTION_CHECK_P:
         return None
+    from coreg_ros.core.directions import check_directions
+
     return check_directions(stream_a, streams_b, settings)

@@ -23,7 +23,7 @@ from typing import Optional
 
 from coreg_ros.cli.argtypes import positive
 from coreg_ros.core.guidance import keys as g
-from coreg_ros.core import watchdog as w
+from coreg_ros.core.watchdog import keys as w
 
 #: Name suffix of the node's main status (``coreg_ros.ros.node``).
 CALIBRATION_STATUS = 'coregistration'

@@ -22,6 +22,7 @@ from coreg_ros.core.errors import CoregError
 from coreg_ros.core.pairing import validated_streams
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
+from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.timing import coarse_offsets
 from coreg_ros.core.types import Pairs, PoseStream, TimeOffset
 
@@ -35,32 +36,6 @@ OFFSET_CANDIDATES = 3
 #: A combination must fit this many times better (chi2/dof) than the data as given to be
 #: reported as the right direction.
 DEFAULT_THRESHOLD = 10.0
-
-
-def invert_poses(position, quat_wxyz) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Invert rigid transforms: ``T = (p, q) → T⁻¹ = (-R(q)ᵀ p, q*)``.
-
-    Parameters
-    ----------
-    position : array_like, shape (..., 3)
-        Translation of each transform, e.g. the tool position in the base frame, m.
-    quat_wxyz : array_like, shape (..., 4)
-        Rotation of each transform, (w, x, y, z), unit.
-
-    Returns
-    -------
-    position : ndarray, shape (..., 3)
-        Translation of the inverse (the base's origin in the tool frame), m.
-    quat_wxyz : ndarray, shape (..., 4)
-        Rotation of the inverse, (w, x, y, z), canonical (w >= 0).
-
-    """
-    position = np.asarray(position, dtype=float)
-    q = np.asarray(quat_wxyz, dtype=float)
-    R = quat.to_matrix(q)
-    inv_p = -np.einsum('...ji,...j->...i', R, position)
-    return inv_p, quat.canonical(quat.conjugate(q))
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """
-Small SO(3) algebra shared by the estimator, the uncertainty algebra and the diagnosis.
+Small SO(3) and rigid-transform algebra shared by the estimator, uncertainty and diagnosis.
 
 Rotation vectors φ (rad) with ``Exp(φ)`` about the fixed axes, as in DESIGN.md §3.
 """
@@ -7,6 +7,8 @@ Rotation vectors φ (rad) with ``Exp(φ)`` about the fixed axes, as in DESIGN.md
 from __future__ import annotations
 
 import numpy as np
+
+from coreg_ros.core import quaternion as quat
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -55,3 +57,29 @@ def left_jacobian(phi: np.ndarray) -> np.ndarray:
     b = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (ths - np.sin(ths)) / ths ** 3)
     K = skew(phi)
     return np.eye(3) + a * K + b * (K @ K)
+
+
+def invert_poses(position, quat_wxyz) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Invert rigid transforms: ``T = (p, q) → T⁻¹ = (-R(q)ᵀ p, q*)``.
+
+    Parameters
+    ----------
+    position : array_like, shape (..., 3)
+        Translation of each transform, e.g. the tool position in the base frame, m.
+    quat_wxyz : array_like, shape (..., 4)
+        Rotation of each transform, (w, x, y, z), unit.
+
+    Returns
+    -------
+    position : ndarray, shape (..., 3)
+        Translation of the inverse (the base's origin in the tool frame), m.
+    quat_wxyz : ndarray, shape (..., 4)
+        Rotation of the inverse, (w, x, y, z), canonical (w >= 0).
+
+    """
+    position = np.asarray(position, dtype=float)
+    q = np.asarray(quat_wxyz, dtype=float)
+    R = quat.to_matrix(q)
+    inv_p = -np.einsum('...ji,...j->...i', R, position)
+    return inv_p, quat.canonical(quat.conjugate(q))

@@ -1,0 +1,83 @@
+"""The CUSUM's threshold from its exact in-control run length (Brook & Evans' Markov chain)."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from scipy import stats
+
+#: Residual covariance inflation the CUSUM is tuned to (λ: d² ≈ λ χ²_m under the change).
+DESIGN_INFLATION = 2.0
+#: d² is clipped at the χ²_m quantile 1 - CLIP_TAIL in the CUSUM.
+CLIP_TAIL = 1e-3
+#: Mean pairs between false alarms the threshold is set for (χ²_m residuals).
+TARGET_RUN_LENGTH = 1e9
+#: Cells of the Brook-Evans Markov chain.
+CHAIN_CELLS = 500
+# --------------------------------------------------------------------------- the threshold
+
+
+def llr_constants(m: int, inflation: float) -> tuple[float, float, float]:
+    """Return (a, b, clip) of ``ℓ = a min(d², clip) - b``."""
+    a = 0.5 * (1.0 - 1.0 / inflation)
+    b = 0.5 * m * np.log(inflation)
+    return a, b, float(stats.chi2.isf(CLIP_TAIL, m))
+
+
+def run_length(threshold: float, m: int, inflation: float = DESIGN_INFLATION,
+               noncentrality: float = 0.0, cells: int = CHAIN_CELLS) -> float:
+    """
+    Mean pairs to an alarm of the CUSUM from zero (Brook & Evans' Markov chain).
+
+    Parameters
+    ----------
+    threshold : float
+        h.
+    m : int
+        Residuals per pair (χ²_m).
+    inflation : float
+        λ of the CUSUM's likelihood ratio.
+    noncentrality : float
+        d² ~ χ²_m(noncentrality) (0: in control, the false-alarm run length; > 0: the
+        detection delay of a mean change of that size in σ²).
+    cells : int
+        States of the chain.
+
+    """
+    a, b, clip = llr_constants(m, inflation)
+    width = threshold / cells
+    values = np.arange(cells) * width
+    edges = (np.arange(cells) + 0.5) * width
+    edges[-1] = threshold
+
+    def cdf(y):
+        x = (y + b) / a
+        inner = (stats.ncx2.cdf(np.maximum(x, 0.0), m, noncentrality) if noncentrality > 0
+                 else stats.chi2.cdf(np.maximum(x, 0.0), m))
+        return np.where(x >= clip, 1.0, np.where(x < 0.0, 0.0, inner))
+
+    upto = cdf(edges[None, :] - values[:, None])
+    P = np.diff(np.concatenate([np.zeros((cells, 1)), upto], axis=1), axis=1)
+    return float(np.linalg.solve(np.eye(cells) - P, np.ones(cells))[0])
+
+
+@functools.lru_cache(maxsize=16)
+def cusum_threshold(m: int, target: float = TARGET_RUN_LENGTH,
+                    inflation: float = DESIGN_INFLATION) -> float:
+    """Return the threshold h whose in-control mean run length is ``target`` pairs."""
+    lo, hi = 5.0, 25.0
+    f_lo = np.log(run_length(lo, m, inflation)) - np.log(target)
+    f_hi = np.log(run_length(hi, m, inflation)) - np.log(target)
+    h = hi
+    for _ in range(30):
+        # ln ARL is nearly linear in h: regula falsi converges in a few steps
+        h = hi - f_hi * (hi - lo) / (f_hi - f_lo)
+        f = np.log(run_length(h, m, inflation)) - np.log(target)
+        if abs(f) < 1e-3:
+            break
+        if f > 0:
+            hi, f_hi = h, f
+        else:
+            lo, f_lo = h, f
+    return float(h)
