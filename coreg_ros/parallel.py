@@ -83,6 +83,34 @@ def default_workers() -> int:
     return max(1, os.cpu_count() or 1)
 
 
+def _worker_count(text: str) -> int:
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
+    return value
+
+
+def add_arguments(parser) -> None:
+    """
+    Add ``--workers N`` and ``--scheduler ADDRESS`` to an argparse parser.
+
+    Every many-case command and evidence script takes the same two options, with the same
+    meaning: ``args.workers`` (int, default the machine's cores) and ``args.scheduler``
+    (str or None), passed on to :func:`run_cases`.
+    """
+    parser.add_argument('--workers', type=_worker_count, default=default_workers(),
+                        metavar='N', help="local processes to run the cases in (default: the "
+                                          f"machine's cores, {default_workers()} here)")
+    parser.add_argument('--scheduler', metavar='ADDRESS',
+                        help='run the cases on an existing Dask distributed cluster instead, '
+                             "e.g. tcp://host:8786 (needs pip install 'coreg_ros[dask]')")
+
+
 def one_line(error: BaseException) -> str:
     """``Type: message`` on one line, cut at MAX_ERROR_CHARS."""
     text = ' '.join(f'{type(error).__name__}: {error}'.split())

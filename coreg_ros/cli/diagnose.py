@@ -156,18 +156,6 @@ def cmd_validate(args) -> int:
     return 1 if failed else 0
 
 
-def add_parallel_options(p: argparse.ArgumentParser) -> None:
-    """``--workers N`` and ``--scheduler ADDRESS`` (coreg_ros.parallel)."""
-    from coreg_ros.parallel import default_workers
-
-    p.add_argument('--workers', type=_positive_int, default=default_workers(), metavar='N',
-                   help=f"local processes to run the cases in (default: the machine's cores, "
-                        f'{default_workers()} here)')
-    p.add_argument('--scheduler', metavar='ADDRESS',
-                   help='run the cases on an existing Dask distributed cluster instead, e.g. '
-                        "tcp://host:8786 (needs pip install 'coreg_ros[dask]')")
-
-
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -181,6 +169,7 @@ def _positive_int(text: str) -> int:
 def register(sub) -> None:
     """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
     from coreg_ros.cli.main import add_calibration_options
+    from coreg_ros.parallel import add_arguments
 
     p = sub.add_parser('diagnose', help='detect, locate and explain the gap between a '
                                         'recording and the model (sim-to-real)')
@@ -194,7 +183,7 @@ def register(sub) -> None:
                        help='score the diagnosis on simulated recordings with hidden effects')
     p.add_argument('--cases', type=_positive_int, default=40, help='recordings (default 40)')
     p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
-    add_parallel_options(p)
+    add_arguments(p)
     p.add_argument('--jobs', type=_positive_int, dest='workers', default=argparse.SUPPRESS,
                    help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument('--json', metavar='OUT', help='also write every case and the summary')
