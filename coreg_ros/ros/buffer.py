@@ -140,6 +140,90 @@ class StreamBuffer:
             self.accepted += 1
             return None
 
+    def push_many(self, stamps_ns: np.ndarray, recv_ns: np.ndarray, position: np.ndarray,
+                  quat_wxyz: np.ndarray, frame_id: str) -> dict:
+        """
+        Validate and store N messages of one frame in arrival order, as N ``push`` calls would.
+
+        Same checks, same order of checks, same counts and the same stored samples as ``push``
+        one message at a time (the stamp check against the running maximum of the stamps
+        before: accepted stamps strictly increase, so that maximum is the last accepted one).
+
+        Parameters
+        ----------
+        stamps_ns, recv_ns : array_like of int, shape (N,)
+            Header stamps (device clock) and receive times, ns.
+        position : array_like of float, shape (N, 3)
+            Positions in ``frame_id``, m.
+        quat_wxyz : array_like of float, shape (N, 4)
+            Orientations (w, x, y, z).
+        frame_id : str
+            ``header.frame_id`` of all N messages.
+
+        Returns
+        -------
+        rejected : dict
+            Reason -> number of messages rejected for it (only reasons that occurred).
+
+        """
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        n = len(stamps)
+        if n == 0:
+            return {}
+        vals = np.empty((n, 7))
+        vals[:, :3] = position
+        vals[:, 3:] = quat_wxyz
+        with np.errstate(all='ignore'):  # inf * inf overflows to inf, as in push
+            finite = np.isfinite(vals).all(axis=1)
+            q = vals[:, 3:]
+            # summed left to right like push, so the tolerance bites on the same messages
+            norm = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2]
+                           + q[:, 3] * q[:, 3])
+            unit = np.abs(norm - 1.0) <= UNIT_NORM_TOLERANCE
+        counts = {}
+        with self._lock:
+            self.received += n
+            ok = finite & unit
+            counts['non_finite'] = n - int(finite.sum())
+            counts['non_unit_quaternion'] = int(finite.sum()) - int(ok.sum())
+            if self.frame_id is not None and frame_id != self.frame_id:
+                counts['frame_id_changed'] = int(ok.sum())
+                ok[:] = False
+            cand = np.flatnonzero(ok)
+            if len(cand):
+                s = stamps[cand]
+                fresh = self._last_stamp is None  # the first sample has nothing to follow
+                prev = s[:-1] if fresh else np.concatenate(([self._last_stamp], s[:-1]))
+                last = np.maximum.accumulate(prev)  # the last accepted stamp before each
+                checked = s[1:] if fresh else s
+                counts['stamp_backwards'] = int(np.sum(checked < last))
+                counts['duplicate_stamp'] = int(np.sum(checked == last))
+                keep = checked > last
+                if fresh:
+                    keep = np.concatenate(([True], keep))
+                cand = cand[keep]
+            counts = {r: c for r, c in counts.items() if c}
+            for r, c in counts.items():
+                self.rejected[r] += c
+            k = len(cand)
+            if k == 0:
+                return counts
+            if self.frame_id is None:
+                self.frame_id = frame_id
+            self._last_stamp = int(stamps[cand[-1]])
+            keep_n = min(k, self.capacity)  # a batch longer than the ring keeps its newest
+            src = cand[k - keep_n:]
+            idx = (self._next + (k - keep_n) + np.arange(keep_n)) % self.capacity
+            self._stamps[idx] = stamps[src]
+            self._recv[idx] = np.asarray(recv_ns, dtype=np.int64)[src]
+            self._vals[idx] = vals[src]
+            self._next = (self._next + k) % self.capacity
+            size = min(self.capacity, self._size + k)
+            self.dropped += self._size + k - size
+            self._size = size
+            self.accepted += k
+            return counts
+
     def snapshot(self) -> PoseStream:
         """Return a copy of the held samples, oldest first, as a PoseStream."""
         return self.tail(self.capacity)

@@ -75,14 +75,18 @@ from coreg_ros.ros.parameters import (
     read_config,
     settings_from_values,
 )
+from coreg_ros.ros.raw_intake import RawIntake
 from coreg_ros.ros.uncertainty_outputs import UncertaintyOutputs, stored_result_dict
 
 NODE_NAME = 'coreg_node'
 #: Seconds between two warnings about the same topic and rejection reason.
 WARN_PERIOD = 5.0
-#: History depth of the subscriptions: absorbs a pause of the executor (GIL held by the
-#: estimator, a slow disk) of a second at 1 kHz before DDS drops anything.
-SUB_DEPTH = 1000
+#: History depth of the subscriptions: absorbs a pause of the stream thread (the GIL held by
+#: the estimator or the journal, the intake's own pace) of 2 s at 5 kHz before DDS drops any.
+SUB_DEPTH = 10_000
+#: Environment switch back to one deserialised message per callback (the path before the raw
+#: intake; kept as the benchmark's baseline and as a fallback): ``COREG_NODE_PLAIN=1``.
+PLAIN_ENV = 'COREG_NODE_PLAIN'
 #: Seconds between two warnings about the set-up (swapped frames, a wrong message type).
 SETUP_WARN_PERIOD = 60.0
 #: Seconds /diagnostics stays WARN after a count of problems (rejected, lost...) went up.
@@ -182,6 +186,9 @@ class CoregNode(Node):
                                 context=self.context, use_global_arguments=False,
                                 start_parameter_services=False)
         qos = stream_qos(self.config.qos_reliable)
+        self.intake: Optional[RawIntake] = None
+        if os.environ.get(PLAIN_ENV, '').strip() in ('', '0'):
+            self.intake = RawIntake(self.buffers, self._warn_rejected, self._warn_undecodable)
         self._subs = [self._subscribe(t, qos) for t in self.topics]
         # rclpy's signal handler does not always wake both executors (seen with SIGTERM):
         # a cheap 2 Hz no-op timer makes the stream executor look at the context regularly.
@@ -265,13 +272,18 @@ class CoregNode(Node):
         def on_lost(status) -> None:
             self.lost[topic] += int(status.total_count_change)
 
-        callback = self._make_callback(topic)
+        raw = self.intake is not None
+        callback = self.intake.callback(topic) if raw else self._make_callback(topic)
         try:
-            return self.stream_node.create_subscription(
-                PoseStamped, topic, callback, qos,
+            sub = self.stream_node.create_subscription(
+                PoseStamped, topic, callback, qos, raw=raw,
                 event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost))
         except Exception:  # an rmw without the message-lost event: the stamp gaps still count
-            return self.stream_node.create_subscription(PoseStamped, topic, callback, qos)
+            sub = self.stream_node.create_subscription(PoseStamped, topic, callback, qos,
+                                                       raw=raw)
+        if raw:
+            self.intake.attach(topic, sub)
+        return sub
 
     def _make_callback(self, topic: str):
         push = self.buffers[topic].push
@@ -286,16 +298,23 @@ class CoregNode(Node):
 
         return on_pose
 
-    def _warn_rejected(self, topic: str, reason: str) -> None:
+    def _warn_rejected(self, topic: str, reason: str, count: int = 1) -> None:
         """Throttled warning: at most one per topic and reason every WARN_PERIOD seconds."""
         state = self._warn_state.setdefault((topic, reason), [-WARN_PERIOD, 0])
-        state[1] += 1
+        state[1] += count
         now = time.monotonic()
         if now - state[0] >= WARN_PERIOD:
             self.get_logger().warning(
                 f'{topic}: rejected {state[1]} message(s): {reason_hint(reason)} '
                 f'(counts in /diagnostics)')
             state[0], state[1] = now, 0
+
+    def _warn_undecodable(self, topic: str, count: int, error: BaseException) -> None:
+        """Throttled warning about bytes on a pose topic that are not a PoseStamped."""
+        self._warn_throttled(('undecodable', topic), (
+            f'{topic}: {count} message(s) are not a serialized {POSE_TYPE} '
+            f'({type(error).__name__}: {error}); a publisher sends raw bytes of another type: '
+            f'fix that publisher (counts in /diagnostics)'))
 
     # --- services ------------------------------------------------------------------------
 
@@ -732,7 +751,8 @@ class CoregNode(Node):
         for topic, b in self.buffers.items():
             rejected = sum(b.rejected.values())
             missing = self.gaps[topic].missing
-            problems += rejected + b.dropped + self.lost[topic] + missing
+            undecodable = 0 if self.intake is None else self.intake.undecodable[topic]
+            problems += rejected + b.dropped + self.lost[topic] + missing + undecodable
             values += [KeyValue(key=f'{topic} received', value=str(b.received)),
                        KeyValue(key=f'{topic} accepted', value=str(b.accepted)),
                        KeyValue(key=f'{topic} rejected', value=str(rejected))]
@@ -745,6 +765,7 @@ class CoregNode(Node):
                        KeyValue(key=f'{topic} dropped oldest', value=str(b.dropped)),
                        KeyValue(key=f'{topic} lost in middleware', value=str(self.lost[topic])),
                        KeyValue(key=f'{topic} missing from stamps', value=str(missing)),
+                       KeyValue(key=f'{topic} undecodable', value=str(undecodable)),
                        KeyValue(key=f'{topic} stamp rate',
                                 value='n/a' if not period else f'{1e9 / period:.4g} Hz'),
                        KeyValue(key=f'{topic} frame_id', value=str(b.frame_id)),
