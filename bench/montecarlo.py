@@ -20,16 +20,16 @@ Tolerances: the full-size targets (5 % of d for the mean NEES, 93-97 % coverage,
 [0.95, 1.05]) widened, where the trials are fewer, to 3.29 standard errors of the sampling
 spread (two-sided 0.1 %), computed from the chi-square / binomial laws or from the trials.
 
-Run alone: ``python bench/montecarlo.py [--scale 1] [--workers 2] [--json out.json]``.
+Run alone: ``python bench/montecarlo.py [--scale 1] [--workers N] [--scheduler ADDRESS]
+[--json out.json]`` (``coreg_ros.parallel``: local processes or a Dask cluster; every trial is
+seeded on its own, so the numbers do not depend on either).
 """
 
 from __future__ import annotations
 
 import argparse
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 import json
-import multiprocessing
 import sys
 import time
 from typing import Optional
@@ -41,6 +41,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate, noise_covariance
 from coreg_ros.core.crlb import cramer_rao_bound
 from coreg_ros.core.settings import Settings
+from coreg_ros.parallel import CaseFailure, add_arguments, failures, run_cases
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs
 
 #: Two-sided 0.1 % normal quantile: sampling tolerances are this many standard errors.
@@ -157,61 +158,67 @@ def pose_error(result, truth) -> np.ndarray:
     return np.concatenate(e)
 
 
-def _trial_batch(scenario: Scenario, truth, motion, trials: list) -> dict:
-    """Run the given trial indices; arrays per method."""
-    d = dimension(scenario.model)
-    out = {m: {'errors': [], 'covs': [], 'chi2': [], 'dof': [], 'p_value': [],
-               'iterations': [], 'success': []} for m in scenario.methods}
-    for k in trials:
-        rng = np.random.default_rng([scenario.seed, int(k)])
-        noisy, _, _ = simulate_pairs(rng, scenario.n_pairs, scenario.model,
-                                     sigma_a=scenario.sigma_a, sigma_b=scenario.sigma_b,
-                                     truth=truth, motion=motion)
-        for method in scenario.methods:
-            # the estimator's own statistics: plain least squares (the robust layer's
-            # false-rejection rate and NEES are checked in test/test_spatiotemporal.py)
-            settings = Settings(model=scenario.model, method=method, sigma_a=scenario.sigma_a,
-                                sigma_b=scenario.sigma_b, robust=False)
-            r = calibrate(noisy, settings)
-            o = out[method]
-            o['errors'].append(pose_error(r, truth))
-            cov = (np.full((d, d), np.nan) if r.cov_joint is None
-                   else r.cov_joint[:d, :d])
-            o['covs'].append(cov)
-            o['chi2'].append(r.chi2)
-            o['dof'].append(r.dof)
-            o['p_value'].append(r.p_value)
-            o['iterations'].append(r.iterations)
-            o['success'].append(r.success)
-    return {m: {k: np.asarray(v) for k, v in o.items()} for m, o in out.items()}
-
-
-def run_trials(scenario: Scenario, n_trials: int, workers: int = 1) -> dict:
+def one_trial(k: int, scenario: Scenario, truth, motion) -> dict:
     """
-    Calibrate ``n_trials`` noisy copies of the scenario.
+    Trial ``k``: fresh noise from ``default_rng([seed, k])``, calibrated by every method.
+
+    Returns
+    -------
+    dict of method -> dict with ``errors`` (d,), ``covs`` (d, d), ``chi2``, ``dof``,
+    ``p_value``, ``iterations``, ``success``.
+
+    """
+    d = dimension(scenario.model)
+    rng = np.random.default_rng([scenario.seed, int(k)])
+    noisy, _, _ = simulate_pairs(rng, scenario.n_pairs, scenario.model,
+                                 sigma_a=scenario.sigma_a, sigma_b=scenario.sigma_b,
+                                 truth=truth, motion=motion)
+    out = {}
+    for method in scenario.methods:
+        # the estimator's own statistics: plain least squares (the robust layer's
+        # false-rejection rate and NEES are checked in test/test_spatiotemporal.py)
+        settings = Settings(model=scenario.model, method=method, sigma_a=scenario.sigma_a,
+                            sigma_b=scenario.sigma_b, robust=False)
+        r = calibrate(noisy, settings)
+        out[method] = {'errors': pose_error(r, truth),
+                       'covs': (np.full((d, d), np.nan) if r.cov_joint is None
+                                else r.cov_joint[:d, :d]),
+                       'chi2': r.chi2, 'dof': r.dof, 'p_value': r.p_value,
+                       'iterations': r.iterations, 'success': r.success}
+    return out
+
+
+def run_trials(scenario: Scenario, n_trials: int, workers: int = 1,
+               scheduler: Optional[str] = None) -> dict:
+    """
+    Calibrate ``n_trials`` noisy copies of the scenario (``coreg_ros.parallel.run_cases``).
 
     Trial k draws its noise from ``default_rng([seed, k])``, so the outcome does not depend on
-    ``workers``.
+    ``workers`` or ``scheduler``. A trial that raises is left out of the arrays and listed
+    under ``failed`` (index, seed, error).
 
     Returns
     -------
     dict of method -> dict with ``errors`` (K, d), ``covs`` (K, d, d), ``chi2``, ``dof``,
-    ``p_value``, ``iterations``, ``success`` (K,).
+    ``p_value``, ``iterations``, ``success`` (K,); and ``failed``: list of dict.
 
     """
     truth, motion, _ = setup(scenario)
-    idx = list(range(n_trials))
-    if workers <= 1:
-        return _trial_batch(scenario, truth, motion, idx)
-    parts = [idx[i::workers * 4] for i in range(workers * 4)]
-    methods = multiprocessing.get_all_start_methods()
-    ctx = multiprocessing.get_context('fork' if 'fork' in methods else 'spawn')
-    with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-        results = list(pool.map(_trial_batch, [scenario] * len(parts), [truth] * len(parts),
-                                [motion] * len(parts), parts))
-    order = np.argsort(np.concatenate(parts))
-    return {m: {k: np.concatenate([r[m][k] for r in results])[order] for k in results[0][m]}
+    # trials take ~10-50 ms: ~8 chunks per worker keep the pickling overhead small
+    chunk = max(1, n_trials // (8 * max(1, workers)))
+    results = run_cases(one_trial, range(n_trials), args=(scenario, truth, motion),
+                        workers=workers, scheduler=scheduler, chunksize=chunk,
+                        label=lambda k: f'{scenario.name} trial {k} (seed [{scenario.seed}, '
+                                        f'{k}])', title=scenario.name)
+    ok = [r for r in results if not isinstance(r, CaseFailure)]
+    data = {m: {key: np.asarray([r[m][key] for r in ok]) for key in TRIAL_KEYS}
             for m in scenario.methods}
+    data['failed'] = [f.as_dict() for f in failures(results)]
+    return data
+
+
+#: What one trial records per method.
+TRIAL_KEYS = ('errors', 'covs', 'chi2', 'dof', 'p_value', 'iterations', 'success')
 
 
 # ----------------------------------------------------------------------------------------------
@@ -316,6 +323,8 @@ def evaluate(scenario: Scenario, data: dict, crlb: np.ndarray) -> dict:
     """Statistics and pass/fail checks of one scenario's trials, per method."""
     out = {}
     for method, o in data.items():
+        if method == 'failed':
+            continue
         errors, covs = o['errors'], o['covs']
         K, d = errors.shape
         tol = tolerances(K, d)
@@ -375,23 +384,31 @@ def scenario_crlb(scenario: Scenario) -> np.ndarray:
 
 
 def run_scenario(scenario: Scenario, scale: float = 1.0, workers: int = 1,
-                 n_trials: Optional[int] = None) -> dict:
-    """Trials, CRLB and checks of one scenario; ``n_trials`` defaults to its size × scale."""
+                 n_trials: Optional[int] = None, scheduler: Optional[str] = None) -> dict:
+    """
+    Trials, CRLB and checks of one scenario; ``n_trials`` defaults to its size × scale.
+
+    Trials that raised are listed under ``failed_trials`` and fail the scenario.
+    """
     K = int(n_trials or max(50, round(scenario.n_trials * scale)))
     t0 = time.perf_counter()
-    data = run_trials(scenario, K, workers)
+    data = run_trials(scenario, K, workers, scheduler)
+    failed = data.pop('failed')
     report = {'scenario': asdict(scenario), 'n_trials': K,
               'methods': evaluate(scenario, data, scenario_crlb(scenario)),
-              'seconds': time.perf_counter() - t0}
-    report['passed'] = all(m['passed'] for m in report['methods'].values())
+              'failed_trials': failed, 'seconds': time.perf_counter() - t0}
+    report['passed'] = not failed and all(m['passed'] for m in report['methods'].values())
     return report
 
 
-def run_all(scale: float = 1.0, workers: int = 1, scenarios=SCENARIOS, log=None) -> list:
-    """Run every scenario; ``log(str)`` is called after each."""
+def run_all(scale: float = 1.0, workers: int = 1, scenarios=SCENARIOS, log=None,
+            scheduler: Optional[str] = None) -> list:
+    """Run every scenario; ``log(str)`` is called after each (and per failed trial)."""
     reports = []
     for s in scenarios:
-        r = run_scenario(s, scale, workers)
+        r = run_scenario(s, scale, workers, scheduler=scheduler)
+        for f in r['failed_trials'] if log is not None else ():
+            log(f'{f["label"]}: {f["error"]}')
         reports.append(r)
         if log is not None:
             log(f'{s.name}: {r["n_trials"]} trials in {r["seconds"]:.1f} s, '
@@ -443,10 +460,11 @@ def _p(p: float) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--scale', type=float, default=1.0, help='trials × this factor')
-    parser.add_argument('--workers', type=int, default=2)
+    add_arguments(parser)
     parser.add_argument('--json', help='write the reports here')
     args = parser.parse_args(argv)
-    reports = run_all(args.scale, args.workers, log=lambda s: print(s, file=sys.stderr))
+    reports = run_all(args.scale, args.workers, log=lambda s: print(s, file=sys.stderr),
+                      scheduler=args.scheduler)
     print(markdown_table(reports))
     if args.json:
         with open(args.json, 'w') as f:
