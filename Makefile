@@ -13,7 +13,7 @@ venv: $(VENV)/.installed
 $(VENV)/.installed: setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet $(ROS_WHEELS) -e '.[test,report]'
+	$(PY) -m pip install --quiet $(ROS_WHEELS) -e '.[test,report,dask]'
 	$(PY) -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, rosbags, scipy'
 	touch $@
 

@@ -18,7 +18,9 @@ setup(
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML',
                       'ruamel.yaml', 'rich>=13'],
-    extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib']},
+    extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib'],
+                    # --scheduler ADDRESS (coreg_ros.parallel): an existing Dask cluster
+                    'dask': ['dask[distributed]>=2024.1']},
     zip_safe=True,
     maintainer='coreg_ros developers',
     maintainer_email='dev@coreg-ros.invalid',
