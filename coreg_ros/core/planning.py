@@ -13,7 +13,7 @@ poses of the given motion, for every candidate), of B's marker pose predicted fr
 the calibration (calibration error only; Hoff & Vincent eq. 6 with the CRLB as the parameter
 covariance). Candidates are ranked by that position RMS.
 
-Candidate additions all add the same recording time, so they compare fairly:
+PlannedAddition additions all add the same recording time, so they compare fairly:
 
 - ``longer``: more of the same motion;
 - ``rotate_weakest_axis``: the tool rotated back and forth about the axis of its frame about
@@ -81,7 +81,7 @@ class AccuracyPrediction:
 
 
 @dataclass(frozen=True)
-class Candidate:
+class PlannedAddition:
     """
     A candidate addition to the recording and its predicted accuracy.
 
@@ -112,8 +112,8 @@ class Plan:
 
     Attributes
     ----------
-    baseline : Candidate
-    candidates : tuple of Candidate
+    baseline : PlannedAddition
+    candidates : tuple of PlannedAddition
         The additions, best first.
     weakest_axis : ndarray, shape (3,)
         Unit axis of A's tool frame about which the motion rotates least.
@@ -122,13 +122,13 @@ class Plan:
 
     """
 
-    baseline: Candidate
+    baseline: PlannedAddition
     candidates: tuple
     weakest_axis: np.ndarray
     rotation_spread: np.ndarray
 
     @property
-    def best(self) -> Candidate:
+    def best(self) -> PlannedAddition:
         """The candidate with the largest gain."""
         return self.candidates[0]
 
@@ -210,37 +210,13 @@ def predict_accuracy(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
                               registration_rms=np.array([rms_pos, rms_rot]))
 
 
-def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Principal axes of the motion's rotation, in the tool frame, weakest first.
-
-    ``observability.rotation_spread`` in the order planning wants: the least excited axis
-    first, axes as columns.
-
-    Parameters
-    ----------
-    quat_a : ndarray, shape (N, 4)
-        A's tool orientations (w, x, y, z).
-
-    Returns
-    -------
-    rms : ndarray, shape (3,)
-        RMS rotation (rad) about each principal axis, smallest first.
-    axes : ndarray, shape (3, 3)
-        The axes as columns (unit, A's tool frame), in the same order.
-
-    """
-    spread, axes = observability.rotation_spread(np.asarray(quat_a, dtype=float))
-    return spread[::-1].copy(), axes[::-1].T.copy()
-
-
 def _resample(pos_a, quat_a, n: int):
     """First n samples of the motion repeated cyclically (more of the same motion)."""
     idx = np.arange(n) % len(pos_a)
     return pos_a[idx], quat_a[idx]
 
 
-def candidate_motions(pos_a, quat_a, rate: float, extra: float = 0.5) -> dict:
+def planned_motions(pos_a, quat_a, rate: float, extra: float = 0.5) -> dict:
     """
     Build the candidate additions' motions: the recording plus ``extra`` of its length each.
 
@@ -266,8 +242,7 @@ def candidate_motions(pos_a, quat_a, rate: float, extra: float = 0.5) -> dict:
     n_add = max(1, int(round(extra * len(pos_a))))
     seconds = n_add / rate
     add_p, add_q = _resample(pos_a, quat_a, n_add)
-    _, axes = rotation_spread(quat_a)
-    weak = axes[:, 0]
+    weak = observability.rotation_spread(quat_a)[1][-1]  # rows, least excited last
     amp, freq = ADDED_ROTATION
     t = np.arange(n_add) / rate
     wobble = quat.exp(weak[None, :] * (amp * np.sin(2.0 * np.pi * freq * t))[:, None])
@@ -324,10 +299,10 @@ def plan_recording(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b, rat
             return None
 
     base = predict(pos_a, quat_a)
-    baseline = Candidate('baseline', f'the motion as given ({n / rate:.0f} s, {n} pairs)',
+    baseline = PlannedAddition('baseline', f'the motion as given ({n / rate:.0f} s, {n} pairs)',
                          base, 1.0 if base is not None else 0.0)
     out = []
-    for name, (text, p, q) in candidate_motions(pos_a, quat_a, rate, extra).items():
+    for name, (text, p, q) in planned_motions(pos_a, quat_a, rate, extra).items():
         pred = predict(p, q)
         if pred is None:
             gain = 0.0
@@ -335,9 +310,9 @@ def plan_recording(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b, rat
             gain = float('inf')
         else:
             gain = float(base.registration_rms[0] / pred.registration_rms[0])
-        out.append(Candidate(name, text, pred, gain))
+        out.append(PlannedAddition(name, text, pred, gain))
     out.sort(key=lambda c: (-c.gain, np.inf if c.prediction is None
                             else c.prediction.registration_rms[0]))
-    rms, axes = rotation_spread(quat_a)
-    return Plan(baseline=baseline, candidates=tuple(out), weakest_axis=axes[:, 0],
-                rotation_spread=rms)
+    spread, axes = observability.rotation_spread(np.asarray(quat_a, dtype=float))
+    return Plan(baseline=baseline, candidates=tuple(out), weakest_axis=axes[-1],
+                rotation_spread=spread[::-1].copy())
