@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.types import CalibrationResult, PairingReport, TimeOffset, UncertainPose
+
+if TYPE_CHECKING:  # types.CalibrationResult.summary() imports this module
+    from coreg_ros.core.types import CalibrationResult, PairingReport, TimeOffset, UncertainPose
 
 
 def fit_verdict(p_value: float) -> str:
