@@ -356,7 +356,7 @@ def _run_dask(client, fn: Callable, chunks: list, args: tuple, tally: _Tally) ->
                          pure=False)
     index = {f.key: k for k, f in enumerate(futures)}
     try:
-        for fut in as_completed(futures):
+        for fut in as_completed(futures, loop=client.loop):
             k = index[fut.key]
             try:
                 parts[k] = fut.result()
