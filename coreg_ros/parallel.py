@@ -315,10 +315,14 @@ def _run_local(fn: Callable, chunks: list, args: tuple, workers: int, tally: _Ta
                     parts[k] = [_Failed(one_line(e))] * len(chunks[k])
                 tally.add(parts[k])
     except BaseException:
-        # Ctrl-C (or any error of ours): drop the queue and stop the workers now
+        # Ctrl-C (or any error of ours): drop the queue and stop the workers now (the pool
+        # forgets its processes on shutdown, so take them first)
+        procs = list((getattr(pool, '_processes', None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
-        for proc in list(getattr(pool, '_processes', {}).values()):
+        for proc in procs:
             proc.terminate()
+        for proc in procs:
+            proc.join(timeout=5.0)
         raise
     pool.shutdown(wait=True)
     return parts
