@@ -106,8 +106,9 @@ def publish_main(spec_path: str, out_path: str) -> int:
 
 # --- profile ---------------------------------------------------------------------------------
 
-#: (part, test on one stack frame "function (file:line)"), looked for from the innermost frame
-#: out; the first part that matches a frame gets the sample.
+#: (part, test on one stack frame "function (file:line)"): a sample goes to the first part
+#: (in this order) that matches any frame of its stack, so work called from the journal or the
+#: live checks (numpy, rclpy's parameters) counts there, not as numpy's or rclpy's.
 PARTS = (
     ('journal', lambda f: 'flush_journal' in f or 'persistence.py' in f),
     ('live checks', lambda f: 'live_checks.py' in f),
@@ -118,21 +119,17 @@ PARTS = (
     ('callback', lambda f: 'raw_intake.py' in f or 'node.py' in f and (
         'on_pose' in f or 'pose_stamped_values' in f)),
     ('take + deserialise', lambda f: '_take_subscription' in f),
-    ('executor overhead', lambda f: 'executors.py' in f or 'rclpy' in f),
+    ('services thread: executor, timers, services', lambda f: '_spin_quietly' in f),
+    ('stream thread: executor overhead', lambda f: 'executors.py' in f),
 )
 
 
 def split_stacks(stacks: Counter) -> dict:
-    """Sampled counts -> {part: share of the samples}; stacks are ';'-joined, outermost first."""
+    """Sampled counts -> {part: share of the samples}; stacks are ';'-joined frames."""
     counts = Counter()
     for stack, n in stacks.items():
         frames = stack.split(';')
-        part = 'other'
-        for f in reversed(frames):
-            hit = next((name for name, test in PARTS if test(f)), None)
-            if hit is not None:
-                part = hit
-                break
+        part = next((name for name, test in PARTS if any(test(f) for f in frames)), 'other')
         counts[part] += n
     total = sum(counts.values()) or 1
     return {k: v / total for k, v in sorted(counts.items(), key=lambda kv: -kv[1])}

@@ -3,8 +3,11 @@
 
 Subscriptions
     ``topic_a`` and each ``topic_b`` (geometry_msgs/PoseStamped; sensor-data QoS, or reliable
-    with ``qos_reliable``). Each message is validated cheaply and stored in a bounded,
-    preallocated buffer (``coreg_ros.ros.buffer``); rejections are counted by reason.
+    with ``qos_reliable``). The messages are taken raw, every waiting one at each wake, decoded
+    and validated in bulk (``coreg_ros.ros.raw_intake``) and stored in a bounded, preallocated
+    buffer (``coreg_ros.ros.buffer``); rejections are counted by reason. ``COREG_NODE_PLAIN=1``
+    in the environment takes one deserialised message per callback instead (the older path,
+    the benchmark's baseline; same samples and counts).
 Services (std_srvs/Trigger)
     ``~/calibrate`` runs ``coreg_ros.core.pipeline.calibrate_streams`` on a snapshot of the
     raw samples, the very function ``coreg calibrate BAG`` runs, so live and offline results
@@ -34,7 +37,9 @@ Threads: the subscriptions live on a helper node (``<name>_streams``) spun by it
 single-threaded executor in the main thread; services, publishers and the diagnostics timer
 live on ``coreg_node`` spun in a second thread, so a calibration never blocks the streams.
 (rclpy's MultiThreadedExecutor with callback groups was measured to handle only a few hundred
-messages per second here, the single-threaded one 2 kHz at ~40 % of a core.)
+messages per second here; the single-threaded one with a callback per message 2 x 2 kHz at
+~90 % of a core, losing 8 % at 2 x 5 kHz; with the raw intake 2 x 5 kHz loses none at about a
+third of a core: bench/bench_node.py.)
 """
 
 from __future__ import annotations
