@@ -155,9 +155,11 @@ def _plot_candidates(plt, report, out):
     rows = rounds[0]
     accepted = {e['name'] for e in report['effects']}
     fig, ax = plt.subplots(figsize=(6, 0.35 * len(rows) + 1.2))
-    names = [r['name'] for r in rows][::-1]
-    gains = [r['held_out_gain_per_residual'] for r in rows][::-1]
-    colors = ['tab:green' if n in accepted else ('tab:blue' if r['accepted_test'] else 'tab:gray')
+    # a screened candidate was not refitted (its predicted gain was too small): drawn at 0
+    names = [r['name'] + (' (screened)' if r.get('screened') else '') for r in rows][::-1]
+    gains = [r['held_out_gain_per_residual'] or 0.0 for r in rows][::-1]
+    colors = ['tab:green' if n.split(' ')[0] in accepted
+              else ('tab:blue' if r['accepted_test'] else 'tab:gray')
               for n, r in zip(names, rows[::-1], strict=True)]
     ax.barh(names, gains, color=colors)
     ax.axvline(0, color='k', lw=0.6)

@@ -162,7 +162,10 @@ class FieldDistortion(MeanEffect):
         self.centre = pts.mean(axis=0)
         self.spread = float(np.max(np.linalg.norm(pts - self.centre, axis=1))) or 1.0
         self.rot = data.spec.has_q1
-        self.source = _dipole_source(data, self.centre, self.spread)
+        # one search per recording: every model holding the field shares its source
+        if 'dipole_source' not in data.cache:
+            data.cache['dipole_source'] = _dipole_source(data, self.centre, self.spread)
+        self.source = data.cache['dipole_source']
         self.n_pos = 3 * self.per_axis + 3 + 5
         self.n = self.n_pos + (33 if self.rot else 0)
 
@@ -273,9 +276,13 @@ def _dipole_source(data, centre: np.ndarray, spread: float) -> np.ndarray:
     from scipy.optimize import least_squares
 
     def outside(s):
+        # between just outside the workspace and three radii: a source further away gives
+        # a field the polynomial terms hold already, and its dipole column becomes nearly
+        # a combination of theirs (the joint fit then has a direction the data cannot
+        # fix, along which the field's non-rigid size wanders)
         v = s - centre
         r = np.linalg.norm(v)
-        return centre + v * max(r, 1.05 * spread) / max(r, 1e-12)
+        return centre + v * min(max(r, 1.05 * spread), 3.0 * spread) / max(r, 1e-12)
 
     try:
         res = least_squares(lambda s: residual(outside(s)), best, x_scale=spread,
