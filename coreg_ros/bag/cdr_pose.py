@@ -139,7 +139,8 @@ def decode_records(buffer: BytesLike, count: int) -> Optional[PoseArrays]:
     Parameters
     ----------
     buffer : bytes-like
-        The concatenated messages, ``count * size`` bytes.
+        The concatenated messages, ``count * size`` bytes (any C-contiguous buffer, e.g. an
+        (N, size) uint8 array).
     count : int
         Number of messages (N).
 
@@ -152,8 +153,9 @@ def decode_records(buffer: BytesLike, count: int) -> Optional[PoseArrays]:
     """
     if count <= 0:
         return None
+    buffer = memoryview(buffer).cast('B')  # flat bytes, whatever the exporter's shape
     size, rest = divmod(len(buffer), count)
-    frame_len = frame_len_of(memoryview(buffer)[:_FRAME_AT]) if not rest else None
+    frame_len = frame_len_of(buffer[:_FRAME_AT]) if not rest else None
     # A zero length field (no NUL) is not what ROS writes; leave it to the general path.
     if not frame_len or record_size(frame_len) != size:
         return None

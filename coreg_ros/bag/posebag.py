@@ -23,13 +23,15 @@ import os
 from pathlib import Path
 import shutil
 import tempfile
-from typing import Any, Union
+from typing import Any, Optional, Union
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
 
+from coreg_ros.bag import bulk_read
+from coreg_ros.bag.cdr_pose import decode_records
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.types import PoseStream
 
@@ -50,6 +52,9 @@ _WRITE_CHUNK = 65536
 
 #: How to salvage a damaged storage file, by storage identifier (for error messages).
 _SALVAGE = '`coreg fix-bag BAG NEW_BAG --salvage`'
+
+#: Environment variable that, set to 0, forces rosbags' per-message path (for comparisons).
+BULK_ENV = 'COREG_BAG_BULK'
 
 PathLike = Union[str, os.PathLike]
 
@@ -167,7 +172,8 @@ def _describe_topics(types: Mapping[str, list[str]]) -> str:
     return ', '.join(f'{t} ({", ".join(ty)})' for t, ty in sorted(types.items()))
 
 
-def read_pose_bag(path: PathLike, topics: Iterable[str]) -> dict[str, PoseStream]:
+def read_pose_bag(path: PathLike, topics: Iterable[str], *,
+                  bulk: Optional[bool] = None) -> dict[str, PoseStream]:
     """
     Read ``geometry_msgs/msg/PoseStamped`` topics of a rosbag2 recording into arrays.
 
@@ -178,6 +184,10 @@ def read_pose_bag(path: PathLike, topics: Iterable[str]) -> dict[str, PoseStream
         read, the format is taken from the metadata.
     topics : iterable of str
         Topic names to read, e.g. ``['/device_a/pose', '/device_b/pose']``.
+    bulk : bool, optional
+        Decode each topic in bulk with numpy (``cdr_pose``) when its messages share one
+        layout, else message by message with rosbags; both give identical arrays. Default:
+        on, unless the environment variable ``COREG_BAG_BULK`` is ``0``.
 
     Returns
     -------
@@ -217,33 +227,82 @@ def read_pose_bag(path: PathLike, topics: Iterable[str]) -> dict[str, PoseStream
                     f'convert the topic first')
         connections = [c for c in reader.connections
                        if c.topic in wanted and c.msgtype == POSE_STAMPED]
-        columns: dict[str, tuple[list, list, list]] = {t: ([], [], []) for t in wanted}
-        frames: dict[str, str] = {}
-        deserialize = _typestore().deserialize_cdr
-        try:
-            for conn, log_ns, raw in reader.messages(connections=connections):
-                msg = deserialize(raw, POSE_STAMPED)
-                stamps, logs, values = columns[conn.topic]
-                header = msg.header
-                frame = frames.setdefault(conn.topic, header.frame_id)
-                if header.frame_id != frame:
-                    # One PoseStream has one base frame; mixing frames would silently corrupt
-                    # the calibration.
-                    raise BagError(
-                        f'topic {conn.topic} in bag {str(path)!r}: header.frame_id changes from '
-                        f'{frame!r} to {header.frame_id!r} at message {len(stamps)}; record '
-                        f'one base frame per topic')
-                stamps.append(header.stamp.sec * 1_000_000_000 + header.stamp.nanosec)
-                logs.append(log_ns)
-                p = msg.pose.position
-                q = msg.pose.orientation
-                values.append((p.x, p.y, p.z, q.w, q.x, q.y, q.z))
-        except BagError:
-            raise
-        except Exception as err:  # truncated or corrupt storage or message bytes
-            raise BagError(
-                f'bag {str(path)!r} is truncated or corrupt ({_describe(err)}); re-record it, or '
-                f'salvage what is readable with {_SALVAGE}') from err
+        streams: dict[str, PoseStream] = {}
+        if _use_bulk(bulk):
+            streams = _read_bulk(reader, connections, wanted)
+        rest = [t for t in wanted if t not in streams]
+        if rest:
+            streams.update(_read_per_message(
+                reader, [c for c in connections if c.topic in rest], rest, path))
+    return {topic: streams[topic] for topic in wanted}
+
+
+def _use_bulk(bulk: Optional[bool]) -> bool:
+    """Whether to use the bulk path: the argument, else ``COREG_BAG_BULK`` (default on)."""
+    if bulk is not None:
+        return bulk
+    return os.environ.get(BULK_ENV, '1').strip().lower() not in ('0', 'false', 'no', 'off')
+
+
+def _read_bulk(reader: Reader, connections: list, wanted: list[str]) -> dict[str, PoseStream]:
+    """
+    Decode the topics whose messages share one layout (all, in a normal recording) in bulk.
+
+    Topics that are missing from the result (messages of varying size or frame, big-endian
+    CDR, a damaged or unusual storage file) are read message by message, which also gives
+    the usual errors.
+    """
+    fetched = bulk_read.fetch(reader, connections)
+    if fetched is None:
+        return {}
+    streams = {}
+    for topic in wanted:
+        logs, block = fetched[topic]
+        if block is None:
+            continue
+        if not len(logs):
+            streams[topic] = PoseStream(
+                stamps=np.zeros(0, np.int64), position=np.zeros((0, 3)),
+                quat_wxyz=np.zeros((0, 4)), frame_id='', receive_stamps=np.zeros(0, np.int64))
+            continue
+        arrays = decode_records(np.ascontiguousarray(block), len(logs))
+        if arrays is not None:
+            streams[topic] = PoseStream(
+                stamps=arrays.stamps_ns, position=arrays.position, quat_wxyz=arrays.quat_wxyz,
+                frame_id=arrays.frame_id, receive_stamps=logs)
+    return streams
+
+
+def _read_per_message(reader: Reader, connections: list, wanted: list[str],
+                      path: Path) -> dict[str, PoseStream]:
+    """Deserialize the topics' messages one by one with rosbags (the general path)."""
+    columns: dict[str, tuple[list, list, list]] = {t: ([], [], []) for t in wanted}
+    frames: dict[str, str] = {}
+    deserialize = _typestore().deserialize_cdr
+    try:
+        for conn, log_ns, raw in reader.messages(connections=connections):
+            msg = deserialize(raw, POSE_STAMPED)
+            stamps, logs, values = columns[conn.topic]
+            header = msg.header
+            frame = frames.setdefault(conn.topic, header.frame_id)
+            if header.frame_id != frame:
+                # One PoseStream has one base frame; mixing frames would silently corrupt
+                # the calibration.
+                raise BagError(
+                    f'topic {conn.topic} in bag {str(path)!r}: header.frame_id changes from '
+                    f'{frame!r} to {header.frame_id!r} at message {len(stamps)}; record '
+                    f'one base frame per topic')
+            stamps.append(header.stamp.sec * 1_000_000_000 + header.stamp.nanosec)
+            logs.append(log_ns)
+            p = msg.pose.position
+            q = msg.pose.orientation
+            values.append((p.x, p.y, p.z, q.w, q.x, q.y, q.z))
+    except BagError:
+        raise
+    except Exception as err:  # truncated or corrupt storage or message bytes
+        raise BagError(
+            f'bag {str(path)!r} is truncated or corrupt ({_describe(err)}); re-record it, or '
+            f'salvage what is readable with {_SALVAGE}') from err
     streams = {}
     for topic in wanted:
         stamps, logs, values = columns[topic]

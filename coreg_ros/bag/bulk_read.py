@@ -1,0 +1,321 @@
+"""
+Raw bytes of PoseStamped topics out of rosbag2 storage files, with no Python step per message.
+
+rosbags' ``Reader.messages()`` yields one Python tuple per message, which caps any reader
+built on it near a few hundred thousand messages a second. Here the storage files that
+rosbags has opened (it keeps the metadata, the connections, decompression of file-compressed
+bags and all error reporting) are read in bulk:
+
+* sqlite3: one query per topic and id range lets SQLite concatenate the blobs
+  (``group_concat``) and the log times; numpy then reorders them to rosbags' order
+  (log time, ties by row id: the order of its ``ORDER BY timestamp`` index scan).
+* mcap: each chunk holding a wanted channel is read and decompressed with rosbags' own
+  routine (size and CRC checks included); its message index records give every message
+  record's offset, and numpy gathers all record headers and payloads at once. Gaps between
+  indexed records are walked to prove that no message record was left out of the index.
+  Order is rosbags' too: log time, ties by chunk position, then record position.
+
+The result is, per topic, the log times and the messages as one block of equal-size
+records, in exactly the order rosbags yields them; a topic whose messages differ in size
+gets None. Anything this module does not recognise (message-compressed bags, unindexed or
+inconsistent mcap files, SQLite errors, corrupt structure) makes ``fetch`` return None and
+the caller reads the bag through rosbags, which raises the usual errors for damaged files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+#: Row ids per SQLite query: bounds the concatenated blob (SQLite's limit is 1e9 bytes).
+_SQLITE_ID_SPAN = 1 << 18
+
+#: MCAP opcodes and the fixed part of a Message record after opcode and length:
+#: channel_id u16, sequence u32, log_time u64, publish_time u64.
+_OP_MESSAGE = 0x05
+_OP_MESSAGE_INDEX = 0x07
+_MSG_HEAD = 1 + 8 + 22
+
+_MSG_HEAD_DTYPE = np.dtype({
+    'names': ['op', 'length', 'channel', 'log_time'],
+    'formats': ['u1', '<u8', '<u2', '<u8'],
+    'offsets': [0, 1, 9, 15],
+    'itemsize': _MSG_HEAD,
+})
+
+#: Per topic: log times (int64 ns, (N,)) and the N messages as an (N, S) uint8 array, or
+#: None as the second item when the messages do not all have the same size S.
+Fetched = tuple[np.ndarray, Optional[np.ndarray]]
+
+
+class Unsupported(Exception):
+    """The bag is not in a shape this module reads; the caller reads it through rosbags."""
+
+
+def fetch(reader: Any, connections: Sequence[Any]) -> Optional[dict[str, Fetched]]:
+    """
+    Read the messages of the given connections of an open rosbags Reader in bulk.
+
+    Parameters
+    ----------
+    reader : rosbags.rosbag2.Reader
+        An open reader.
+    connections : sequence of Connection
+        The reader connections to read (one or more per topic).
+
+    Returns
+    -------
+    fetched : dict of str to (ndarray, ndarray or None), or None
+        Per topic of ``connections``: log times (int64 ns, (N,)) and an (N, S) uint8 array of
+        the serialized messages, in rosbags' order; the array is None when the sizes vary.
+        None when the bag must be read through rosbags (unsupported layout, or damage).
+
+    """
+    try:
+        return _fetch(reader, connections)
+    except Exception:  # noqa: BLE001 - rosbags reads it again and reports the real problem
+        return None
+
+
+def _fetch(reader: Any, connections: Sequence[Any]) -> dict[str, Fetched]:
+    if reader.compression_mode == 'message':
+        raise Unsupported('message-compressed bag')
+    # A rosbag2 directory: rosbags' Reader delegates to a directory reader holding one
+    # storage reader per file (file-compressed ones already decompressed to temporary files).
+    storages = getattr(reader.storage, 'storages', None)
+    if storages is None:
+        raise Unsupported('not a rosbag2 directory reader')
+    topics = list(dict.fromkeys(c.topic for c in connections))
+    parts: dict[str, list[Fetched]] = {t: [] for t in topics}
+    for storage in storages:
+        cids = _storage_topics(storage, connections)
+        if not cids:
+            continue
+        kind = type(storage).__name__
+        if kind == 'Sqlite3Reader':
+            got = _sqlite_storage(storage, cids)
+        elif kind == 'McapReader':
+            got = _mcap_storage(storage, cids)
+        else:
+            raise Unsupported(kind)
+        for topic, item in got.items():
+            parts[topic].append(item)
+    return {t: _concat(parts[t]) for t in topics}
+
+
+def _storage_topics(storage: Any, connections: Sequence[Any]) -> dict[int, str]:
+    """Map the storage's connection ids to topics, matched as rosbags' Reader.messages does."""
+    out = {}
+    for x in storage.connections:
+        for y in connections:
+            if (y.topic == x.topic and y.msgtype == x.msgtype and y.ext == x.ext
+                    and (not x.digest or not y.digest or y.digest == x.digest)):
+                out[x.id] = y.topic
+                break
+    return out
+
+
+def _concat(parts: list[Fetched]) -> Fetched:
+    """Join one topic's parts (storage files in bag order, as rosbags yields them)."""
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros((0, 0), np.uint8)
+    logs = np.concatenate([p[0] for p in parts])
+    blocks = [p[1] for p in parts if len(p[0])]
+    if not blocks:
+        return logs, np.zeros((0, 0), np.uint8)
+    if any(b is None for b in blocks) or len({b.shape[1] for b in blocks}) != 1:
+        return logs, None
+    return logs, np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
+
+
+def _ordered(logs: np.ndarray, ties: np.ndarray, block: Optional[np.ndarray]) -> Fetched:
+    """Sort by log time, ties by ``ties`` (already ascending in the given order)."""
+    if logs.size and np.any(logs[1:] < logs[:-1]):
+        order = np.lexsort((ties, logs))
+        logs = logs[order]
+        block = None if block is None else block[order]
+    return logs, block
+
+
+# --- sqlite3 --------------------------------------------------------------------------------
+
+def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
+    db = storage.dbconn
+    if db is None:
+        raise Unsupported('closed storage')
+    (encoding,), = db.execute('PRAGMA encoding').fetchall()
+    if encoding != 'UTF-8':
+        # group_concat passes blobs through text, which is byte-exact only in UTF-8 databases.
+        raise Unsupported(f'database encoding {encoding}')
+    (lo, hi), = db.execute('SELECT min(id), max(id) FROM messages').fetchall()
+    by_topic: dict[str, list[int]] = {}
+    for cid, topic in cids.items():
+        by_topic.setdefault(topic, []).append(cid)
+    out = {}
+    for topic, ids in by_topic.items():
+        out[topic] = _sqlite_topic(db, ids, lo, hi)
+    return out
+
+
+def _sqlite_topic(db: Any, ids: list[int], lo: Optional[int], hi: Optional[int]) -> Fetched:
+    """All messages of one topic (its connection ids ``ids``) of one sqlite3 storage file."""
+    marks = ','.join('?' * len(ids))
+    # Concatenation happens inside SQLite; per chunk of row ids we get the blobs, the log
+    # times and the row ids (as text) plus the smallest and largest blob size.
+    query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
+             f"group_concat(id), count(*), min(length(data)), max(length(data)) "
+             f"FROM messages WHERE topic_id IN ({marks}) AND id BETWEEN ? AND ?")
+    blobs, logs, rowids = [], [], []
+    sizes: set[int] = set()
+    total = 0
+    if lo is not None and hi is not None:
+        for start in range(lo, hi + 1, _SQLITE_ID_SPAN):
+            (blob, ts_text, id_text, count, smin, smax), = db.execute(
+                query, (*ids, start, start + _SQLITE_ID_SPAN - 1)).fetchall()
+            if not count:
+                continue
+            ts = np.fromstring(ts_text, dtype=np.int64, sep=',')
+            rid = np.fromstring(id_text, dtype=np.int64, sep=',')
+            if ts.size != count or rid.size != count:
+                raise Unsupported('log times or row ids did not parse')
+            sizes.update((smin, smax))
+            total += count
+            blobs.append(blob)
+            logs.append(ts)
+            rowids.append(rid)
+    if not total:
+        return np.zeros(0, np.int64), np.zeros((0, 0), np.uint8)
+    log_ns = np.concatenate(logs)
+    rid = np.concatenate(rowids)
+    if len(sizes) != 1:
+        return _ordered(log_ns, rid, None)
+    size = sizes.pop()
+    data = b''.join(blobs) if len(blobs) > 1 else blobs[0]
+    if not isinstance(data, bytes) or len(data) != total * size:
+        raise Unsupported('concatenated blobs have the wrong size')
+    block = np.frombuffer(data, dtype=np.uint8).reshape(total, size)
+    if np.any(rid[1:] <= rid[:-1]):
+        # Scan order is row id order in a rowid table; sort if it ever is not.
+        order = np.argsort(rid, kind='stable')
+        log_ns, rid, block = log_ns[order], rid[order], block[order]
+    return _ordered(log_ns, rid, block)
+
+
+# --- mcap -----------------------------------------------------------------------------------
+
+def _mcap_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
+    from rosbags.rosbag2.storage_mcap import decompress, read_exact  # noqa: PLC0415
+
+    bio = storage.bio
+    if bio is None or not storage.chunks:
+        # Unindexed files are read by rosbags' record scan.
+        raise Unsupported('mcap file without chunk index')
+    chunks = sorted((c for c in storage.chunks
+                     if any(c.channel_count.get(cid, 0) for cid in cids)),
+                    key=lambda c: c.chunk_start_offset)
+    topics = list(dict.fromkeys(cids.values()))
+    logs: dict[str, list[np.ndarray]] = {t: [] for t in topics}
+    rows: dict[str, list[np.ndarray]] = {t: [] for t in topics}
+    for chunk in chunks:
+        # Exactly what rosbags' msgsrc reads: CRC from the chunk record, sizes from the index.
+        bio.seek(chunk.chunk_start_offset + 9 + 24)
+        crc = int.from_bytes(read_exact(bio, 4), 'little')
+        bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+        raw = decompress(read_exact(bio, chunk.compressed_size), chunk.compression,
+                         chunk.uncompressed_size, crc)
+        mem = np.frombuffer(raw, dtype=np.uint8)
+        offsets = _indexed_offsets(bio, chunk, read_exact)
+        heads = _message_heads(mem, offsets)
+        for cid, topic in cids.items():
+            pick = heads['channel'] == cid
+            if not pick.any():
+                continue
+            head = heads[pick]
+            log_time = head['log_time']
+            # rosbags keeps a chunk's messages inside the chunk's declared time range only.
+            keep = (log_time >= chunk.message_start_time) & (log_time <= chunk.message_end_time)
+            if not keep.all():
+                head, log_time = head[keep], log_time[keep]
+            logs[topic].append(log_time.astype(np.int64))
+            lengths = head['length'] - 22
+            if lengths.size and np.all(lengths == lengths[0]):
+                starts = offsets[pick][keep] + _MSG_HEAD
+                rows[topic].append(_gather(mem, starts, int(lengths[0])))
+            else:
+                rows[topic].append(None)
+    out = {}
+    for topic in topics:
+        if not logs[topic]:
+            out[topic] = (np.zeros(0, np.int64), np.zeros((0, 0), np.uint8))
+            continue
+        log_ns = np.concatenate(logs[topic])
+        blocks = rows[topic]
+        block = None
+        if all(b is not None for b in blocks) and len({b.shape[1] for b in blocks}) == 1:
+            block = np.concatenate(blocks)
+        # Concatenation is in (chunk position, record position) order: a stable sort by log
+        # time reproduces rosbags' heapq merge of time-sorted chunks.
+        out[topic] = _ordered(log_ns, np.arange(log_ns.size), block)
+    return out
+
+
+def _indexed_offsets(bio: Any, chunk: Any, read_exact: Any) -> np.ndarray:
+    """Offsets (into the decompressed chunk) of all message records its index lists, sorted."""
+    found = []
+    for cid, where in chunk.message_index_offsets.items():
+        bio.seek(where)
+        head = read_exact(bio, 1 + 8 + 2 + 4)
+        length = int.from_bytes(head[1:9], 'little')
+        if (head[0] != _OP_MESSAGE_INDEX or int.from_bytes(head[9:11], 'little') != cid):
+            raise Unsupported('message index record does not match the chunk index')
+        nbytes = int.from_bytes(head[11:15], 'little')
+        if nbytes % 16 or nbytes + 6 != length:
+            raise Unsupported('malformed message index record')
+        entries = np.frombuffer(read_exact(bio, nbytes), dtype='<u8').reshape(-1, 2)
+        found.append(entries[:, 1])
+    offsets = np.concatenate(found) if found else np.zeros(0, np.uint64)
+    return np.sort(offsets).astype(np.int64)
+
+
+def _message_heads(mem: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Headers of the message records at ``offsets``, checked to tile the chunk with the rest."""
+    size = mem.size
+    if offsets.size and (offsets[0] < 0 or offsets[-1] + _MSG_HEAD > size):
+        raise Unsupported('indexed record outside its chunk')
+    heads = _gather(mem, offsets, _MSG_HEAD).view(_MSG_HEAD_DTYPE).reshape(-1)
+    if not np.all(heads['op'] == _OP_MESSAGE) or np.any(heads['length'] < 22):
+        raise Unsupported('indexed offset is not a message record')
+    ends = offsets + 9 + heads['length'].astype(np.int64)
+    if offsets.size and ends[-1] > size:
+        raise Unsupported('message record overruns its chunk')
+    # Walk whatever lies between indexed messages (schemas, channels...): it must hold no
+    # message record, or rosbags (which scans every record) would yield messages we miss.
+    starts = np.concatenate([[0], ends])
+    stops = np.concatenate([offsets, [size]])
+    if np.any(stops < starts):
+        raise Unsupported('overlapping records')
+    for gap in np.flatnonzero(stops > starts).tolist():
+        _walk_gap(mem, int(starts[gap]), int(stops[gap]))
+    return heads
+
+
+def _walk_gap(mem: np.ndarray, pos: int, stop: int) -> None:
+    """Check that [pos, stop) is a run of whole non-message records."""
+    while pos < stop:
+        if pos + 9 > stop or mem[pos] == _OP_MESSAGE:
+            raise Unsupported('unindexed message record in chunk')
+        pos += 9 + int(mem[pos + 1:pos + 9].view('<u8')[0])
+    if pos != stop:
+        raise Unsupported('record overruns the next indexed message')
+
+
+def _gather(mem: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """Rows ``mem[s:s + width]`` for each start, as an (N, width) uint8 array (one copy)."""
+    if not starts.size or width == 0:
+        return np.zeros((starts.size, width), np.uint8)
+    if starts[-1] + width > mem.size:
+        raise Unsupported('record outside its chunk')
+    return sliding_window_view(mem, width)[starts]
