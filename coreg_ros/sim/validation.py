@@ -121,6 +121,31 @@ def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE,
     return case
 
 
+def draw_effect_cases(rng: np.random.Generator, name: str, n: int,
+                      sizes: tuple = ('medium', 'large'),
+                      duration: Optional[tuple] = None) -> list:
+    """
+    Draw ``n`` cases of the one effect ``name`` (alone) at the given size classes.
+
+    The recordings' settings are drawn as in ``draw_case``; for studying one effect's size
+    accuracy on fresh random draws (never on the fixed cases of a validation seed).
+    """
+    out = []
+    for _ in range(n):
+        case = draw_case(rng, clean_share=0.0, duration=duration)
+        eff = _draw_effect(rng, (name,))
+        size = sizes[int(rng.integers(len(sizes)))]
+        lo, hi = SIZE_RANGES[name][SIZES.index(size)]
+        value = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+        if name in ('time_offset', 'clock_drift', 'shared_clock') and eff['value'] < 0:
+            value = -value
+        eff.update(size=size, value=value, spec=f'{name}={value:.6g}')
+        case.update(eff)
+        case['second'] = None
+        out.append(case)
+    return out
+
+
 def _make_effects(case: dict) -> list:
     from coreg_ros.sim.effect_library import make_effect
 

@@ -184,6 +184,14 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
             # gravity's direction from the better determined of the two vectors
             if tilt / max(st, 1e-30) > b / max(s, 1e-30):
                 g = gw * np.sign(float(gw @ u)) if b > 0 else gw
+                # sag and tilt are one pivot's turn under one gravity (u = lever · w): with
+                # the direction fixed by the tilt, the sag is u's component along it (one
+                # noisy component instead of a vector length, which the two across-gravity
+                # components inflate)
+                b = abs(float(g @ u))
+                s = float(np.sqrt(max(g @ C[0:3, 0:3] @ g, 0.0)))
+                out.update(sag_mm=b * 1e3, sigma_mm=s * 1e3)
+                text = f'{b * 1e3:.2f} ± {s * 1e3:.2f} mm sag'
             out.update(tilt_deg=float(np.degrees(tilt)), sigma_tilt_deg=float(np.degrees(st)))
             text += f', {np.degrees(tilt):.3f} ± {np.degrees(st):.3f} deg tilt'
         out['gravity_in_a_base'] = g.tolist()
