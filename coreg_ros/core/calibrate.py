@@ -14,6 +14,7 @@ import numpy as np
 from scipy import stats
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core import screening, structured
 from coreg_ros.core.covariance import Prior, result_poses
 from coreg_ros.core.errors import (
     ConvergenceError,
@@ -21,7 +22,7 @@ from coreg_ros.core.errors import (
     InputError,
     TooFewPairsError,
 )
-from coreg_ros.core.estimator import Problem, Solution, solve_ols, solve_tls
+from coreg_ros.core.estimator import InputState, Problem, Solution, solve_ols, solve_tls
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.linearized import PairData, normalised_squares
 from coreg_ros.core.models import SPECS, ModelSpec, Parameters
@@ -97,6 +98,8 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
         raise InputError(f'pairs have shapes {pos_a.shape} and {pos_b.shape}; model '
                          f'{spec.name} needs (N, 3) and {want_b}')
     for name, arr in (('device A position', pos_a), ('device B position', pos_b)):
+        if np.isfinite(arr).all():  # the usual case, without a per-pair mask
+            continue
         bad = ~np.isfinite(arr).reshape(n, -1).all(axis=1)
         if bad.any():
             raise InputError(f'{name}: {int(bad.sum())} pair(s) contain NaN or inf (first at '
@@ -106,13 +109,13 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
         if q is not None and np.shape(q) != (n, 4):
             raise InputError(f'{name}: expected shape ({n}, 4) (one (w, x, y, z) per pair), got '
                              f'{np.shape(q)}')
-    quat_a = quat.validate_quaternions(pairs.quat_a, 'device A orientation')
+    quat_a = _unit_quaternions(pairs.quat_a, 'device A orientation')
     quat_b = None
     if spec.has_q1:
         if pairs.quat_b is None:
             raise InputError('model full_pose needs device B orientations; use '
                              '--model position_only for a position-only tracker')
-        quat_b = quat.validate_quaternions(pairs.quat_b, 'device B orientation')
+        quat_b = _unit_quaternions(pairs.quat_b, 'device B orientation')
     scale = None
     if pairs.a_var_scale is not None:
         scale = np.asarray(pairs.a_var_scale, dtype=float)
@@ -121,12 +124,50 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
     return pos_a, quat_a, pos_b, quat_b, scale
 
 
+def _unit_quaternions(q, name: str) -> np.ndarray:
+    """
+    ``quat.validate_quaternions`` in one pass for the usual (N, 4) finite, unit-length input.
+
+    Anything else goes to ``validate_quaternions``, which says what is wrong.
+    """
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 2 and q.shape[1] == 4 and np.isfinite(q).all():
+        norm = np.sqrt(np.einsum('ij,ij->i', q, q))
+        if (np.abs(norm - 1.0) <= quat.UNIT_NORM_TOLERANCE).all():
+            # normalised, w >= 0 (quat.canonical), in one division
+            return q / (norm * np.where(q[:, 0] < 0.0, -1.0, 1.0))[:, None]
+    return quat.validate_quaternions(q, name)
+
+
 #: Chance that the robust fit rejects a pair that fits the stated noise (per pair).
 OUTLIER_ALPHA = 1e-4
 #: Largest share of the pairs the robust fit may reject; beyond it the data do not fit.
 MAX_REJECTED_SHARE = 0.25
 #: Rounds of rejection and refit (the set of inliers settles in two or three).
 MAX_ROUNDS = 10
+
+#: Convergence tolerance of calibrate's fits (the solvers' own default, ``estimator.XTOL``,
+#: is 1e-5 σ): stop when the next step would move every parameter by at most this many of
+#: its posterior standard deviations. Near the minimum the steps shrink
+#: linearly (at 0.5° rotation noise on A, TLS at 1M pairs: 32 σ, 7.9 σ, 1.5e-3 σ, 2.8e-4 σ,
+#: then by ~0.17 a step), so the estimate is within ~1.2·XTOL σ of the minimum: 5e-3 σ
+#: changes no statistic (a bias of 5e-3 σ adds 2.5e-5 to the mean squared error; scipy's
+#: default, 1e-8 relative to |φ|, is ~1e-2 σ at 100k pairs), while each tenfold tightening
+#: costs about one more pass over the pairs.
+XTOL = 5e-3
+
+#: Pairs the start (closed form, then the same fit) uses at most, every k-th pair, before the
+#: fit of all pairs (see ``_Fitter._start``).
+SUBSAMPLE = 100_000
+#: The fast paths, each of which gives the same answer as the plain one (to within the
+#: solver's stopping rule; ``test_calibrate_speed_paths.py`` compares them): the start from
+#: a subsample, TLS refits starting at the last fit's inputs, the robust statistic in one
+#: light pass (``screening``). Switched off only to compare with the plain paths.
+#: First LM damping of a TLS refit that starts at the last fit's inputs.
+WARM_DAMPING = 1e-9
+FAST_START = True
+FAST_REFIT = True
+FAST_SQUARES = True
 
 
 class _Fitter:
@@ -145,6 +186,19 @@ class _Fitter:
                              np.asarray(cov_a, dtype=float).reshape(6, 6),
                              output_covariance(cov_b, spec),
                              self.scale, settings.method == 'tls')
+        # all pairs, for the robust statistic of every pair (rejected ones are tested again)
+        self.everything = Problem(spec, self.pos_a, self.quat_a, self.pos_b, self.quat_b,
+                                  self.whiten_b, self.whiten_a, self.scale)
+        self.last_inputs = None  # (keep, InputState) of the last TLS fit: a refit's start
+
+    def problem(self, keep: np.ndarray, with_priors: bool = True) -> Problem:
+        """Return the pairs in ``keep`` as a Problem (the arrays themselves if all are kept)."""
+        def sub(x):
+            return x if x is None or keep.all() else x[keep]
+
+        return Problem(self.spec, sub(self.pos_a), sub(self.quat_a), sub(self.pos_b),
+                       sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
+                       self.priors if with_priors else [])
 
     def solve(self, keep: np.ndarray, start: Optional[Parameters],
               warm: bool = False, with_priors: bool = True) -> Solution:
@@ -152,11 +206,8 @@ class _Fitter:
         Fit the pairs in ``keep`` from ``start`` (closed form when None).
 
         OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) goes to TLS
-        directly.
+        directly, its inputs starting at the last TLS fit's estimates.
         """
-        def sub(x):
-            return x if x is None or keep.all() else x[keep]
-
         settings = self.settings
         n_keep = int(keep.sum())
         min_pairs = max(int(settings.min_pairs), self.spec.n_params // self.spec.n_res + 2)
@@ -164,21 +215,72 @@ class _Fitter:
             raise TooFewPairsError(
                 f'only {n_keep} pairs are left after rejecting outliers (need at least '
                 f'{min_pairs}); record longer, or check the noise (sigma_b) and the units')
-        quat_a = sub(self.quat_a)
-        problem = Problem(self.spec, sub(self.pos_a), quat_a, sub(self.pos_b),
-                          sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
-                          self.priors if with_priors else [])
+        problem = self.problem(keep, with_priors)
         tls = settings.method == 'tls'
+        fitted = False  # whether the start is already an OLS fit (of a subsample)
         if start is None:
-            start = initialize(self.spec, problem.pos_a, quat_a, problem.pos_b, problem.quat_b)
-        if not (tls and warm):
-            sol = solve_ols(problem, start, max_iterations=settings.max_iterations)
-            check_observability(sol.info, sol.params, quat_a)
+            start, fitted = self._start(keep, problem)
+        if not (tls and (warm or fitted)):
+            sol = solve_ols(problem, start, max_iterations=settings.max_iterations, xtol=XTOL)
+            check_observability(sol.info, sol.params, problem.quat_a)
             start = sol.params
         if tls:
-            sol = solve_tls(problem, start, max_iterations=settings.max_iterations)
-            check_observability(sol.info, sol.params, quat_a)
+            inputs = self._warm_inputs(keep) if warm else None
+            # next to the minimum (inputs of nearly the same fit), the first step needs
+            # hardly any damping
+            sol = solve_tls(problem, start, max_iterations=settings.max_iterations, xtol=XTOL,
+                            inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING)
+            check_observability(sol.info, sol.params, problem.quat_a)
+            self.last_inputs = (keep, sol.inputs)
         return sol
+
+    def _start(self, keep: np.ndarray, problem: Problem) -> tuple[Parameters, bool]:
+        """
+        Closed-form start; for many pairs the OLS fit of a subsample (then True).
+
+        The closed form on every pair costs as much as two passes of the solver, and OLS on
+        all pairs only leads TLS to the same minimum. The OLS fit of SUBSAMPLE pairs (every
+        k-th, so the whole motion is seen) is within a few σ of the OLS fit of all pairs;
+        TLS (or OLS) on all pairs converges from there to the same minimum under the same
+        stopping rule. (A TLS fit of the subsample saves no pass: from measured inputs TLS
+        needs three linearisations from either start.) Its observability is not checked
+        here: the fit of all pairs checks it.
+        """
+        stride = problem.n // SUBSAMPLE if FAST_START else 0
+        if stride < 2:
+            return initialize(self.spec, problem.pos_a, problem.quat_a, problem.pos_b,
+                              problem.quat_b), False
+        sub = np.zeros(len(keep), dtype=bool)
+        sub[np.flatnonzero(keep)[::stride]] = True
+        small = self.problem(sub, with_priors=False)
+        start = initialize(self.spec, small.pos_a, small.quat_a, small.pos_b, small.quat_b)
+        try:
+            start = solve_ols(small, start, max_iterations=self.settings.max_iterations,
+                        xtol=XTOL).params
+        except (np.linalg.LinAlgError, ValueError, ConvergenceError):
+            pass  # the fit of all pairs starts from what there is, and says what is wrong
+        return start, True
+
+    def _warm_inputs(self, keep: np.ndarray) -> Optional[InputState]:
+        """Return the last TLS fit's inputs for the pairs in ``keep`` (others: measured)."""
+        if self.last_inputs is None or not FAST_REFIT:
+            return None
+        old_keep, old = self.last_inputs
+        if np.array_equal(old_keep, keep):
+            return old
+        pos_t = np.ascontiguousarray(self.pos_a.T)
+        quat_t = np.ascontiguousarray(self.quat_a.T)
+        pos_t[:, old_keep] = old.pos_t
+        quat_t[:, old_keep] = old.quat_t
+        return InputState._pair_last(np.ascontiguousarray(pos_t[:, keep]),
+                                     np.ascontiguousarray(quat_t[:, keep]))
+
+    def squares(self, params: Parameters) -> np.ndarray:
+        """Every pair's normalised squared residual d² at ``params`` (robust statistic)."""
+        tls = self.settings.method == 'tls'
+        if FAST_SQUARES and screening.exact_for(self.everything, tls):
+            return screening.normalised_squares(self.everything, params, tls)
+        return normalised_squares(params, self.data)
 
     def reject_outliers(self, sol: Solution, max_share: float = MAX_REJECTED_SHARE
                         ) -> tuple[np.ndarray, Solution]:
@@ -192,23 +294,61 @@ class _Fitter:
         is larger (so that early rounds, fitted with the outliers in, keep the inliers, and a
         recording whose noise is understated throughout is judged by the fit verdict, not cut
         down). Rejected pairs are tested again each round. More than ``max_share`` rejected is
-        refused (InconsistentDataError).
+        refused (InconsistentDataError). A round that changes nothing ends the loop without
+        a refit.
         """
-        m = self.spec.n_res
-        n = len(self.pos_a)
-        limit = float(stats.chi2.isf(OUTLIER_ALPHA, m))
-        quartile = float(stats.chi2.ppf(0.25, m))
-        keep = np.ones(n, dtype=bool)
+        keep = np.ones(len(self.pos_a), dtype=bool)
+        masked = (FAST_REFIT and self.settings.method == 'ols'
+                  and structured.applies(self.everything, inputs=False)
+                  and sol.residuals.shape[0] == keep.size and sol.gradient is not None)
         for _ in range(MAX_ROUNDS):
-            d2 = normalised_squares(sol.params, self.data)
-            scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
-            new = d2 <= scale * limit
+            if masked:  # OLS residuals of every pair: d² = ‖r‖² (screening, OLS)
+                d2 = np.einsum('ij,ij->i', sol.residuals, sol.residuals)
+            else:
+                d2 = self.squares(sol.params)
+            new = self._inliers(d2, keep)
             if np.array_equal(new, keep):
                 break
             self._refuse_if_mostly_outside(~new, max_share)
+            if masked:
+                sol = self._refit_ols(sol, keep, new)
+            else:
+                sol = self.solve(new, sol.params, warm=True, with_priors=False)
             keep = new
-            sol = self.solve(keep, sol.params, warm=True, with_priors=False)
+        if masked:
+            sol = replace(sol, residuals=sol.residuals[keep])
         return keep, sol
+
+    def _inliers(self, d2: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """Return the pairs within the rejection limit (``reject_outliers``)."""
+        m = self.spec.n_res
+        limit = float(stats.chi2.isf(OUTLIER_ALPHA, m))
+        quartile = float(stats.chi2.ppf(0.25, m))
+        scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
+        return d2 <= scale * limit
+
+    def _refit_ols(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> Solution:
+        """
+        OLS of the pairs in ``new`` from ``sol`` (a fit of ``keep``), all pairs weighted 0/1.
+
+        The normal equations of ``new`` at ``sol.params`` are those of ``keep`` plus the
+        pairs let back in less the pairs left out (a pass over the changed pairs only), so
+        the refit's first step costs no pass over all pairs; each linearisation gives every
+        pair's residuals, hence the next round's d² without a pass of its own.
+        """
+        changed = new != keep
+        idx = np.flatnonzero(changed)
+        diff = Problem(self.spec, self.pos_a[idx], self.quat_a[idx], self.pos_b[idx],
+                       None if self.quat_b is None else self.quat_b[idx], self.whiten_b,
+                       self.whiten_a, weights=np.where(new[idx], 1.0, -1.0))
+        H, g, cost = structured.ols_normal(diff, sol.params)
+        problem = replace(self.everything, weights=new.astype(float))
+        out = solve_ols(problem, sol.params, max_iterations=self.settings.max_iterations,
+                        xtol=XTOL,
+                        normal=(sol.info + H, sol.gradient + g, sol.chi2 + cost,
+                                sol.residuals))
+        check_observability(out.info, out.params, self.quat_a[new])
+        return out
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
         share = float(outside.mean())

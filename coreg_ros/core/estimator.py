@@ -61,6 +61,9 @@ class Problem:
     a_scale : ndarray, shape (N,) or None
         Per-pair factor on A's noise variance.
     priors : list of PriorTerm
+    weights : ndarray, shape (N,) or None
+        OLS on the structured path only: pair i's terms count w_i times (1 kept, 0 left
+        out, its residuals still computed). TLS and the generic path take subsets instead.
 
     """
 
@@ -73,6 +76,7 @@ class Problem:
     whiten_a: np.ndarray
     a_scale: Optional[np.ndarray] = None
     priors: list = field(default_factory=list)
+    weights: Optional[np.ndarray] = None
 
     def __post_init__(self):
         # Diagonal output whitening (independent noise per axis, the usual case) is applied by
@@ -87,6 +91,11 @@ class Problem:
     def n(self) -> int:
         """Number of pairs N."""
         return len(self.pos_a)
+
+    @property
+    def n_fitted(self) -> int:
+        """Number of pairs the fit counts (N, or the number of non-zero weights)."""
+        return self.n if self.weights is None else int(np.count_nonzero(self.weights))
 
     def chunks(self):
         """Slices of at most CHUNK pairs covering all pairs."""
@@ -120,6 +129,11 @@ class Solution:
     status : int
         1 step small, 2 cost change small, 0 iteration limit, -1 no acceptable step.
     message : str
+    inputs : InputState or None
+        TLS: the estimated inputs at the solution (a warm start for a refit of nearly the
+        same pairs).
+    gradient : ndarray, shape (P,) or None
+        OLS: Jᵀr at the solution (with ``info`` and ``chi2``, the normal equations there).
 
     """
 
@@ -133,6 +147,8 @@ class Solution:
     iterations: int
     status: int
     message: str
+    inputs: Optional[InputState] = None
+    gradient: Optional[np.ndarray] = None
 
 
 def _diagonal_or_none(L: np.ndarray):
@@ -181,7 +197,7 @@ class _Linearization:
 
 
 def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
-                         ftol: float):
+                         ftol: float, damping: float = 1e-6):
     """
     Levenberg-Marquardt iterations shared by OLS and TLS.
 
@@ -197,8 +213,10 @@ def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: 
         ``last`` is the linearisation at the returned state, made with damping ``lam``
         (None if there is none).
 
+    ``damping`` is the first λ (lower for a start next to the minimum).
+
     """
-    lam = 1e-6
+    lam = damping
     lin = linearize(state, lam)
     for it in range(1, max_iterations + 1):
         rejected = False
@@ -266,6 +284,8 @@ def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.nda
     """
     if structured.applies(problem, inputs=False):
         H, g, cost = structured.ols_normal(problem, params, residuals)
+    elif problem.weights is not None:
+        raise ValueError('pair weights need the structured path (structured.applies)')
     else:
         P = problem.spec.n_params
         H = np.zeros((P, P))
@@ -291,7 +311,8 @@ def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.nda
 
 
 def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
-              xtol: float = XTOL, ftol: float = 1e-12) -> Solution:
+              xtol: Optional[float] = None, ftol: float = 1e-12,
+              normal: Optional[tuple] = None) -> Solution:
     """
     Weighted OLS by Levenberg-Marquardt with Marquardt's diagonal scaling.
 
@@ -301,17 +322,24 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
     params : Parameters
         Initial φ (e.g. from ``initialize``).
     max_iterations : int
-    xtol : float
-        Stop when every |δφ_j| <= xtol · σ_j.
+    xtol : float, optional
+        Stop when every |δφ_j| <= xtol · σ_j (default ``XTOL``).
     ftol : float
         Stop when the relative cost decrease is below ftol.
+    normal : tuple, optional
+        (H, g, cost, residuals) of this problem at ``params``, when the caller has them
+        (e.g. a robust refit: the last fit's sums less the pairs it now leaves out), which
+        saves the first pass over the pairs.
 
     Returns
     -------
     Solution
+        With ``problem.weights``, ``residuals`` holds every pair's residuals.
 
     """
-    normals = []  # (state, H, g, cost, residuals) of the current state and the last trial
+    xtol = XTOL if xtol is None else xtol
+    # (state, H, g, cost, residuals) of the current state and the last trial
+    normals = [] if normal is None else [(params, *normal)]
 
     def normal_at(state: Parameters):
         for entry in normals:
@@ -341,10 +369,11 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
                                                     ftol)
     # JᵀJ does not depend on the damping: the linearisation at the solution gives the
     # posterior information and the residuals (Ikits B.4.2)
-    _, H, _, cost, res = normal_at(params)
+    _, H, g, cost, res = normal_at(params)
     n_prior = len(_prior_rows(problem, params)[0])
-    return Solution(params, _inverse_or_none(H), H, cost, problem.n * problem.spec.n_res + n_prior,
-                    res, None, it, status, _status_message(status, it, xtol))
+    return Solution(params, _inverse_or_none(H), H, cost,
+                    problem.n_fitted * problem.spec.n_res + n_prior,
+                    res, None, it, status, _status_message(status, it, xtol), gradient=g)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -518,7 +547,8 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
 
 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
-              xtol: float = XTOL, ftol: float = 1e-12) -> Solution:
+              xtol: Optional[float] = None, ftol: float = 1e-12,
+              inputs: Optional[InputState] = None, damping: float = 1e-6) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -534,6 +564,14 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     max_iterations : int
     xtol, ftol : float
         As in ``solve_ols``.
+    inputs : InputState, optional
+        Where the input estimates start (default: the measured inputs). The inputs of a fit
+        of nearly the same pairs (``Solution.inputs``) start a refit next to its solution;
+        the minimum and the stopping rule are the same from any start.
+    damping : float
+        First λ. A start next to the minimum (a refit) needs little: with λ small the
+        linearisation at the solution is also the posterior information (``DAMPING_SHARE``)
+        instead of needing one more pass at λ = 0.
 
     Returns
     -------
@@ -555,9 +593,14 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
 
         return _Linearization(S, b, cost, propose, residuals, share)
 
-    state = (params, InputState(problem.pos_a, problem.quat_a))
+    if inputs is None:
+        inputs = InputState(problem.pos_a, problem.quat_a)
+    elif inputs.pos_t.shape != (3, problem.n):
+        raise ValueError(f'inputs for {inputs.pos_t.shape[1]} pairs, problem has {problem.n}')
+    state = (params, inputs)
+    xtol = XTOL if xtol is None else xtol
     (params, x), status, it, last, lam = _levenberg_marquardt(
-        state, linearize, max_iterations, xtol, ftol)
+        state, linearize, max_iterations, xtol, ftol, damping)
     if status > 0 and last.residuals is not None and last.damping_share <= DAMPING_SHARE:
         # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
         # is almost undamped: its Schur complement is the posterior information (relative
@@ -569,7 +612,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     n_prior = len(_prior_rows(problem, params)[0])
     return Solution(params, _inverse_or_none(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
-                    _status_message(status, it, xtol))
+                    _status_message(status, it, xtol), x)
 
 
 def _pair_last(n: int, m: int) -> np.ndarray:

@@ -65,10 +65,30 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         Rows are the principal axes (unit vectors in the tool frame).
 
     """
-    ref = quat.chordal_mean(quat_a)
-    rotvecs = quat.log(quat.multiply(quat.conjugate(ref), quat_a))  # tool-frame rotations
-    rotvecs = rotvecs - rotvecs.mean(axis=0)
-    _, sv, vt = np.linalg.svd(rotvecs / np.sqrt(len(rotvecs)), full_matrices=False)
+    q = np.asarray(quat_a, dtype=float)
+    ref = quat.chordal_mean(q)
+    # ref* ⊗ q for every pair as one matrix product, and its rotation vector as quat.log
+    # (the same formula, written out to skip its copies): one pass instead of five
+    r = q @ quat.left_matrix(quat.conjugate(ref)).T
+    w = r[:, 0]
+    r *= np.where(w < 0.0, -1.0, 1.0)[:, None]
+    w = np.clip(r[:, 0], -1.0, 1.0)
+    vec = r[:, 1:]
+    s = np.sqrt(np.einsum('ij,ij->i', vec, vec))
+    small = s < 1e-9
+    k = np.where(small, 2.0 / np.maximum(w, 1e-300),
+                 2.0 * np.arctan2(s, w) / np.where(small, 1.0, s))
+    rotvecs = vec * k[:, None]  # tool-frame rotations
+    rotvecs -= rotvecs.mean(axis=0)
+    # principal axes from the 3×3 second moment (the right singular vectors of the N×3
+    # matrix, without its SVD), each signed so that its largest component is positive; the
+    # spread about each axis from the projections themselves, not the square root of an
+    # eigenvalue, which would lift a spread of rounding size (1e-16) to 1e-8
+    _, eigvec = np.linalg.eigh(rotvecs.T @ rotvecs)
+    vt = eigvec[:, ::-1].T.copy()
+    vt *= np.where(vt[np.arange(3), np.abs(vt).argmax(axis=1)] < 0.0, -1.0, 1.0)[:, None]
+    proj = rotvecs @ vt.T
+    sv = np.sqrt(np.einsum('ij,ij->j', proj, proj) / len(rotvecs))
     return sv, vt
 
 

@@ -365,6 +365,11 @@ def chunk_slices(n: int, size: int = CHUNK) -> list:
     return [slice(i, min(i + size, n)) for i in range(0, n, size)]
 
 
+def _weighted(M: Optional[np.ndarray], w: np.ndarray) -> Optional[np.ndarray]:
+    """Per-pair weights on a pair-last stack (None stays None)."""
+    return None if M is None else M * w
+
+
 # ----------------------------------------------------------------------------------------------
 # OLS (B.1)
 # ----------------------------------------------------------------------------------------------
@@ -376,7 +381,9 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
     Parameters
     ----------
     problem : estimator.Problem
-        One for which ``applies`` is true.
+        One for which ``applies`` is true. With ``problem.weights`` (N,), pair i's terms
+        count w_i times (0 leaves a pair out, -1 takes it back out of a sum) while every
+        pair's residuals are still given: the robust fit tests the pairs it left out.
     params : Parameters
     residuals : ndarray, shape (N, m), optional
         Filled with the whitened output residuals.
@@ -390,17 +397,26 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
 
     """
     frame = _Frame.of(problem, params)
+    weights = getattr(problem, 'weights', None)
 
     def chunk(sl):
         ch = _channels(frame, *_chunk_of(problem, sl))
         f = _features(ch)
+        if residuals is not None:
+            residuals[sl] = ch.r_out.T
+        r2 = ch.r_out
+        if weights is not None:
+            w = weights[sl]
+            fw, ch.Hr, ch.gp, r2 = f * w, _weighted(ch.Hr, w), ch.gp * w, ch.r_out * w
+            if ch.gr is not None:
+                ch.gr = ch.gr * w
+        else:
+            fw = f
         H = np.zeros((frame.P, frame.P))
         if frame.has_rot:
             _add_rotation_block(H, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
-        if residuals is not None:
-            residuals[sl] = ch.r_out.T
-        return f @ f.T, H, _sum_gradient(frame, ch, ch.gp), np.einsum('ij,ij->', ch.r_out,
-                                                                       ch.r_out)
+        return fw @ f.T, H, _sum_gradient(frame, ch, ch.gp), np.einsum('ij,ij->', r2,
+                                                                        ch.r_out)
 
     F, H, g, cost = _sum_chunks(chunk, problem.n)
     H += frame.gram(F, frame.Qp_bar)
