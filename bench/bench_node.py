@@ -161,6 +161,7 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
         'lost_in_middleware': sum(int(values[f'{t} lost in middleware']) for t in sent),
         'missing_from_stamps': sum(int(values[f'{t} missing from stamps']) for t in sent),
         'node_cpu_cores': cpu / wall_streaming, 'cpu_seconds': cpu,
+        'cpu_us_per_message': cpu / max(1, received) * 1e6,
         'publisher': publisher_stats, 'load_avg': os.getloadavg()[0],
         'profile': split,
     }
@@ -211,14 +212,20 @@ def _per_message_us(case: dict) -> dict:
 def table(result: dict) -> str:
     """Markdown tables of ``run``: throughput per rate and path, then the CPU split."""
     lines = ['| streams | path | sent | lost (goal 0) | lost in middleware / missing from '
-             'stamps | node CPU, cores (goal < 1) | publisher achieved, Hz per topic '
-             '| load (1 min) |', '|---|---|---|---|---|---|---|---|']
+             'stamps | node CPU, cores (goal < 1) | CPU per received message (vs plain) '
+             '| publisher achieved, Hz per topic | load (1 min) |',
+             '|---|---|---|---|---|---|---|---|---|']
+    plain = {c['rate_hz']: c for c in result['cases'] if c['path'] == 'plain'}
     for c in result['cases']:
         pub = c['publisher'].get('achieved_rate_hz_per_topic')
+        base = plain.get(c['rate_hz'])
+        ratio = (f' ({c["cpu_us_per_message"] / base["cpu_us_per_message"]:.2f}x)'
+                 if base is not None and c is not base else '')
         lines.append(f'| 2 x {c["rate_hz"]:g} Hz, {c["duration_s"]:g} s | {c["path"]} '
                      f'| {c["sent"]:,} | {c["lost"]:,} ({100 * c["lost"] / c["sent"]:.1f} %) '
                      f'| {c["lost_in_middleware"]:,} / {c["missing_from_stamps"]:,} '
-                     f'| {c["node_cpu_cores"]:.2f} | {pub:.0f} | {c["load_avg"]:.2f} |'
+                     f'| {c["node_cpu_cores"]:.2f} | {c["cpu_us_per_message"]:.0f} us{ratio} '
+                     f'| {pub:.0f} | {c["load_avg"]:.2f} |'
                      if pub else f'| {c["rate_hz"]:g} | {c["path"]} | publisher failed |')
     for path, c in result.get('profiles', {}).items():
         us = _per_message_us(c)

@@ -129,10 +129,17 @@ def split_stacks(stacks: Counter) -> dict:
     counts = Counter()
     for stack, n in stacks.items():
         frames = stack.split(';')
+        if _idle(frames):
+            continue
         part = next((name for name, test in PARTS if any(test(f) for f in frames)), 'other')
         counts[part] += n
     total = sum(counts.values()) or 1
     return {k: v / total for k, v in sorted(counts.items(), key=lambda kv: -kv[1])}
+
+
+def _idle(frames: list) -> bool:
+    """True for a sample in the intake's pause (a sleep py-spy may not see as idle)."""
+    return bool(frames) and frames[-1].startswith('_pause (')
 
 
 def py_spy() -> str | None:
@@ -161,8 +168,10 @@ def profile_split(pid: int, seconds: float, rate: int = 200) -> dict | None:
         stacks = Counter()
         for line in out.read_text().splitlines():
             stack, _, n = line.rpartition(' ')
-            if stack:
+            if stack and not _idle(stack.split(';')):
                 stacks[stack] += int(n)
+        if os.environ.get('BENCH_NODE_STACKS'):  # keep the stacks for a closer look
+            shutil.copy(out, os.environ['BENCH_NODE_STACKS'])
     leaves = Counter()
     for stack, n in stacks.items():
         leaves[stack.rsplit(';', 1)[-1]] += n
