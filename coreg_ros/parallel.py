@@ -104,8 +104,8 @@ def add_arguments(parser) -> None:
     (str or None), passed on to :func:`run_cases`.
     """
     parser.add_argument('--workers', type=_worker_count, default=default_workers(),
-                        metavar='N', help="local processes to run the cases in (default: the "
-                                          f"machine's cores, {default_workers()} here)")
+                        metavar='N', help='local processes to run the cases in (default: '
+                                          f'every core, {default_workers()} here)')
     parser.add_argument('--scheduler', metavar='ADDRESS',
                         help='run the cases on an existing Dask distributed cluster instead, '
                              "e.g. tcp://host:8786 (needs pip install 'coreg_ros[dask]')")
@@ -155,7 +155,7 @@ def _init_worker() -> None:
 def _single_threaded_blas() -> Iterator[None]:
     """Set the BLAS thread variables to 1 while workers are spawned (they inherit them)."""
     saved = {k: os.environ.get(k) for k in BLAS_THREAD_VARS}
-    os.environ.update({k: '1' for k in BLAS_THREAD_VARS})
+    os.environ.update(dict.fromkeys(BLAS_THREAD_VARS, '1'))
     try:
         yield
     finally:

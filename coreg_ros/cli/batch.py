@@ -184,4 +184,3 @@ def register(sub) -> None:
                            help='do not check, after a bad fit, whether a stream should be '
                                 'inverted')
         q.set_defaults(func=cmd_batch)
-
