@@ -151,57 +151,54 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
         # group_concat passes blobs through text, which is byte-exact only in UTF-8 databases.
         raise Unsupported(f'database encoding {encoding}')
     (lo, hi), = db.execute('SELECT min(id), max(id) FROM messages').fetchall()
-    by_topic: dict[str, list[int]] = {}
-    for cid, topic in cids.items():
-        by_topic.setdefault(topic, []).append(cid)
-    out = {}
-    for topic, ids in by_topic.items():
-        out[topic] = _sqlite_topic(db, ids, lo, hi)
-    return out
-
-
-def _sqlite_topic(db: Any, ids: list[int], lo: Optional[int], hi: Optional[int]) -> Fetched:
-    """All messages of one topic (its connection ids ``ids``) of one sqlite3 storage file."""
-    marks = ','.join('?' * len(ids))
-    # Concatenation happens inside SQLite; per chunk of row ids we get the blobs, the log
-    # times and the row ids (as text) plus the smallest and largest blob size.
+    ids = sorted(cids)
+    # One table scan for all topics. Per range of row ids SQLite concatenates the blobs and,
+    # as text, the log times and topic ids; per connection it gives the smallest and largest
+    # blob size (the sizes of every message only when a connection's sizes vary). A range
+    # scan of a rowid table runs in row id order, so ties of log time keep row id order.
+    size_cols = ''.join(f', min(length(data)) FILTER (WHERE topic_id={int(c)}), '
+                        f'max(length(data)) FILTER (WHERE topic_id={int(c)})' for c in ids)
+    where = f"WHERE topic_id IN ({','.join('?' * len(ids))}) AND id BETWEEN ? AND ?"
     query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
-             f"group_concat(id), count(*), min(length(data)), max(length(data)) "
-             f"FROM messages WHERE topic_id IN ({marks}) AND id BETWEEN ? AND ?")
-    blobs, logs, rowids = [], [], []
-    sizes: set[int] = set()
-    total = 0
-    if lo is not None and hi is not None:
-        for start in range(lo, hi + 1, _SQLITE_ID_SPAN):
-            (blob, ts_text, id_text, count, smin, smax), = db.execute(
-                query, (*ids, start, start + _SQLITE_ID_SPAN - 1)).fetchall()
-            if not count:
+             f"group_concat(topic_id), count(*){size_cols} FROM messages {where}")
+    parts: dict[str, list[Fetched]] = {t: [] for t in cids.values()}
+    for start in range(lo, hi + 1, _SQLITE_ID_SPAN) if lo is not None else ():
+        args = (*ids, start, start + _SQLITE_ID_SPAN - 1)
+        (blob, ts_text, tid_text, count, *limits), = db.execute(query, args).fetchall()
+        if not count:
+            continue
+        log_ns = np.fromstring(ts_text, dtype=np.int64, sep=',')
+        tid = np.fromstring(tid_text, dtype=np.int64, sep=',')
+        if log_ns.size != count or tid.size != count:
+            raise Unsupported('log times or topic ids did not parse')
+        fixed = {c: limits[2 * k] for k, c in enumerate(ids)
+                 if limits[2 * k] is not None and limits[2 * k] == limits[2 * k + 1]}
+        if len(fixed) == len(ids):
+            size = np.zeros(max(ids) + 1, np.int64)
+            size[list(fixed)] = list(fixed.values())
+            size = size[tid]
+        else:
+            (text,), = db.execute(f'SELECT group_concat(length(data)) FROM messages {where}',
+                                  args).fetchall()
+            size = np.fromstring(text, dtype=np.int64, sep=',')
+        if size.size != count or not isinstance(blob, bytes) or len(blob) != int(size.sum()):
+            raise Unsupported('concatenated blobs have the wrong size')
+        mem = np.frombuffer(blob, dtype=np.uint8)
+        starts = np.cumsum(size) - size
+        for topic in parts:
+            topic_ids = [c for c, t in cids.items() if t == topic]
+            pick = np.isin(tid, topic_ids)
+            if not pick.any():
                 continue
-            ts = np.fromstring(ts_text, dtype=np.int64, sep=',')
-            rid = np.fromstring(id_text, dtype=np.int64, sep=',')
-            if ts.size != count or rid.size != count:
-                raise Unsupported('log times or row ids did not parse')
-            sizes.update((smin, smax))
-            total += count
-            blobs.append(blob)
-            logs.append(ts)
-            rowids.append(rid)
-    if not total:
-        return np.zeros(0, np.int64), np.zeros((0, 0), np.uint8)
-    log_ns = np.concatenate(logs)
-    rid = np.concatenate(rowids)
-    if len(sizes) != 1:
-        return _ordered(log_ns, rid, None)
-    size = sizes.pop()
-    data = b''.join(blobs) if len(blobs) > 1 else blobs[0]
-    if not isinstance(data, bytes) or len(data) != total * size:
-        raise Unsupported('concatenated blobs have the wrong size')
-    block = np.frombuffer(data, dtype=np.uint8).reshape(total, size)
-    if np.any(rid[1:] <= rid[:-1]):
-        # Scan order is row id order in a rowid table; sort if it ever is not.
-        order = np.argsort(rid, kind='stable')
-        log_ns, rid, block = log_ns[order], rid[order], block[order]
-    return _ordered(log_ns, rid, block)
+            block = None
+            if all(c in fixed for c in topic_ids) and len({fixed[c] for c in topic_ids}) == 1:
+                block = _gather(mem, starts[pick], fixed[topic_ids[0]])
+            parts[topic].append((log_ns[pick], block))
+    out = {}
+    for topic, items in parts.items():
+        logs, block = _concat(items)
+        out[topic] = _ordered(logs, np.arange(logs.size), block)
+    return out
 
 
 # --- mcap -----------------------------------------------------------------------------------
