@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from contextlib import suppress
-from functools import lru_cache
 import os
 from pathlib import Path
 import shutil
@@ -27,16 +26,15 @@ from typing import Any, Optional, Union
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
 
-from coreg_ros.bag import bulk_read
-from coreg_ros.bag.cdr_pose import decode_records
+from coreg_ros.bag import bulk_read, bulk_write
+from coreg_ros.bag.cdr_pose import decode_records, encode_records
+from coreg_ros.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
+from coreg_ros.bag.per_message import describe as _describe
+from coreg_ros.bag.per_message import typestore as _typestore
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.types import PoseStream
-
-#: The one message type this module reads and writes.
-POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 
 #: Storage names accepted by ``write_pose_bag`` (the rosbag2 storage identifiers).
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
@@ -47,9 +45,6 @@ BAG_VERSION = 9
 #: builtin_interfaces/Time has an int32 ``sec``: header stamps must lie in [0, 2**31 s).
 _MAX_HEADER_STAMP = 2**31 * 10**9
 
-#: Messages converted to Python values at a time by ``write_pose_bag`` (bounds its memory).
-_WRITE_CHUNK = 65536
-
 #: How to salvage a damaged storage file, by storage identifier (for error messages).
 _SALVAGE = '`coreg fix-bag BAG NEW_BAG --salvage`'
 
@@ -57,12 +52,6 @@ _SALVAGE = '`coreg fix-bag BAG NEW_BAG --salvage`'
 BULK_ENV = 'COREG_BAG_BULK'
 
 PathLike = Union[str, os.PathLike]
-
-
-@lru_cache(maxsize=1)
-def _typestore() -> Any:
-    """Return the Jazzy message type store (built once: it takes ~0.1 s)."""
-    return get_typestore(Stores.ROS2_JAZZY)
 
 
 def _check_bag_dir(path: Path) -> None:
@@ -122,12 +111,6 @@ def _open_failure(path: Path, err: Exception) -> str:
                 f'whole bag directory, not only metadata.yaml')
     return (f'storage file of bag {str(path)!r} is truncated or corrupt ({_describe(err)}); '
             f're-record it, or salvage what is readable with {_SALVAGE}')
-
-
-def _describe(err: BaseException) -> str:
-    """One line: the exception type and its message."""
-    text = ' '.join(str(err).split()) or 'no message'
-    return f'{type(err).__name__}: {text}'
 
 
 def _topic_types(reader: Reader) -> dict[str, list[str]]:
@@ -232,8 +215,9 @@ def read_pose_bag(path: PathLike, topics: Iterable[str], *,
             streams = _read_bulk(reader, connections, wanted)
         rest = [t for t in wanted if t not in streams]
         if rest:
-            streams.update(_read_per_message(
-                reader, [c for c in connections if c.topic in rest], rest, path))
+            streams.update(read_per_message(
+                reader, [c for c in connections if c.topic in rest], rest, path,
+                _typestore()))
     return {topic: streams[topic] for topic in wanted}
 
 
@@ -270,50 +254,6 @@ def _read_bulk(reader: Reader, connections: list, wanted: list[str]) -> dict[str
             streams[topic] = PoseStream(
                 stamps=arrays.stamps_ns, position=arrays.position, quat_wxyz=arrays.quat_wxyz,
                 frame_id=arrays.frame_id, receive_stamps=logs)
-    return streams
-
-
-def _read_per_message(reader: Reader, connections: list, wanted: list[str],
-                      path: Path) -> dict[str, PoseStream]:
-    """Deserialize the topics' messages one by one with rosbags (the general path)."""
-    columns: dict[str, tuple[list, list, list]] = {t: ([], [], []) for t in wanted}
-    frames: dict[str, str] = {}
-    deserialize = _typestore().deserialize_cdr
-    try:
-        for conn, log_ns, raw in reader.messages(connections=connections):
-            msg = deserialize(raw, POSE_STAMPED)
-            stamps, logs, values = columns[conn.topic]
-            header = msg.header
-            frame = frames.setdefault(conn.topic, header.frame_id)
-            if header.frame_id != frame:
-                # One PoseStream has one base frame; mixing frames would silently corrupt
-                # the calibration.
-                raise BagError(
-                    f'topic {conn.topic} in bag {str(path)!r}: header.frame_id changes from '
-                    f'{frame!r} to {header.frame_id!r} at message {len(stamps)}; record '
-                    f'one base frame per topic')
-            stamps.append(header.stamp.sec * 1_000_000_000 + header.stamp.nanosec)
-            logs.append(log_ns)
-            p = msg.pose.position
-            q = msg.pose.orientation
-            values.append((p.x, p.y, p.z, q.w, q.x, q.y, q.z))
-    except BagError:
-        raise
-    except Exception as err:  # truncated or corrupt storage or message bytes
-        raise BagError(
-            f'bag {str(path)!r} is truncated or corrupt ({_describe(err)}); re-record it, or '
-            f'salvage what is readable with {_SALVAGE}') from err
-    streams = {}
-    for topic in wanted:
-        stamps, logs, values = columns[topic]
-        table = np.array(values, dtype=float).reshape(-1, 7)
-        streams[topic] = PoseStream(
-            stamps=np.array(stamps, dtype=np.int64),
-            position=table[:, :3].copy(),
-            quat_wxyz=table[:, 3:].copy(),
-            frame_id=frames.get(topic, ''),
-            receive_stamps=np.array(logs, dtype=np.int64),
-        )
     return streams
 
 
@@ -361,8 +301,26 @@ def _check_stream(topic: str, stream: PoseStream) -> tuple[np.ndarray, np.ndarra
     return stamps, logs
 
 
+def _write_bulk(writer: Writer, conns: list, streams: Mapping[str, PoseStream],
+                topics: list[str], checked: list, which: np.ndarray, index: np.ndarray,
+                logs: np.ndarray) -> bool:
+    """Serialize every topic with numpy and store all messages at once; False if unsupported."""
+    blocks = []
+    for k, topic in enumerate(topics):
+        stream = streams[topic]
+        records = encode_records(checked[k][0], stream.frame_id,
+                                 np.asarray(stream.position, dtype=float).reshape(-1, 3),
+                                 np.asarray(stream.quat_wxyz, dtype=float).reshape(-1, 4))
+        block = records.view(np.uint8).reshape(len(records), records.dtype.itemsize)
+        mine = index[which == k]  # the topic's samples in write (log time) order
+        if np.any(mine != np.arange(mine.size)):
+            block = block[mine]
+        blocks.append(block)
+    return bulk_write.write_bulk(writer, conns, which, logs, blocks)
+
+
 def write_pose_bag(path: PathLike, streams: Mapping[str, PoseStream],
-                   storage: str = 'sqlite3') -> None:
+                   storage: str = 'sqlite3', *, bulk: Optional[bool] = None) -> None:
     """
     Write pose streams to a new rosbag2 recording as ``geometry_msgs/msg/PoseStamped``.
 
@@ -380,6 +338,10 @@ def write_pose_bag(path: PathLike, streams: Mapping[str, PoseStream],
         (w, x, y, z) to the message's (x, y, z, w). Values are written as given (no checks).
     storage : {'sqlite3', 'mcap'}
         rosbag2 storage plugin.
+    bulk : bool, optional
+        Serialize all messages with numpy (``cdr_pose``) and store them in bulk; else one by
+        one through rosbags. Both give the same messages. Default: on, unless the
+        environment variable ``COREG_BAG_BULK`` is ``0``.
 
     Notes
     -----
@@ -415,45 +377,17 @@ def write_pose_bag(path: PathLike, streams: Mapping[str, PoseStream],
     logs = np.concatenate([lg for _, lg in checked]) if checked else which
     order = np.argsort(logs, kind='stable')
 
-    store = _typestore()
-    types = store.types
-    msg_cls = types[POSE_STAMPED]
-    header_cls, time_cls = types['std_msgs/msg/Header'], types['builtin_interfaces/msg/Time']
-    pose_cls, point_cls = types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point']
-    quat_cls = types['geometry_msgs/msg/Quaternion']
-    frames = [streams[t].frame_id for t in topics]
-    # All messages in write order as arrays (88 B each), turned into Python floats and ints
-    # (the generated serializer is fastest on them) one chunk at a time: bounded memory.
     which, index, logs = which[order], index[order], logs[order]
-    empty = np.zeros((0, 3))
-    pos = np.concatenate([np.asarray(streams[t].position, dtype=float).reshape(-1, 3)
-                          for t in topics] or [empty])
-    quat = np.concatenate([np.asarray(streams[t].quat_wxyz, dtype=float).reshape(-1, 4)
-                           for t in topics] or [np.zeros((0, 4))])
-    stamps = np.concatenate([s for s, _ in checked]) if checked else logs
-    start = np.cumsum([0] + [len(s) for s, _ in checked])[:-1] if checked else logs
-    flat = start[which] + index if len(which) else which
-    pos, quat, stamps = pos[flat], quat[flat], stamps[flat]
 
     staging = Path(tempfile.mkdtemp(prefix=f'.{path.name}.partial-', dir=path.parent))
     try:
         tmp_bag = staging / path.name  # the storage file is named after its directory
         with Writer(tmp_bag, version=BAG_VERSION, storage_plugin=STORAGES[storage]) as writer:
-            conns = [writer.add_connection(t, POSE_STAMPED, typestore=store) for t in topics]
-            serialize = store.serialize_cdr
-            for lo in range(0, len(which), _WRITE_CHUNK):
-                hi = lo + _WRITE_CHUNK
-                chunk = zip(which[lo:hi].tolist(), logs[lo:hi].tolist(),
-                            (stamps[lo:hi] // 1_000_000_000).tolist(),
-                            (stamps[lo:hi] % 1_000_000_000).tolist(),
-                            pos[lo:hi].tolist(), quat[lo:hi].tolist(), strict=True)
-                for k, log_ns, sec, nsec, (x, y, z), (qw, qx, qy, qz) in chunk:
-                    msg = msg_cls(
-                        header=header_cls(stamp=time_cls(sec=sec, nanosec=nsec),
-                                          frame_id=frames[k]),
-                        pose=pose_cls(position=point_cls(x=x, y=y, z=z),
-                                      orientation=quat_cls(x=qx, y=qy, z=qz, w=qw)))
-                    writer.write(conns[k], log_ns, serialize(msg, POSE_STAMPED))
+            conns = [writer.add_connection(t, POSE_STAMPED, typestore=_typestore())
+                     for t in topics]
+            if not (_use_bulk(bulk)
+                    and _write_bulk(writer, conns, streams, topics, checked, which, index, logs)):
+                write_per_message(writer, conns, streams, topics, checked, which, index, logs)
         if path.exists():
             raise BagError(f'{str(path)!r} appeared while the bag was being written; it was not '
                            f'overwritten; choose a new bag name')
