@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from coreg_ros.bag.posebag import write_pose_bag
-from coreg_ros.cli.main import EXIT_INCONSISTENT, main
+from coreg_ros.cli.main import main
+from coreg_ros.cli.options import EXIT_INCONSISTENT
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.sim import simulate_recording
 

@@ -17,9 +17,8 @@ from pathlib import Path
 import sys
 import time
 
+from coreg_ros.cli.policy import PROG
 from coreg_ros.core.errors import ConfigError
-
-PROG = 'coreg'
 
 
 def find_bags(folder) -> list[Path]:
@@ -55,7 +54,8 @@ def json_name(bag: Path, root: Path) -> str:
 
 def calibrate_one(bag: str, settings, prior, frames, direction_check: bool) -> dict:
     """Run ``coreg calibrate --json`` on one bag; its document and a summary row."""
-    from coreg_ros.cli.main import EXIT_INCONSISTENT, calibrate_bag
+    from coreg_ros.cli.calibrate import calibrate_bag
+    from coreg_ros.cli.options import EXIT_INCONSISTENT
 
     t0 = time.perf_counter()
     run = calibrate_bag(bag, settings, prior, frames=frames, direction_check=direction_check)
@@ -116,7 +116,7 @@ def cmd_batch(args) -> int:
 
     from coreg_ros.cli.diagnose import case_progress
     from coreg_ros.cli.files import write_json
-    from coreg_ros.cli.main import config_frames, settings_from_args
+    from coreg_ros.cli.options import config_frames, settings_from_args
     from coreg_ros.parallel import CaseFailure, run_cases
 
     root = Path(args.folder)
@@ -162,7 +162,7 @@ def cmd_batch(args) -> int:
 
 def register(sub) -> None:
     """Add ``batch calibrate`` and ``batch diagnose`` to the ``coreg`` subparsers."""
-    from coreg_ros.cli.main import add_calibration_options
+    from coreg_ros.cli.options import add_calibration_options
     from coreg_ros.parallel import add_arguments
 
     p = sub.add_parser('batch', help='calibrate or diagnose every recording under a folder, '

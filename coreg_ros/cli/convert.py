@@ -1,5 +1,5 @@
 """
-``coreg convert``: two CSV pose exports to a rosbag2 recording, and the direction check.
+``coreg convert`` and ``coreg fix-bag``: CSV pose exports to a rosbag2 recording; bag repairs.
 
 A CSV export has one row per sample, ``t, x, y, z`` and a quaternion (``qx, qy, qz, qw`` by
 default, as in the ETH hand-eye data sets), t in seconds (e.g. unix time), comma and/or
@@ -7,9 +7,6 @@ whitespace separated, with an optional header line. Four-column rows (``t, x, y,
 position-only tracker (identity orientation). The stream can be converted from millimetres,
 inverted (``T → T⁻¹``) when the export gives the base in the tracked frame, and is written as
 ``geometry_msgs/PoseStamped`` on ``/device_a/pose`` and ``/device_b/pose``.
-
-``direction_guard`` is the check ``coreg calibrate`` runs when a fit is bad: whether the data
-would fit far better with a stream inverted (``coreg_ros.core.directions``).
 """
 
 from __future__ import annotations
@@ -19,7 +16,6 @@ from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 import re
 import sys
-from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
@@ -28,9 +24,6 @@ from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
-
-if TYPE_CHECKING:  # the fit machinery is imported when a fit is checked, not by `coreg --help`
-    from coreg_ros.core.directions import DirectionReport
 
 #: Quaternion column orders accepted by ``--quaternion-order``.
 QUATERNION_ORDERS = ('xyzw', 'wxyz')
@@ -42,8 +35,6 @@ TIME_UNITS = {'s': 10**9, 'ms': 10**6, 'us': 10**3, 'ns': 1}
 MAX_STAMP_NS = 2**31 * 10**9
 #: Largest deviation of a quaternion's norm from 1 accepted (then it is normalised).
 NORM_TOLERANCE = 1e-2
-#: p-value below which ``coreg calibrate`` checks the stream directions.
-DIRECTION_CHECK_P = 1e-3
 #: ``header.frame_id`` of the converted streams.
 FRAME_A = 'device_a_base'
 FRAME_B = 'device_b_base'
@@ -577,29 +568,3 @@ def register_fix_bag(subparsers) -> None:
                    help='split where a header stamp jumps by more than S seconds')
     p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
     p.set_defaults(func=cmd_fix_bag)
-
-
-def direction_guard(args, stream_a: PoseStream, streams_b, settings,
-                    result) -> Optional[DirectionReport]:
-    """
-    Check the stream directions after a bad fit, for ``coreg calibrate``.
-
-    Runs ``check_directions`` only when the fit's p-value is below ``DIRECTION_CHECK_P`` (or
-    not a number) and ``--no-direction-check`` was not given; good data pay nothing.
-
-    Returns
-    -------
-    DirectionReport or None
-        None when the check did not run. ``report.flagged`` means the data fit more than 10×
-        better with a stream inverted: the caller should refuse the fit (``report.message``
-        names the ``coreg convert`` flag).
-
-    """
-    if getattr(args, 'no_direction_check', False):
-        return None
-    p = float(result.p_value)
-    if np.isfinite(p) and p >= DIRECTION_CHECK_P:
-        return None
-    from coreg_ros.core.directions import check_directions
-
-    return check_directions(stream_a, streams_b, settings)

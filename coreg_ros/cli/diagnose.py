@@ -19,7 +19,7 @@ import json
 import sys
 from typing import Optional
 
-PROG = 'coreg'
+from coreg_ros.cli.policy import PROG
 
 
 class Progress:
@@ -80,7 +80,7 @@ def diagnose_bag(bag, settings, progress=None):
 def cmd_diagnose(args) -> int:
     """Diagnose the gap between a recording and the model with the stated noise."""
     from coreg_ros.cli.files import write_json
-    from coreg_ros.cli.main import settings_from_args
+    from coreg_ros.cli.options import settings_from_args
     from coreg_ros.core.diagnosis.text import format_diagnosis
 
     settings = settings_from_args(args)
@@ -168,7 +168,7 @@ def _positive_int(text: str) -> int:
 
 def register(sub) -> None:
     """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
-    from coreg_ros.cli.main import add_calibration_options
+    from coreg_ros.cli.options import add_calibration_options
     from coreg_ros.parallel import add_arguments
 
     p = sub.add_parser('diagnose', help='detect, locate and explain the gap between a '

@@ -15,39 +15,11 @@ from pathlib import Path
 import sys
 
 from coreg_ros.cli.argtypes import positive, positive_or_inf
+from coreg_ros.cli.policy import fail, run_command
 
 SERVICES = ('calibrate', 'reset', 'save_samples')
 
 
-def _fail(command: str, message: str) -> int:
-    print(f'coreg {command}: error: {message}', file=sys.stderr)
-    return 1
-
-
-def _guarded(command: str):
-    """Turn CoregErrors and a missing rclpy into one line and exit code 1."""
-    def wrap(func):
-        @functools.wraps(func)
-        def run(args) -> int:
-            try:
-                from coreg_ros.core.errors import CoregError
-            except ImportError as e:  # pragma: no cover - broken installation
-                return _fail(command, f'coreg_ros is not importable ({e})')
-            try:
-                return func(args)
-            except ImportError as e:
-                return _fail(command, f'ROS 2 Python packages are missing ({e}); source a Jazzy '
-                                      f'installation or run `make venv`')
-            except CoregError as e:
-                return _fail(command, str(e))
-            except KeyboardInterrupt:  # Ctrl-C before rclpy's own handler was installed
-                print(f'coreg {command}: interrupted', file=sys.stderr)
-                return 130
-        return run
-    return wrap
-
-
-@_guarded('play')
 def cmd_play(args) -> int:
     """Publish a bag on live topics with its original timing."""
     from coreg_ros.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
@@ -55,7 +27,7 @@ def cmd_play(args) -> int:
 
     topics = args.topics or [t for t, ty in list_topics(args.bag).items() if POSE_STAMPED in ty]
     if not topics:
-        return _fail('play', f'bag {args.bag} has no {POSE_STAMPED} topic; pass --topics')
+        return fail('play', f'bag {args.bag} has no {POSE_STAMPED} topic; pass --topics')
     streams = read_pose_bag(args.bag, topics)
     total = sum(len(s) for s in streams.values())
     with RosSession('coreg_play') as session:
@@ -67,7 +39,6 @@ def cmd_play(args) -> int:
     return 0
 
 
-@_guarded('record')
 def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
     from coreg_ros.bag.posebag import write_pose_bag
@@ -105,7 +76,6 @@ def cmd_record(args) -> int:
     return 0
 
 
-@_guarded('call')
 def cmd_call(args) -> int:
     """Call one of coreg_node's Trigger services; exit 0 if it answered success."""
     from coreg_ros.ros.tools import RosSession, call_trigger, service_name
@@ -118,7 +88,6 @@ def cmd_call(args) -> int:
     return 0 if success else 1
 
 
-@_guarded('echo')
 def cmd_echo(args) -> int:
     """Print the messages of a topic with its publishers' type and QoS (latched ones too)."""
     from coreg_ros.ros.tools import RosSession, echo_topic, service_name
@@ -186,7 +155,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='coreg')
     register(parser.add_subparsers(dest='command', required=True))
     args = parser.parse_args(argv)
-    return args.func(args)
+    return run_command(args.command, args.func, args)
 
 
 if __name__ == '__main__':

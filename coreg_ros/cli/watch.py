@@ -22,6 +22,7 @@ import time
 from typing import Optional
 
 from coreg_ros.cli.argtypes import positive
+from coreg_ros.cli.policy import fail, run_command
 from coreg_ros.core.guidance import keys as g
 from coreg_ros.core.watchdog import keys as w
 
@@ -398,27 +399,16 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_watch)
 
 
-def _fail(message: str) -> int:
-    print(f'coreg watch: error: {message}', file=sys.stderr)
-    return 1
-
-
 def cmd_watch(args) -> int:
     """Run the dashboard until Ctrl-C (or one frame with ``--once``)."""
-    try:
-        from rich.console import Console
-        from rich.live import Live
-    except ImportError:
-        return _fail('the rich library is missing; install it (pip install rich, or '
-                     'apt install python3-rich)')
-    try:
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    # a missing rich or ROS 2 is one line by the error policy (coreg_ros.cli.policy)
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rich.console import Console
+    from rich.live import Live
 
-        from coreg_ros.ros.tools import RosSession
-    except ImportError as e:
-        return _fail(f'ROS 2 Python packages are missing ({e}); source a Jazzy installation '
-                     f'or run `make venv`')
+    from coreg_ros.ros.tools import RosSession
+
     state = DashboardState(node=args.node.lstrip('/'))
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                      reliability=ReliabilityPolicy.RELIABLE,
@@ -435,7 +425,7 @@ def cmd_watch(args) -> int:
         if args.once or not console.is_terminal:
             got = session.spin_until(lambda: state.received_at is not None, timeout)
             if not got:
-                return _fail(f'no status of {state.node} on {args.topic} within '
+                return fail('watch', f'no status of {state.node} on {args.topic} within '
                              f'{timeout:g} s; is the node running (and on this ROS domain)?')
             console.print(render(state))
             return 0
@@ -447,7 +437,7 @@ def cmd_watch(args) -> int:
                 live.update(render(state))
                 if (timeout is not None and state.received_at is None
                         and time.monotonic() - started > timeout):
-                    return _fail(f'no status of {state.node} on {args.topic} within '
+                    return fail('watch', f'no status of {state.node} on {args.topic} within '
                                  f'{timeout:g} s')
     return 0
 
@@ -458,7 +448,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog='coreg')
     register(parser.add_subparsers(dest='command', required=True))
     args = parser.parse_args(['watch', *(sys.argv[1:] if argv is None else argv)])
-    return args.func(args)
+    return run_command('watch', args.func, args)
 
 
 if __name__ == '__main__':

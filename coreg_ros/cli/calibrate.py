@@ -1,0 +1,204 @@
+"""
+``coreg calibrate BAG``: read, pair and calibrate a recording offline; print and write the result.
+
+``calibrate_bag`` is the whole job without printing (``coreg batch calibrate`` runs it per bag).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import sys
+from typing import TYPE_CHECKING, Any, Optional
+
+import numpy as np
+
+from coreg_ros.cli.argtypes import finite
+from coreg_ros.cli.options import (
+    EXIT_INCONSISTENT,
+    add_calibration_options,
+    config_frames,
+    settings_from_args,
+)
+from coreg_ros.cli.policy import PROG
+from coreg_ros.core.types import PoseStream
+
+if TYPE_CHECKING:  # the fit machinery is imported when a fit is checked, not by `coreg --help`
+    from coreg_ros.core.directions import DirectionReport
+
+#: p-value below which ``coreg calibrate`` checks the stream directions.
+DIRECTION_CHECK_P = 1e-3
+
+
+@dataclass
+class CalibrationRun:
+    """
+    What ``coreg calibrate`` computes for one bag (``calibrate_bag``), before any printing.
+
+    Attributes
+    ----------
+    result : CalibrationResult
+    report : PairingReport
+    check : DirectionReport or None
+        The direction check after a bad fit (None when it did not run).
+    data : dict
+        The ``--json`` document: the result, pairing counts, settings, direction check.
+    exit_code : int
+        0 consistent, EXIT_INCONSISTENT fit not matching the noise, 1 refused (a stream the
+        wrong way round, or the estimator failed).
+
+    """
+
+    result: Any
+    report: Any
+    check: Any
+    data: dict
+    exit_code: int
+
+    @property
+    def wrong_way(self) -> bool:
+        """A stream fits far better inverted: the fit is refused."""
+        return self.check is not None and self.check.flagged
+
+
+def calibrate_bag(bag, settings, prior=None, frames=None,
+                  direction_check: bool = True) -> CalibrationRun:
+    """
+    Read, pair and calibrate one recording as ``coreg calibrate --json`` does.
+
+    Parameters
+    ----------
+    bag : str or Path
+        rosbag2 directory.
+    settings : Settings
+    prior : optional
+        A loaded prior (``load_prior``).
+    frames : tuple, optional
+        (frame_base_a, frame_base_b) for the swap check (``config_frames``).
+    direction_check : bool
+        Check the stream directions after a bad fit (``--no-direction-check`` turns it off).
+
+    Raises
+    ------
+    CoregError
+        The bag cannot be read, too few pairs, data refused as a whole (naming a stream given
+        the wrong way round when that explains it).
+
+    """
+    from coreg_ros.bag.posebag import read_pose_bag
+    from coreg_ros.core.directions import check_directions
+    from coreg_ros.core.errors import InconsistentDataError
+    from coreg_ros.core.pipeline import calibrate_streams
+    from coreg_ros.core.result_io import result_to_dict
+
+    streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
+    stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
+    try:
+        result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames)
+    except InconsistentDataError as e:
+        # data refused as a whole: a stream given the wrong way round is a cheap explanation
+        check = check_directions(stream_a, streams_b, settings) if direction_check else None
+        if check is not None and check.flagged:
+            raise InconsistentDataError(f'{check.message} ({e})') from e
+        raise
+    check = direction_guard(stream_a, streams_b, settings, result, enabled=direction_check)
+    data = result_to_dict(result)
+    data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
+                       'unpaired': dict(report.unpaired)}
+    data['settings'] = settings.as_dict()
+    if check is not None:
+        data['direction_check'] = check.as_dict()
+    run = CalibrationRun(result, report, check, data, 0)
+    if run.wrong_way or not (result.success or result.fit_consistent is False):
+        run.exit_code = 1
+    else:
+        run.exit_code = 0 if result.success else EXIT_INCONSISTENT
+    return run
+
+
+def cmd_calibrate(args) -> int:
+    """Calibrate a recording offline and print (and optionally write) the result."""
+    import json
+
+    from coreg_ros.cli.files import write_json
+    from coreg_ros.core.result_io import load_prior
+    from coreg_ros.core.result_text import format_result
+    from coreg_ros.report.calibration_report import points_from_flat
+
+    # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
+    out = sys.stderr if args.json == '-' else sys.stdout
+    settings = settings_from_args(args)
+    points = points_from_flat(args.points, args.report)  # checked before the long fit
+    prior = load_prior(args.prior) if args.prior else None
+    run = calibrate_bag(args.bag, settings, prior, frames=config_frames(args),
+                        direction_check=not args.no_direction_check)
+    result, report, check = run.result, run.report, run.check
+    print(f'{PROG} calibrate: {args.bag}', file=out)
+    if run.wrong_way:
+        print(f'{PROG} calibrate: error: {check.message} (or --no-direction-check to fit the '
+              f'data as given)', file=sys.stderr)
+    else:
+        print(format_result(result, report), file=out)
+        if check is not None:
+            print(f'direction check: {check.message}', file=out)
+    if args.json:
+        if args.json == '-':
+            print(json.dumps(run.data, indent=2))
+        else:
+            write_json(args.json, run.data)
+            print(f'result written to {args.json}', file=out)
+    if args.report:
+        from coreg_ros.report.calibration_report import write_calibration_report
+        page = write_calibration_report(
+            result, args.report, report=report, points=points,
+            points_frame=args.points_frame, title=f'{PROG} calibrate {args.bag}')
+        print(f'report written to {page}', file=out)
+    return run.exit_code
+
+
+def direction_guard(stream_a: PoseStream, streams_b, settings, result,
+                    enabled: bool = True) -> Optional[DirectionReport]:
+    """
+    Check the stream directions after a bad fit, for ``coreg calibrate``.
+
+    Runs ``check_directions`` only when the fit's p-value is below ``DIRECTION_CHECK_P`` (or
+    not a number) and it is ``enabled`` (``--no-direction-check``); good data pay nothing.
+
+    Returns
+    -------
+    DirectionReport or None
+        None when the check did not run. ``report.flagged`` means the data fit more than 10×
+        better with a stream inverted: the caller should refuse the fit (``report.message``
+        names the ``coreg convert`` flag).
+
+    """
+    if not enabled:
+        return None
+    p = float(result.p_value)
+    if np.isfinite(p) and p >= DIRECTION_CHECK_P:
+        return None
+    from coreg_ros.core.directions import check_directions
+
+    return check_directions(stream_a, streams_b, settings)
+
+
+def register(sub) -> None:
+    """Add ``calibrate`` to the ``coreg`` subparsers."""
+    p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)')
+    add_calibration_options(p)
+    p.add_argument('--json', metavar='OUT',
+                   help='also write the result as JSON (atomically); - for stdout')
+    p.add_argument('--prior', metavar='FILE',
+                   help="a previous result (--json output or the node's result.yaml) or a "
+                        'partial prior (base_to_base / tool_to_marker with sigma per axis) '
+                        'that this recording refines (Ikits B.3)')
+    p.add_argument('--no-direction-check', action='store_true',
+                   help='do not check, after a bad fit, whether a stream should be inverted')
+    p.add_argument('--report', metavar='DIR',
+                   help='also write an HTML report (ellipsoids, axis cones, residuals) to DIR')
+    p.add_argument('--points', nargs='+', type=finite, metavar='X Y Z',
+                   help="points (m) in A's base frame (or see --points-frame) at which the "
+                        'report gives the registration error to expect')
+    p.add_argument('--points-frame', choices=('a_base', 'a_tool'), default='a_base',
+                   help="frame of --points: A's base (mapped into B's base by T0; default) or "
+                        "A's tool (located in B's marker frame by T1⁻¹, e.g. a stylus tip)")
+    p.set_defaults(func=cmd_calibrate)

@@ -1,0 +1,99 @@
+"""
+What the ``coreg`` subcommands share: the parser class, the calibration options and the settings.
+
+Every subcommand module has ``register(subparsers)``; the options a user types the same way
+everywhere are defined once here.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from coreg_ros.cli.argtypes import finite, positive
+from coreg_ros.core.types import METHODS, MODELS
+
+#: Exit code of ``coreg calibrate`` when the estimator converged but the fit does not match
+#: the stated noise (or the prior disagrees): the result is printed and written, flagged.
+EXIT_INCONSISTENT = 3
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are one line and exit code 1."""
+
+    def error(self, message: str):  # noqa: D102 - argparse API
+        self.exit(1, f'{self.prog}: error: {message}; see {self.prog} --help\n')
+
+
+def add_calibration_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
+    """Options shared by ``calibrate``, ``diagnose`` and ``batch``: topics, model, noise."""
+    if bag:
+        p.add_argument('bag', help='rosbag2 directory (sqlite3 or mcap)')
+    p.add_argument('--config', help='ROS parameter YAML (e.g. config/coreg.yaml); flags win')
+    p.add_argument('--topic-a', help='device A PoseStamped topic (default /device_a/pose)')
+    p.add_argument('--topic-b', nargs='+', metavar='T',
+                   help='device B PoseStamped topic(s); three for three_marker '
+                        '(default /device_b/pose)')
+    p.add_argument('--model', choices=MODELS, help='measurement model (default full_pose)')
+    p.add_argument('--method', choices=METHODS, help='estimator (default tls)')
+    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
+                   help='device A noise std: position m, rotation rad')
+    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
+                   help='device B noise std: position m, rotation rad')
+    p.add_argument('--max-gap', type=positive, metavar='S',
+                   help='largest time from a B stamp to the A samples it is paired with, s')
+    p.add_argument('--time-offset', type=offset_or_auto, metavar='auto|S',
+                   help="B's clock minus A's clock: auto (default) estimates it jointly with "
+                        "the transforms (starting from the config's time_offset); a number "
+                        '(s) fixes it')
+    p.add_argument('--clock-drift', choices=('auto', 'off'),
+                   help='auto also estimates a linear clock drift (ppm); default off')
+    p.add_argument('--robust', choices=('on', 'off'),
+                   help='on (default) rejects pairs far outside the stated noise before the '
+                        'final fit; off is plain least squares')
+    p.add_argument('--min-pairs', type=int, help='fewest pairs accepted (default 30)')
+
+
+def offset_or_auto(text: str):
+    """``auto`` or a finite number of seconds (argparse type of --time-offset)."""
+    if text.strip().lower() == 'auto':
+        return 'auto'
+    return finite(text)
+
+
+def settings_from_args(args):
+    """Build Settings from --config (if any), overridden by the flags given."""
+    from coreg_ros.cli.files import load_parameters
+    from coreg_ros.core.settings import Settings, settings_from_mapping
+
+    settings = Settings()
+    if args.config:
+        settings = settings_from_mapping(load_parameters(args.config), settings)
+    topic_b = tuple(args.topic_b) if args.topic_b else None
+    if topic_b is None and args.model and args.model != settings.model:
+        # the default B topic(s) follow the model unless given
+        from coreg_ros.core.settings import DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
+        topic_b = DEFAULT_TOPICS_B_THREE_MARKER if args.model == 'three_marker' \
+            else DEFAULT_TOPIC_B
+    offset = getattr(args, 'time_offset', None)
+    drift = getattr(args, 'clock_drift', None)
+    robust = getattr(args, 'robust', None)
+    return settings.updated(
+        topic_a=args.topic_a, topic_b=topic_b, model=args.model, method=args.method,
+        sigma_a=tuple(args.sigma_a) if args.sigma_a else None,
+        sigma_b=tuple(args.sigma_b) if args.sigma_b else None,
+        max_gap=args.max_gap, min_pairs=args.min_pairs,
+        time_offset=None if offset in (None, 'auto') else offset,
+        estimate_time_offset=None if offset is None else offset == 'auto',
+        estimate_clock_drift=None if drift is None else drift == 'auto',
+        robust=None if robust is None else robust == 'on')
+
+
+def config_frames(args) -> tuple:
+    """(frame_base_a, frame_base_b): from --config, else the node's defaults (swap check)."""
+    from coreg_ros.core.config_schema import NODE_DEFAULTS
+    values = {}
+    if getattr(args, 'config', None):
+        from coreg_ros.cli.files import load_parameters
+        values = load_parameters(args.config)
+    frames = tuple(values.get(k, NODE_DEFAULTS[k]) for k in ('frame_base_a', 'frame_base_b'))
+    return frames if all(isinstance(f, str) and f for f in frames) else None
