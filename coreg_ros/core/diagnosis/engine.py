@@ -357,9 +357,11 @@ def _select_round(sel: _Selector, accepted: tuple, ref: tuple, names: Sequence[s
             reason = (f'screened: predicted in-sample gain {pred:.1f} nats, below '
                       f'{BEHIND_SHARE:.2f} of the best held-out gain {best_gain:.1f}')
         if reason:
+            # looked at again behind the pick only if it could have passed on its own (the
+            # next round revisits only what passed alone)
             cands.append(Candidate(name, accepted + (name,), None, None, pred,
                                    np.zeros(sel.K), reason=reason, screened=True,
-                                   behind=reason.endswith(f'{best_gain:.1f}')))
+                                   behind=pred >= thr))
             continue
         cand = _candidate(sel, accepted, name, ref, round_no)
         cands.append(cand)
