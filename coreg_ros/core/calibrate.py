@@ -22,7 +22,15 @@ from coreg_ros.core.errors import (
     InputError,
     TooFewPairsError,
 )
-from coreg_ros.core.estimator import InputState, Problem, Solution, solve_ols, solve_tls
+from coreg_ros.core.estimator import (
+    InputState,
+    Problem,
+    Solution,
+    TlsSums,
+    solve_ols,
+    solve_tls,
+    tls_linearization,
+)
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.linearized import PairData, normalised_squares
 from coreg_ros.core.models import SPECS, ModelSpec, Parameters
@@ -312,6 +320,8 @@ class _Fitter:
             self._refuse_if_mostly_outside(~new, max_share)
             if masked:
                 sol = self._refit_ols(sol, keep, new)
+            elif self._downdatable(sol, keep, new):
+                sol = self._refit_tls(sol, keep, new)
             else:
                 sol = self.solve(new, sol.params, warm=True, with_priors=False)
             keep = new
@@ -326,6 +336,44 @@ class _Fitter:
         quartile = float(stats.chi2.ppf(0.25, m))
         scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
         return d2 <= scale * limit
+
+    def _downdatable(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> bool:
+        """Tell whether a TLS refit can start from ``sol``'s sums (pairs only removed)."""
+        return (FAST_REFIT and self.settings.method == 'tls' and sol.sums is not None
+                and sol.inputs is not None and sol.inputs.pos_t.shape[1] == int(keep.sum())
+                and not (new & ~keep).any())
+
+    def _refit_tls(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> Solution:
+        """
+        TLS of the pairs in ``new`` (a subset of ``keep``) from ``sol``, a fit of ``keep``.
+
+        The reduced system of ``new`` at ``sol``'s state is ``sol``'s less the removed pairs'
+        terms (a linearisation of those few pairs), and the kept pairs' factors give the first
+        input step, so the refit's first step costs no pass over all pairs.
+        """
+        stay = new[keep]           # among the pairs of the last fit
+        gone = np.flatnonzero(keep & ~new)
+        x = sol.inputs
+        removed = Problem(self.spec, self.pos_a[gone], self.quat_a[gone], self.pos_b[gone],
+                          None if self.quat_b is None else self.quat_b[gone], self.whiten_b,
+                          self.whiten_a, None if self.scale is None else self.scale[gone])
+        x_gone = InputState._pair_last(x.pos_t[:, ~stay], x.quat_t[:, ~stay])
+        sums = sol.sums
+        S, b, cost, _, _, _ = tls_linearization(removed, sol.params, x_gone, sums.lam)
+        n_fit = x.pos_t.shape[1]
+
+        def dx(delta):
+            return structured.back_substitute(n_fit, sums.factors, delta)[:, stay]
+
+        seed = (TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, sums.factors), dx)
+        start = InputState._pair_last(np.ascontiguousarray(x.pos_t[:, stay]),
+                                      np.ascontiguousarray(x.quat_t[:, stay]))
+        problem = self.problem(new, with_priors=False)
+        out = solve_tls(problem, sol.params, max_iterations=self.settings.max_iterations,
+                        xtol=XTOL, inputs=start, damping=sums.lam, seed=seed)
+        check_observability(out.info, out.params, problem.quat_a)
+        self.last_inputs = (new, out.inputs)
+        return out
 
     def _refit_ols(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> Solution:
         """

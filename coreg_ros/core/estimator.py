@@ -134,6 +134,8 @@ class Solution:
         same pairs).
     gradient : ndarray, shape (P,) or None
         OLS: Jᵀr at the solution (with ``info`` and ``chi2``, the normal equations there).
+    sums : TlsSums or None
+        TLS on the structured path: the last linearisation, for a refit of fewer pairs.
 
     """
 
@@ -149,6 +151,7 @@ class Solution:
     message: str
     inputs: Optional[InputState] = None
     gradient: Optional[np.ndarray] = None
+    sums: Optional[TlsSums] = None
 
 
 def _diagonal_or_none(L: np.ndarray):
@@ -194,10 +197,28 @@ class _Linearization:
     propose: Callable
     residuals: Optional[tuple] = None
     damping_share: float = 0.0  # largest λ·V_jj / info_jj: how far info is from undamped
+    factors: object = None      # TLS: the per-pair factors (for a refit's first step)
+
+
+@dataclass(frozen=True)
+class TlsSums:
+    """
+    A TLS linearisation kept for a refit: the damped reduced system, the cost, the damping.
+
+    The sums are over pairs; a refit of the same pairs less a few starts from these sums less
+    the removed pairs' terms (``solve_tls(seed=...)``), with the kept pairs' factors for its
+    first input step, instead of a pass over all pairs.
+    """
+
+    S: np.ndarray
+    b: np.ndarray
+    cost: float
+    lam: float
+    factors: object   # structured.TlsFactors over the fit's pairs
 
 
 def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
-                         ftol: float, damping: float = 1e-6):
+                         ftol: float, damping: float = 1e-6, first=None):
     """
     Levenberg-Marquardt iterations shared by OLS and TLS.
 
@@ -213,11 +234,12 @@ def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: 
         ``last`` is the linearisation at the returned state, made with damping ``lam``
         (None if there is none).
 
-    ``damping`` is the first λ (lower for a start next to the minimum).
+    ``damping`` is the first λ (lower for a start next to the minimum); ``first``, if given,
+    is the linearisation at ``state`` with that damping (made by the caller without a pass).
 
     """
     lam = damping
-    lin = linearize(state, lam)
+    lin = linearize(state, lam) if first is None else first
     for it in range(1, max_iterations + 1):
         rejected = False
         while True:
@@ -548,7 +570,8 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
-              inputs: Optional[InputState] = None, damping: float = 1e-6) -> Solution:
+              inputs: Optional[InputState] = None, damping: float = 1e-6,
+              seed: Optional[tuple] = None) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -572,6 +595,12 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         First λ. A start next to the minimum (a refit) needs little: with λ small the
         linearisation at the solution is also the posterior information (``DAMPING_SHARE``)
         instead of needing one more pass at λ = 0.
+    seed : tuple, optional
+        ``(sums, dx)``: the linearisation at (``params``, ``inputs``) with damping ``damping``
+        (a ``TlsSums`` of exactly this problem's pairs, e.g. a fit's sums less the removed
+        pairs' terms; its factors, if any, are released after the first step) and ``dx(δφ)``
+        giving the inputs' step (6, N) from it. The first step then needs no pass over the
+        pairs.
 
     Returns
     -------
@@ -591,7 +620,23 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return _Linearization(S, b, cost, propose, residuals, share)
+        return _Linearization(S, b, cost, propose, residuals, share, (factors, lam))
+
+    def seeded(sums: TlsSums, dx_of: Callable) -> _Linearization:
+        phi, x = state
+
+        def propose(delta, lam_next):
+            trial = phi.stepped(delta)
+            if not trial.valid:
+                return state, np.inf, None
+            trial = (trial.recharted(), x.stepped(dx_of(delta)))
+            if sums.factors is not None:
+                sums.factors.clear()  # spent: free them before the trial's are made
+            lin = linearize(trial, lam_next)
+            return trial, lin.cost, lin
+
+        # residuals None: if this very state is returned, the posterior is made afresh
+        return _Linearization(sums.S, sums.b, sums.cost, propose)
 
     if inputs is None:
         inputs = InputState(problem.pos_a, problem.quat_a)
@@ -599,20 +644,27 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         raise ValueError(f'inputs for {inputs.pos_t.shape[1]} pairs, problem has {problem.n}')
     state = (params, inputs)
     xtol = XTOL if xtol is None else xtol
+    first = None if seed is None else seeded(*seed)
     (params, x), status, it, last, lam = _levenberg_marquardt(
-        state, linearize, max_iterations, xtol, ftol, damping)
+        state, linearize, max_iterations, xtol, ftol, damping, first)
     if status > 0 and last.residuals is not None and last.damping_share <= DAMPING_SHARE:
         # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
         # is almost undamped: its Schur complement is the posterior information (relative
         # change of the covariance below DAMPING_SHARE), which saves a pass over the pairs.
         info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
+        sums = TlsSums(last.info, last.rhs, last.cost, lam, last.factors[0])
     else:
         last = None
-        info, _, chi2, (res_y, res_x), _, _ = tls_linearization(problem, params, x, 0.0)
+        info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
+        sums = TlsSums(info, b, chi2, 0.0, factors)
+    if not (isinstance(sums.factors, structured.TlsFactors) and sums.factors.chunks):
+        # a refit from sums needs the structured factors (back_substitution by n), intact
+        # (a rejected last trial spent them)
+        sums = None
     n_prior = len(_prior_rows(problem, params)[0])
     return Solution(params, _inverse_or_none(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
-                    _status_message(status, it, xtol), x)
+                    _status_message(status, it, xtol), x, sums=sums)
 
 
 def _pair_last(n: int, m: int) -> np.ndarray:
