@@ -97,7 +97,7 @@ class Settings:
             else:
                 raise ConfigError(
                     f'model {self.model} needs {needed} device B topic(s), got {len(topics)}: '
-                    f'give --topic-b {"T1 T2 T3" if needed == 3 else "T"}')
+                    f'give `topic_b` {"three topics" if needed == 3 else "one topic"}')
         for name in ('estimate_time_offset', 'estimate_clock_drift', 'robust'):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')
