@@ -6,9 +6,10 @@ built on it near a few hundred thousand messages a second. Here the storage file
 rosbags has opened (it keeps the metadata, the connections, decompression of file-compressed
 bags and all error reporting) are read in bulk:
 
-* sqlite3: one query per topic and id range lets SQLite concatenate the blobs
-  (``group_concat``) and the log times; numpy then reorders them to rosbags' order
-  (log time, ties by row id: the order of its ``ORDER BY timestamp`` index scan).
+* sqlite3: the rows are walked in rosbags' order (log time, ties by row id: its
+  ``ORDER BY timestamp`` scan of the timestamp index) in pages of 2**18 rows, and SQLite
+  concatenates each page's blobs (``group_concat``), log times, row ids and topic ids;
+  numpy checks the order and splits the page by topic.
 * mcap: each chunk holding a wanted channel is read and decompressed with rosbags' own
   routine (size and CRC checks included); its message index records give every message
   record's offset, and numpy gathers all record headers and payloads at once. Gaps between
@@ -30,8 +31,8 @@ from typing import Any, Optional
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-#: Row ids per SQLite query: bounds the concatenated blob (SQLite's limit is 1e9 bytes).
-_SQLITE_ID_SPAN = 1 << 18
+#: Rows per SQLite query: bounds the concatenated blob (SQLite's limit is 1e9 bytes).
+_SQLITE_PAGE = 1 << 18
 
 #: MCAP opcodes and the fixed part of a Message record after opcode and length:
 #: channel_id u16, sequence u32, log_time u64, publish_time u64.
@@ -150,35 +151,43 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
     if encoding != 'UTF-8':
         # group_concat passes blobs through text, which is byte-exact only in UTF-8 databases.
         raise Unsupported(f'database encoding {encoding}')
-    (lo, hi), = db.execute('SELECT min(id), max(id) FROM messages').fetchall()
     ids = sorted(cids)
-    # One table scan for all topics. Per range of row ids SQLite concatenates the blobs and,
-    # as text, the log times and topic ids; per connection it gives the smallest and largest
-    # blob size (the sizes of every message only when a connection's sizes vary). A range
-    # scan of a rowid table runs in row id order, so ties of log time keep row id order.
+    # The rows in rosbags' order, walked like rosbags does: through the timestamp index (so a
+    # damaged index fails here as it fails there), one keyset page at a time. Per page SQLite
+    # concatenates the blobs and, as text, the log times, row ids and topic ids, and gives
+    # each connection's smallest and largest blob size.
     size_cols = ''.join(f', min(length(data)) FILTER (WHERE topic_id={int(c)}), '
                         f'max(length(data)) FILTER (WHERE topic_id={int(c)})' for c in ids)
-    where = f"WHERE topic_id IN ({','.join('?' * len(ids))}) AND id BETWEEN ? AND ?"
+    rows = (f"SELECT data, timestamp, id, topic_id FROM messages "
+            f"WHERE topic_id IN ({','.join('?' * len(ids))}) AND (timestamp, id) > (?, ?) "
+            f"ORDER BY timestamp, id LIMIT {_SQLITE_PAGE}")
     query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
-             f"group_concat(topic_id), count(*){size_cols} FROM messages {where}")
+             f"group_concat(id), group_concat(topic_id), count(*){size_cols} FROM ({rows})")
     parts: dict[str, list[Fetched]] = {t: [] for t in cids.values()}
-    for start in range(lo, hi + 1, _SQLITE_ID_SPAN) if lo is not None else ():
-        args = (*ids, start, start + _SQLITE_ID_SPAN - 1)
-        (blob, ts_text, tid_text, count, *limits), = db.execute(query, args).fetchall()
+    after = (-2**63, -2**63)
+    while True:
+        args = (*ids, *after)
+        (blob, ts_text, id_text, tid_text, count, *limits), = db.execute(query, args).fetchall()
         if not count:
-            continue
-        log_ns = np.fromstring(ts_text, dtype=np.int64, sep=',')
-        tid = np.fromstring(tid_text, dtype=np.int64, sep=',')
-        if log_ns.size != count or tid.size != count:
-            raise Unsupported('log times or topic ids did not parse')
+            break
+        log_ns, rid, tid = (np.fromstring(t, dtype=np.int64, sep=',')
+                            for t in (ts_text, id_text, tid_text))
+        if any(a.size != count for a in (log_ns, rid, tid)):
+            raise Unsupported('log times, row ids or topic ids did not parse')
+        # The aggregate kept the subquery's order (checked, not assumed).
+        if (np.any(log_ns[1:] < log_ns[:-1])
+                or np.any((log_ns[1:] == log_ns[:-1]) & (rid[1:] <= rid[:-1]))
+                or (log_ns[0], rid[0]) <= after):
+            raise Unsupported('rows did not come in (timestamp, id) order')
+        after = (int(log_ns[-1]), int(rid[-1]))
         fixed = {c: limits[2 * k] for k, c in enumerate(ids)
                  if limits[2 * k] is not None and limits[2 * k] == limits[2 * k + 1]}
         if len(fixed) == len(ids):
             size = np.zeros(max(ids) + 1, np.int64)
             size[list(fixed)] = list(fixed.values())
             size = size[tid]
-        else:
-            (text,), = db.execute(f'SELECT group_concat(length(data)) FROM messages {where}',
+        else:  # some connection's sizes vary in this page: ask for every size
+            (text,), = db.execute(f'SELECT group_concat(length(data)) FROM ({rows})',
                                   args).fetchall()
             size = np.fromstring(text, dtype=np.int64, sep=',')
         if size.size != count or not isinstance(blob, bytes) or len(blob) != int(size.sum()):
@@ -194,11 +203,9 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
             if all(c in fixed for c in topic_ids) and len({fixed[c] for c in topic_ids}) == 1:
                 block = _gather(mem, starts[pick], fixed[topic_ids[0]])
             parts[topic].append((log_ns[pick], block))
-    out = {}
-    for topic, items in parts.items():
-        logs, block = _concat(items)
-        out[topic] = _ordered(logs, np.arange(logs.size), block)
-    return out
+        if count < _SQLITE_PAGE:
+            break
+    return {topic: _concat(items) for topic, items in parts.items()}
 
 
 # --- mcap -----------------------------------------------------------------------------------

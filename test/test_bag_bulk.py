@@ -1,0 +1,298 @@
+"""
+The bulk PoseStamped path (cdr_pose, bulk_read, bulk_write) against rosbags' per-message path.
+
+Real rosbag2 files of both storages, written either by rosbags' own Writer (message by
+message, in shuffled log-time order, with ties, big-endian messages and changing frames) or
+by write_pose_bag; every read is done twice, ``bulk=True`` and ``bulk=False``, and the two
+results must be identical: stamps exactly, floats bit for bit, or the same BagError.
+"""
+
+import shutil
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from coreg_ros.bag import POSE_STAMPED, read_pose_bag, write_pose_bag
+from coreg_ros.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
+from coreg_ros.core.errors import BagError
+from coreg_ros.core.types import PoseStream
+
+STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
+SUFFIX = {'sqlite3': '.db3', 'mcap': '.mcap'}
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+T = TYPESTORE.types
+FRAMES = ['', 'w', 'map', 'world', 'odom_12', 'base_link', 'a' * 13, 'cámara_ø', 'x' * 40]
+
+
+def random_values(rng, n):
+    """Stamps (int64 ns, any in [0, 2**31 s)), positions, quaternions with NaN and extremes."""
+    stamps = rng.integers(0, 2**31 * 10**9, n)
+    pos = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-300, 300, (n, 1))
+    quat = rng.normal(size=(n, 4))
+    if n:
+        pos[rng.integers(0, n, 1 + n // 50), rng.integers(0, 3)] = np.nan
+        quat[rng.integers(0, n), 0] = -0.0
+        pos[rng.integers(0, n), 1] = np.inf
+    return stamps, pos, quat
+
+
+def message(stamp, frame, p, q):
+    sec, nsec = divmod(int(stamp), 10**9)
+    return T[POSE_STAMPED](
+        header=T['std_msgs/msg/Header'](
+            stamp=T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec), frame_id=frame),
+        pose=T['geometry_msgs/msg/Pose'](
+            position=T['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+            orientation=T['geometry_msgs/msg/Quaternion'](x=q[1], y=q[2], z=q[3], w=q[0])))
+
+
+def bits(a):
+    """A float array's bits, so that NaN == NaN and -0.0 != 0.0."""
+    return np.ascontiguousarray(a, dtype=np.float64).view(np.int64)
+
+
+def assert_identical(got, ref):
+    assert list(got) == list(ref)
+    for topic in ref:
+        a, b = got[topic], ref[topic]
+        assert a.frame_id == b.frame_id, topic
+        for name in ('stamps', 'receive_stamps'):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x.dtype == y.dtype == np.int64 and x.shape == y.shape, (topic, name)
+            assert np.array_equal(x, y), (topic, name)
+        for name in ('position', 'quat_wxyz'):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x.dtype == y.dtype == np.float64 and x.shape == y.shape, (topic, name)
+            assert np.array_equal(bits(x), bits(y)), (topic, name)
+
+
+def outcome(path, topics, bulk):
+    """The streams, or the BagError text, of read_pose_bag."""
+    try:
+        return read_pose_bag(path, topics, bulk=bulk)
+    except BagError as err:
+        return f'BagError: {err}'
+
+
+def assert_same_outcome(path, topics):
+    ref = outcome(path, topics, bulk=False)
+    got = outcome(path, topics, bulk=True)
+    if isinstance(ref, str) or isinstance(got, str):
+        assert got == ref
+    else:
+        assert_identical(got, ref)
+    return ref
+
+
+# --- the codec ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize('frame', FRAMES)
+def test_codec_is_byte_identical_to_rosbags(frame):
+    rng = np.random.default_rng(len(frame))
+    stamps, pos, quat = random_values(rng, 40)
+    blobs = encode_pose_stamped(stamps, frame, pos, quat)
+    for i, blob in enumerate(blobs):
+        ref = TYPESTORE.serialize_cdr(message(stamps[i], frame, pos[i], quat[i]), POSE_STAMPED)
+        assert blob == bytes(ref)
+    arrays = decode_pose_stamped(blobs)
+    assert arrays.frame_id == frame and len(arrays) == 40
+    assert np.array_equal(arrays.stamps_ns, stamps)
+    assert np.array_equal(bits(arrays.position), bits(pos))
+    assert np.array_equal(bits(arrays.quat_wxyz), bits(quat))
+
+
+def test_decoder_declines_what_is_not_one_layout():
+    rng = np.random.default_rng(7)
+    stamps, pos, quat = random_values(rng, 6)
+    good = encode_pose_stamped(stamps, 'world', pos, quat)
+    assert decode_pose_stamped(good) is not None
+    assert decode_pose_stamped([]) is None
+    same_size_other_frame = encode_pose_stamped(stamps[:1], 'wörld', pos[:1], quat[:1])
+    assert len(same_size_other_frame[0]) == len(good[0])
+    assert decode_pose_stamped(good + same_size_other_frame) is None
+    assert decode_pose_stamped(good + encode_pose_stamped(stamps[:1], 'map', pos[:1],
+                                                          quat[:1])) is None
+    big = bytes(TYPESTORE.serialize_cdr(message(stamps[0], 'world', pos[0], quat[0]),
+                                        POSE_STAMPED, little_endian=False))
+    assert len(big) == len(good[0])
+    assert decode_pose_stamped([big]) is None and decode_pose_stamped(good + [big]) is None
+
+    def damaged(at, value):
+        blob = bytearray(good[3])
+        blob[at] = value
+        return good[:3] + [bytes(blob)] + good[4:]
+
+    assert decode_pose_stamped(damaged(1, 2)) is None      # encapsulation kind
+    assert decode_pose_stamped(damaged(12, 7)) is None     # frame_id length field
+    assert decode_pose_stamped(damaged(16 + 5, 65)) is None  # NUL terminator
+    assert decode_pose_stamped(damaged(17, 0x80)) is None  # frame bytes
+    assert decode_pose_stamped([good[0][:-1]]) is None     # short
+    assert decode_pose_stamped([good[0] + b'\0' * 8]) is None  # long
+    invalid_utf8 = bytearray(good[0])
+    invalid_utf8[16] = 0xFF
+    assert decode_pose_stamped([bytes(invalid_utf8)]) is None
+
+
+# --- random bags of both storages ---------------------------------------------------------
+
+def write_random_bag(path, storage, rng, *, n_max=1500, mixed=False):
+    """
+    A bag written message by message with rosbags' Writer, log times shuffled with ties.
+
+    Returns the topic names. With ``mixed`` one topic has messages of two frames and another
+    has some big-endian messages (the bulk decoder declines both).
+    """
+    n_topics = int(rng.integers(1, 4))
+    topics = [f'/dev{k}/pose' for k in range(n_topics)]
+    plan = []
+    for k in range(n_topics):
+        n = int(rng.integers(0, n_max)) if k else int(rng.integers(1, n_max))
+        frame = FRAMES[int(rng.integers(len(FRAMES)))]
+        stamps, pos, quat = random_values(rng, n)
+        frames = [frame] * n
+        little = [True] * n
+        if mixed and k == 0 and n > 2:
+            frames[n // 2] = frame + 'z'  # same topic, other frame: per-message path refuses
+        if mixed and k == 1 and n > 2:
+            little[int(rng.integers(n))] = False
+        # Log times: coarse (many ties), not in sample order.
+        logs = 10**18 + rng.integers(0, max(n // 3, 1), n) * 1000
+        plan += [(k, int(logs[i]), message(stamps[i], frames[i], pos[i], quat[i]), little[i])
+                 for i in range(n)]
+    order = rng.permutation(len(plan))
+    with Writer(path, version=9, storage_plugin=STORAGES[storage]) as writer:
+        conns = [writer.add_connection(t, POSE_STAMPED, typestore=TYPESTORE) for t in topics]
+        for j in order.tolist():
+            k, log_ns, msg, little_endian = plan[j]
+            writer.write(conns[k], log_ns, TYPESTORE.serialize_cdr(
+                msg, POSE_STAMPED, little_endian=little_endian))
+    return topics
+
+
+@pytest.mark.parametrize('storage', STORAGES)
+@pytest.mark.parametrize('seed', range(6))
+def test_random_bags_bulk_equals_per_message(tmp_path, storage, seed):
+    rng = np.random.default_rng(1000 + seed)
+    topics = write_random_bag(tmp_path / 'bag', storage, rng)
+    ref = assert_same_outcome(tmp_path / 'bag', topics)
+    assert not isinstance(ref, str), ref
+    assert sum(len(s) for s in ref.values()) > 0
+
+
+@pytest.mark.parametrize('storage', STORAGES)
+@pytest.mark.parametrize('seed', range(3))
+def test_fallback_topics_give_the_same_result(tmp_path, storage, seed):
+    rng = np.random.default_rng(2000 + seed)
+    topics = write_random_bag(tmp_path / 'bag', storage, rng, mixed=True)
+    ref = assert_same_outcome(tmp_path / 'bag', topics)
+    if len(topics) > 1:
+        # Big-endian messages in /dev1/pose are read (per message) when /dev0 is left out.
+        assert_same_outcome(tmp_path / 'bag', topics[1:])
+    if not isinstance(ref, str):
+        return
+    assert 'frame_id changes' in ref
+
+
+@pytest.mark.parametrize('storage', STORAGES)
+def test_many_chunks_and_storage_files(tmp_path, storage):
+    """Several MCAP chunks (1 MiB each) and a bag split over two storage files."""
+    rng = np.random.default_rng(5)
+    path = tmp_path / 'big'
+    write_random_bag(path, storage, rng, n_max=30_000)
+    topics = assert_same_outcome(path, ['/dev0/pose'])
+    assert len(topics['/dev0/pose']) > 12_000 or storage == 'sqlite3'
+    # Split bag: the same storage file twice under two names, as rosbag2 --max-bag-size does.
+    split = tmp_path / 'split'
+    split.mkdir()
+    name = f'big{SUFFIX[storage]}'
+    for part in ('split_0', 'split_1'):
+        shutil.copy(path / name, split / f'{part}{SUFFIX[storage]}')
+    meta = (path / 'metadata.yaml').read_text().replace(name, f'split_0{SUFFIX[storage]}')
+    meta = meta.replace(f'relative_file_paths:\n  - split_0{SUFFIX[storage]}',
+                        f'relative_file_paths:\n  - split_0{SUFFIX[storage]}\n'
+                        f'  - split_1{SUFFIX[storage]}')
+    (split / 'metadata.yaml').write_text(meta)
+    with Reader(split) as reader:
+        assert len(reader.storage.storages) == 2
+    both = assert_same_outcome(split, ['/dev0/pose'])
+    assert len(both['/dev0/pose']) == 2 * len(topics['/dev0/pose'])
+
+
+# --- writing ------------------------------------------------------------------------------
+
+def streams_for(rng, n):
+    out = {}
+    for k, frame in enumerate(['world', 'map', 'cámara']):
+        stamps, pos, quat = random_values(rng, n + k)
+        receive = 10**18 + np.sort(rng.integers(0, n, n + k)) * 1000  # ties across topics
+        out[f'/t{k}'] = PoseStream(stamps=stamps, position=pos, quat_wxyz=quat,
+                                   frame_id=frame, receive_stamps=receive)
+    out['/empty'] = PoseStream(stamps=np.zeros(0, np.int64), position=np.zeros((0, 3)),
+                               quat_wxyz=np.zeros((0, 4)), frame_id='none')
+    return out
+
+
+def plain_rosbags(path):
+    """Everything plain rosbags sees in a bag: messages, counts, times, metadata."""
+    with Reader(path) as reader:
+        msgs = [(c.topic, c.id, t, bytes(d)) for c, t, d in reader.messages()]
+        conns = [(c.id, c.topic, c.msgtype, c.msgcount) for c in reader.connections]
+        return msgs, conns, reader.message_count, reader.start_time, reader.end_time
+
+
+@pytest.mark.parametrize('storage', STORAGES)
+def test_bulk_written_bags_read_back_identically_by_plain_rosbags(tmp_path, storage):
+    rng = np.random.default_rng(11)
+    streams = streams_for(rng, 9000)  # > 1 MiB: several MCAP chunks
+    write_pose_bag(tmp_path / 'bulk', streams, storage=storage, bulk=True)
+    write_pose_bag(tmp_path / 'ref', streams, storage=storage, bulk=False)
+    got, ref = plain_rosbags(tmp_path / 'bulk'), plain_rosbags(tmp_path / 'ref')
+    assert got == ref
+    assert len(got[0]) == sum(len(s) for s in streams.values())
+    meta = [(tmp_path / b / 'metadata.yaml').read_text().replace(b, '') for b in ('bulk', 'ref')]
+    assert meta[0] == meta[1]
+    back = read_pose_bag(tmp_path / 'bulk', list(streams), bulk=True)
+    assert_identical(back, read_pose_bag(tmp_path / 'ref', list(streams), bulk=False))
+    for topic, stream in streams.items():
+        order = np.argsort(stream.receive_stamps if stream.receive_stamps is not None
+                           else stream.stamps, kind='stable')
+        assert np.array_equal(back[topic].stamps, stream.stamps[order])
+        assert np.array_equal(bits(back[topic].position), bits(stream.position[order]))
+
+
+# --- damaged files --------------------------------------------------------------------------
+
+@pytest.mark.parametrize('storage', STORAGES)
+@pytest.mark.parametrize('fraction', [0.3, 0.5, 0.8, 0.97, 0.999])
+def test_truncated_files_give_the_same_error(tmp_path, storage, fraction):
+    path = tmp_path / 'cut'
+    write_pose_bag(path, streams_for(np.random.default_rng(3), 3000), storage=storage)
+    data = path / f'cut{SUFFIX[storage]}'
+    with data.open('r+b') as f:
+        f.truncate(int(data.stat().st_size * fraction))
+    ref = assert_same_outcome(path, ['/t0', '/t1'])
+    assert isinstance(ref, str) and 'truncated or corrupt' in ref
+
+
+@pytest.mark.parametrize('storage', STORAGES)
+def test_corrupt_bytes_never_give_other_numbers(tmp_path, storage):
+    """Byte flips in message headers, lengths, frames and elsewhere: same result both ways."""
+    path = tmp_path / 'bag'
+    write_pose_bag(path, streams_for(np.random.default_rng(4), 800), storage=storage)
+    data = path / f'bag{SUFFIX[storage]}'
+    pristine = data.read_bytes()
+    rng = np.random.default_rng(9)
+    hits = [i for i in range(len(pristine)) if pristine.startswith(b'world\0', i)]
+    places = []
+    for i in rng.choice(hits, 12, replace=False).tolist():
+        places += [i - 16, i - 15, i - 4, i - 1, i + 2, i + 5]  # encapsulation, length, frame
+    places += rng.integers(0, len(pristine), 20).tolist()
+    errors = 0
+    for where in places:
+        damaged = bytearray(pristine)
+        damaged[where] ^= 0x5A
+        data.write_bytes(bytes(damaged))
+        errors += isinstance(assert_same_outcome(path, ['/t0', '/t1', '/t2']), str)
+    assert errors > 0
