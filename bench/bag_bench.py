@@ -1,0 +1,239 @@
+"""
+PoseStamped bags at memory speed (issue 15): bulk path against rosbags' per-message path.
+
+- **Read and write**: ``n`` messages per topic on ``topics`` topics (default 2 × 500k) with
+  random poses, for sqlite3 and mcap: ``write_pose_bag`` and ``read_pose_bag`` with
+  ``bulk=True`` and with ``bulk=False`` (rosbags message by message, the path before issue
+  15), in the same run; messages/s, the ratio, and a check that both reads give identical
+  arrays (stamps exactly, floats bit for bit). Goal: ≥ 1M messages/s read and ≥ 10×.
+- **Whole command**: ``coreg calibrate`` on a 2M-pair recording (``coreg simulate``, A and
+  B at 1 kHz for 2000 s, 4M messages, written to a temporary directory and deleted), wall
+  time and peak memory of the child process, with ``COREG_BAG_BULK=0`` (before) and
+  without (after).
+
+``python bench/bag_bench.py [--n N] [--seconds S] [--calibrate-storages sqlite3 mcap]
+[--no-calibrate]`` prints the tables and writes ``bench/results/bag_bench.json``; ``run()``
+returns the dict.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from coreg_ros.bag.posebag import BULK_ENV, read_pose_bag, write_pose_bag  # noqa: E402
+from coreg_ros.core.types import PoseStream  # noqa: E402
+
+#: Goals of issue 15 (read path).
+GOAL_READ_MSG_PER_S = 1_000_000
+GOAL_RATIO = 10.0
+STORAGES = ('sqlite3', 'mcap')
+COREG = str(Path(sys.executable).with_name('coreg'))
+
+#: Runs a command and prints its wall time and the child's peak RSS (a fresh parent per
+#: measurement, so RUSAGE_CHILDREN holds that one child).
+_MEASURE = (
+    'import json, resource, subprocess, sys, time\n'
+    't = time.perf_counter()\n'
+    'p = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n'
+    'wall = time.perf_counter() - t\n'
+    'rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024\n'
+    'print(json.dumps({"wall_s": wall, "peak_rss_bytes": rss, "returncode": p.returncode,'
+    ' "stderr_tail": p.stderr[-300:]}))\n'
+)
+
+
+def _streams(n: int, topics: int, seed: int = 0) -> dict[str, PoseStream]:
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k in range(topics):
+        stamps = 1_700_000_000 * 10**9 + np.arange(n, dtype=np.int64) * 1_000_000 + 37 * k
+        q = rng.normal(size=(n, 4))
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        out[f'/device_{k}/pose'] = PoseStream(
+            stamps=stamps, position=rng.normal(size=(n, 3)), quat_wxyz=q,
+            frame_id=['world', 'tracker_base', 'map'][k % 3],
+            receive_stamps=stamps + rng.integers(100_000, 2_000_000, n))
+    return out
+
+
+def _timed(fn, *args, **kwargs):
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return time.perf_counter() - t, out
+
+
+def _identical(a: dict, b: dict) -> bool:
+    for topic in b:
+        x, y = a[topic], b[topic]
+        if x.frame_id != y.frame_id:
+            return False
+        for name in ('stamps', 'receive_stamps', 'position', 'quat_wxyz'):
+            u, v = getattr(x, name), getattr(y, name)
+            if u.dtype != v.dtype or u.shape != v.shape:
+                return False
+            if not np.array_equal(np.ascontiguousarray(u).view(np.int64),
+                                  np.ascontiguousarray(v).view(np.int64)):
+                return False
+    return True
+
+
+def _read_write(n: int, topics: int, storage: str, tmp: Path) -> dict:
+    streams = _streams(n, topics)
+    total = n * topics
+    names = list(streams)
+    t_wb, _ = _timed(write_pose_bag, tmp / f'bulk_{storage}', streams, storage, bulk=True)
+    t_wr, _ = _timed(write_pose_bag, tmp / f'ref_{storage}', streams, storage, bulk=False)
+    t_rb, got = _timed(read_pose_bag, tmp / f'bulk_{storage}', names, bulk=True)
+    t_rr, ref = _timed(read_pose_bag, tmp / f'bulk_{storage}', names, bulk=False)
+    return {
+        'storage': storage, 'messages': total,
+        'read_bulk_s': t_rb, 'read_rosbags_s': t_rr,
+        'read_bulk_msg_per_s': total / t_rb, 'read_rosbags_msg_per_s': total / t_rr,
+        'read_ratio': t_rr / t_rb,
+        'write_bulk_s': t_wb, 'write_rosbags_s': t_wr,
+        'write_bulk_msg_per_s': total / t_wb, 'write_rosbags_msg_per_s': total / t_wr,
+        'write_ratio': t_wr / t_wb,
+        'identical': _identical(got, ref),
+        'read_goal_met': total / t_rb >= GOAL_READ_MSG_PER_S and t_rr / t_rb >= GOAL_RATIO,
+    }
+
+
+def _measure(cmd: list[str], env: dict) -> dict:
+    out = subprocess.run([sys.executable, '-c', _MEASURE, *cmd], capture_output=True,
+                         text=True, env=env, check=True)
+    return json.loads(out.stdout)
+
+
+def _calibrate(storage: str, seconds: float, rate: float, tmp: Path) -> dict:
+    bag = tmp / f'calib_{storage}'
+    env = dict(os.environ)
+    gen = _measure([COREG, 'simulate', '--seed', '15', '--duration', str(seconds),
+                    '--rate-a', str(rate), '--rate-b', str(rate), '--storage', storage,
+                    str(bag)], env)
+    if gen['returncode']:
+        raise RuntimeError(f'coreg simulate failed: {gen["stderr_tail"]}')
+    size = sum(f.stat().st_size for f in bag.iterdir())
+    t_read, streams = _timed(read_pose_bag, bag, ['/device_a/pose', '/device_b/pose'])
+    messages = sum(len(s) for s in streams.values())
+    del streams
+    cmd = [COREG, 'calibrate', str(bag), '--json', str(tmp / 'result.json')]
+    before = _measure(cmd, {**env, BULK_ENV: '0'})
+    after = _measure(cmd, {**env, BULK_ENV: '1'})
+    for run in (before, after):
+        if run['returncode']:
+            raise RuntimeError(f'coreg calibrate failed: {run["stderr_tail"]}')
+    return {
+        'storage': storage, 'seconds': seconds, 'rate_hz': rate, 'messages': messages,
+        'bag_bytes': size, 'simulate_wall_s': gen['wall_s'], 'read_bulk_s': t_read,
+        'calibrate_before_s': before['wall_s'], 'calibrate_after_s': after['wall_s'],
+        'calibrate_ratio': before['wall_s'] / after['wall_s'],
+        'peak_rss_before_bytes': before['peak_rss_bytes'],
+        'peak_rss_after_bytes': after['peak_rss_bytes'],
+    }
+
+
+def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = True,
+        seconds: float = 2000.0, rate: float = 1000.0,
+        calibrate_storages=('sqlite3',)) -> dict:
+    """
+    Measure the bulk and per-message paths in one run.
+
+    Parameters
+    ----------
+    n, topics : int
+        Messages per topic and topics of the read/write benchmark.
+    storages : sequence of str
+        Storages of the read/write benchmark.
+    calibrate : bool
+        Also time ``coreg calibrate`` on a simulated recording of ``seconds`` s with A and B
+        at ``rate`` Hz, before (``COREG_BAG_BULK=0``) and after, per ``calibrate_storages``.
+
+    Returns
+    -------
+    result : dict
+        ``io`` (one row per storage), ``calibrate`` (one row per storage), the goals, and the
+        machine's load average at the start.
+
+    """
+    result = {'goal_read_msg_per_s': GOAL_READ_MSG_PER_S, 'goal_ratio': GOAL_RATIO,
+              'load_average': os.getloadavg(), 'cpus': os.cpu_count(), 'io': [],
+              'calibrate': []}
+    with tempfile.TemporaryDirectory(prefix='bag_bench_') as tmp:
+        for storage in storages:
+            result['io'].append(_read_write(n, topics, storage, Path(tmp)))
+        if calibrate:
+            for storage in calibrate_storages:
+                result['calibrate'].append(_calibrate(storage, seconds, rate, Path(tmp)))
+    return result
+
+
+def table(result: dict) -> str:
+    """Markdown tables of ``run()``'s result."""
+    lines = [
+        f'Bulk vs rosbags per-message path, same run (load average '
+        f'{result["load_average"][0]:.1f} on {result["cpus"]} CPUs). Goal: read ≥ '
+        f'{result["goal_read_msg_per_s"] / 1e6:.0f}M msg/s and ≥ {result["goal_ratio"]:.0f}×.',
+        '',
+        '| storage | messages | read bulk msg/s | read rosbags msg/s | read ratio | '
+        'write bulk msg/s | write rosbags msg/s | write ratio | identical | read goal |',
+        '|---|---:|---:|---:|---:|---:|---:|---:|---|---|',
+    ]
+    for r in result['io']:
+        lines.append(
+            f'| {r["storage"]} | {r["messages"]:,} | {r["read_bulk_msg_per_s"] / 1e6:.2f}M | '
+            f'{r["read_rosbags_msg_per_s"] / 1e3:.0f}k | {r["read_ratio"]:.1f}× | '
+            f'{r["write_bulk_msg_per_s"] / 1e6:.2f}M | {r["write_rosbags_msg_per_s"] / 1e3:.0f}k'
+            f' | {r["write_ratio"]:.1f}× | {"yes" if r["identical"] else "NO"} | '
+            f'{"met" if r["read_goal_met"] else "missed"} |')
+    if result['calibrate']:
+        lines += [
+            '',
+            '| `coreg calibrate` | messages | bag | read (bulk, in-process) | before '
+            '(COREG_BAG_BULK=0) | after | ratio | peak RSS before | peak RSS after |',
+            '|---|---:|---:|---:|---:|---:|---:|---:|---:|',
+        ]
+        for r in result['calibrate']:
+            lines.append(
+                f'| {r["storage"]}, {r["rate_hz"]:.0f} Hz × {r["seconds"]:.0f} s | '
+                f'{r["messages"]:,} | {r["bag_bytes"] / 2**20:.0f} MiB | '
+                f'{r["read_bulk_s"]:.1f} s | {r["calibrate_before_s"]:.1f} s | '
+                f'{r["calibrate_after_s"]:.1f} s | {r["calibrate_ratio"]:.1f}× | '
+                f'{r["peak_rss_before_bytes"] / 2**30:.2f} GiB | '
+                f'{r["peak_rss_after_bytes"] / 2**30:.2f} GiB |')
+    return '\n'.join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--n', type=int, default=500_000, help='messages per topic')
+    parser.add_argument('--topics', type=int, default=2)
+    parser.add_argument('--seconds', type=float, default=2000.0,
+                        help='length of the calibrate recording, s')
+    parser.add_argument('--rate', type=float, default=1000.0, help='A and B rate, Hz')
+    parser.add_argument('--calibrate-storages', nargs='+', default=['sqlite3'],
+                        choices=STORAGES)
+    parser.add_argument('--no-calibrate', action='store_true')
+    args = parser.parse_args()
+    result = run(args.n, args.topics, calibrate=not args.no_calibrate, seconds=args.seconds,
+                 rate=args.rate, calibrate_storages=args.calibrate_storages)
+    print(table(result))
+    out = ROOT / 'bench' / 'results' / 'bag_bench.json'
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + '\n')
+
+
+if __name__ == '__main__':
+    main()
