@@ -156,23 +156,25 @@ MAX_ROUNDS = 10
 
 #: Convergence tolerance of calibrate's fits (the solvers' own default, ``estimator.XTOL``,
 #: is 1e-5 σ): stop when the next step would move every parameter by at most this many of
-#: its posterior standard deviations. Near the minimum the steps shrink
-#: linearly (at 0.5° rotation noise on A, TLS at 1M pairs: 32 σ, 7.9 σ, 1.5e-3 σ, 2.8e-4 σ,
-#: then by ~0.17 a step), so the estimate is within ~1.2·XTOL σ of the minimum: 5e-3 σ
-#: changes no statistic (a bias of 5e-3 σ adds 2.5e-5 to the mean squared error; scipy's
-#: default, 1e-8 relative to |φ|, is ~1e-2 σ at 100k pairs), while each tenfold tightening
-#: costs about one more pass over the pairs.
+#: its posterior standard deviations. Near the minimum the steps shrink linearly (at 0.5°
+#: rotation noise on A, TLS at 1M pairs: 32 σ, 7.9 σ, 1.5e-3 σ, 2.8e-4 σ, then by ~0.17 a
+#: step), so the estimate is within ~1.2·XTOL σ of the minimum: 5e-3 σ changes no statistic
+#: (a bias of 5e-3 σ adds 2.5e-5 to the mean squared error; scipy's default, 1e-8 relative to
+#: |φ|, is ~1e-2 σ at 100k pairs), while each tenfold tightening costs about one more pass
+#: over the pairs.
 XTOL = 5e-3
 
-#: Pairs the start (closed form, then the same fit) uses at most, every k-th pair, before the
-#: fit of all pairs (see ``_Fitter._start``).
+#: Pairs the start (closed form, then OLS) uses at most, every k-th pair, before the fit of
+#: all pairs (see ``_Fitter._start``).
 SUBSAMPLE = 100_000
-#: The fast paths, each of which gives the same answer as the plain one (to within the
-#: solver's stopping rule; ``test_calibrate_speed_paths.py`` compares them): the start from
-#: a subsample, TLS refits starting at the last fit's inputs, the robust statistic in one
-#: light pass (``screening``). Switched off only to compare with the plain paths.
 #: First LM damping of a TLS refit that starts at the last fit's inputs.
 WARM_DAMPING = 1e-9
+#: The fast paths, each of which gives the answer of the plain one (to within the stopping
+#: rule; ``test_calibrate_speed_paths.py`` compares them): the start from a subsample
+#: (FAST_START); robust refits from the last fit (FAST_REFIT: TLS from its inputs, or from
+#: its sums less the removed pairs; OLS from its normal equations with 0/1 weights); the
+#: robust statistic in one light pass (FAST_SQUARES, ``screening``). Switched off only to
+#: compare with the plain paths.
 FAST_START = True
 FAST_REFIT = True
 FAST_SQUARES = True
