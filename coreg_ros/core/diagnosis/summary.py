@@ -188,8 +188,21 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
                 # the direction fixed by the tilt, the sag is u's component along it (one
                 # noisy component instead of a vector length, which the two across-gravity
                 # components inflate)
-                b = abs(float(g @ u))
-                s = float(np.sqrt(max(g @ C[0:3, 0:3] @ g, 0.0)))
+                # best linear unbiased: u = b ĝ + noise (covariance Cu), so b is read with
+                # all three components weighted, not along ĝ alone (the motion may fix
+                # another direction far better than ĝ's)
+                Cu = C[0:3, 0:3]
+                try:
+                    Wg = np.linalg.solve(Cu, g)
+                    info = float(g @ Wg)
+                    b = abs(float(Wg @ u) / info)
+                    s = float(np.sqrt(1.0 / info))
+                except (np.linalg.LinAlgError, ZeroDivisionError, FloatingPointError):
+                    b = abs(float(g @ u))
+                    s = float(np.sqrt(max(g @ Cu @ g, 0.0)))
+                if not (np.isfinite(b) and np.isfinite(s)):
+                    b = abs(float(g @ u))
+                    s = float(np.sqrt(max(g @ Cu @ g, 0.0))) if np.all(np.isfinite(Cu)) else s
                 out.update(sag_mm=b * 1e3, sigma_mm=s * 1e3)
                 text = f'{b * 1e3:.2f} ± {s * 1e3:.2f} mm sag'
             out.update(tilt_deg=float(np.degrees(tilt)), sigma_tilt_deg=float(np.degrees(st)))
