@@ -613,12 +613,10 @@ class CoregNode(Node):
         streams = persistence.read_journal(folder, self.topics)
         n = 0
         for topic, s in streams.items():
-            push = self.buffers[topic].push
-            rows = zip(s.stamps.tolist(), s.receive_stamps.tolist(), s.position.tolist(),
-                       s.quat_wxyz.tolist(), strict=True)
-            for stamp, recv, (x, y, z), (qw, qx, qy, qz) in rows:
-                if push(stamp, recv, x, y, z, qw, qx, qy, qz, s.frame_id) is None:
-                    n += 1
+            b = self.buffers[topic]
+            before = b.accepted
+            b.push_many(s.stamps, s.receive_stamps, s.position, s.quat_wxyz, s.frame_id)
+            n += b.accepted - before
             self.gaps[topic].update(s.stamps)
         # This session's journal starts with them, in one bag; then the old one goes.
         self.journal = persistence.SampleJournal(persistence.new_journal_path(
