@@ -11,10 +11,11 @@ import shutil
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from coreg_ros.bag import POSE_STAMPED, read_pose_bag, write_pose_bag
+from coreg_ros.bag.bulk_read import fetch
 from coreg_ros.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
 from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
@@ -137,7 +138,7 @@ def test_decoder_declines_what_is_not_one_layout():
 
 # --- random bags of both storages ---------------------------------------------------------
 
-def write_random_bag(path, storage, rng, *, n_max=1500, mixed=False):
+def write_random_bag(path, storage, rng, *, n_max=1500, mixed=False, compression=None):
     """
     A bag written message by message with rosbags' Writer, log times shuffled with ties.
 
@@ -162,7 +163,10 @@ def write_random_bag(path, storage, rng, *, n_max=1500, mixed=False):
         plan += [(k, int(logs[i]), message(stamps[i], frames[i], pos[i], quat[i]), little[i])
                  for i in range(n)]
     order = rng.permutation(len(plan))
-    with Writer(path, version=9, storage_plugin=STORAGES[storage]) as writer:
+    writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
+    if compression is not None:
+        writer.set_compression(compression, CompressionFormat.ZSTD)
+    with writer:
         conns = [writer.add_connection(t, POSE_STAMPED, typestore=TYPESTORE) for t in topics]
         for j in order.tolist():
             k, log_ns, msg, little_endian = plan[j]
@@ -179,6 +183,29 @@ def test_random_bags_bulk_equals_per_message(tmp_path, storage, seed):
     ref = assert_same_outcome(tmp_path / 'bag', topics)
     assert not isinstance(ref, str), ref
     assert sum(len(s) for s in ref.values()) > 0
+    assert bulk_path_used(tmp_path / 'bag', topics)
+
+
+def bulk_path_used(path, topics):
+    """Whether the bulk fetch reads every topic of the bag (no fallback to rosbags)."""
+    with Reader(path) as reader:
+        got = fetch(reader, [c for c in reader.connections if c.topic in topics])
+    return got is not None and all(block is not None for _, block in got.values())
+
+
+@pytest.mark.parametrize(('storage', 'mode', 'bulk'), [
+    ('mcap', CompressionMode.STORAGE, True),   # zstd chunks, what ros2 bag record can write
+    ('mcap', CompressionMode.FILE, True),
+    ('sqlite3', CompressionMode.FILE, True),
+    ('mcap', CompressionMode.MESSAGE, False),  # per-message zstd: rosbags path
+    ('sqlite3', CompressionMode.MESSAGE, False),
+])
+def test_compressed_bags(tmp_path, storage, mode, bulk):
+    rng = np.random.default_rng(int(mode))
+    topics = write_random_bag(tmp_path / 'bag', storage, rng, n_max=20_000, compression=mode)
+    ref = assert_same_outcome(tmp_path / 'bag', topics)
+    assert not isinstance(ref, str), ref
+    assert bulk_path_used(tmp_path / 'bag', topics) == bulk
 
 
 @pytest.mark.parametrize('storage', STORAGES)
@@ -203,6 +230,7 @@ def test_many_chunks_and_storage_files(tmp_path, storage):
     write_random_bag(path, storage, rng, n_max=30_000)
     topics = assert_same_outcome(path, ['/dev0/pose'])
     assert len(topics['/dev0/pose']) > 12_000 or storage == 'sqlite3'
+    assert bulk_path_used(path, ['/dev0/pose'])
     # Split bag: the same storage file twice under two names, as rosbag2 --max-bag-size does.
     split = tmp_path / 'split'
     split.mkdir()
@@ -217,6 +245,7 @@ def test_many_chunks_and_storage_files(tmp_path, storage):
     with Reader(split) as reader:
         assert len(reader.storage.storages) == 2
     both = assert_same_outcome(split, ['/dev0/pose'])
+    assert bulk_path_used(split, ['/dev0/pose'])
     assert len(both['/dev0/pose']) == 2 * len(topics['/dev0/pose'])
 
 
@@ -254,6 +283,7 @@ def test_bulk_written_bags_read_back_identically_by_plain_rosbags(tmp_path, stor
     meta = [(tmp_path / b / 'metadata.yaml').read_text().replace(b, '') for b in ('bulk', 'ref')]
     assert meta[0] == meta[1]
     back = read_pose_bag(tmp_path / 'bulk', list(streams), bulk=True)
+    assert bulk_path_used(tmp_path / 'bulk', list(streams))
     assert_identical(back, read_pose_bag(tmp_path / 'ref', list(streams), bulk=False))
     for topic, stream in streams.items():
         order = np.argsort(stream.receive_stamps if stream.receive_stamps is not None
