@@ -233,6 +233,52 @@ def run(sizes=(100_000, 1_000_000), noises=('realistic', 'bench'), repeats: int 
             'noise': {k: {'sigma_a': list(a), 'sigma_b': list(b)} for k, (a, b) in NOISE.items()}}
 
 
+#: What ``profile`` reports: (label, function name, file) whose cumulative time it sums.
+_PHASES = (
+    ('validation', '_validated', 'calibrate.py'),
+    ('motion check', 'check_motion', 'observability.py'),
+    ('start (closed form + OLS, subsample)', '_start', 'calibrate.py'),
+    ('OLS passes (normal equations)', 'ols_normal', 'structured.py'),
+    ('TLS passes (reduced system)', 'tls_schur', 'structured.py'),
+    ('TLS input steps (back-substitution)', 'back_substitute', 'structured.py'),
+    ('TLS input steps (rotations)', 'rotated', 'structured.py'),
+    ('robust statistic d² (screening)', 'normalised_squares', 'screening.py'),
+    ('subsets of the pairs', 'problem', 'calibrate.py'),
+    ('observability', 'check_observability', 'observability.py'),
+    ('posterior, χ², result', '_result', 'calibrate.py'),
+)
+
+
+def profile(n: int = 1_000_000, noise: str = 'realistic', method: str = 'tls',
+            model: str = 'full_pose') -> dict:
+    """
+    Where one ``calibrate()`` spends its time: cProfile's cumulative seconds per phase.
+
+    cProfile adds its own overhead (about 1.5× here); the shares, not the sums, are the point.
+    Returns {phase: {'seconds': s, 'calls': k}} plus 'total'.
+    """
+    import cProfile
+    import pstats
+
+    sigma_a, sigma_b = NOISE[noise]
+    pairs = make_pairs(n, noise, model)
+    settings = Settings(model=model, sigma_a=sigma_a, sigma_b=sigma_b, method=method)
+    prof = cProfile.Profile()
+    prof.enable()
+    calibrate(pairs, settings)
+    prof.disable()
+    stats = pstats.Stats(prof).stats
+    out = {}
+    for label, name, file in _PHASES:
+        hits = [(v[1], v[3]) for (f, _, fn), v in stats.items()
+                if fn == name and f.endswith(file)]
+        out[label] = {'seconds': sum(h[1] for h in hits), 'calls': sum(h[0] for h in hits)}
+    total = [v[3] for (f, _, fn), v in stats.items()
+             if fn == 'calibrate' and f.endswith('calibrate.py')]
+    out['total'] = {'seconds': max(total) if total else float('nan'), 'calls': 1}
+    return out
+
+
 def _s(v) -> str:
     return '–' if v is None else f'{v:.2f}'
 
@@ -274,7 +320,16 @@ def main(argv=None) -> None:
     ap.add_argument('--no-scipy', action='store_true')
     ap.add_argument('--before-commit', default=BEFORE_COMMIT,
                     help="commit whose calibrate() is timed too ('' to skip)")
+    ap.add_argument('--profile', action='store_true',
+                    help='only print where calibrate() spends its time at the first size')
     args = ap.parse_args(argv)
+    if args.profile:
+        for model in ('full_pose', 'position_only'):
+            for method in ('tls', 'ols'):
+                print(f'## {model} {method.upper()} N={args.sizes[0]:,} {args.noises[0]}')
+                for label, v in profile(args.sizes[0], args.noises[0], method, model).items():
+                    print(f'- {label}: {v["seconds"]:.3f} s ({v["calls"]} calls)')
+        return
     result = run(args.sizes, args.noises, args.repeats, args.scipy_cap,
                  args.before_commit or None, not args.no_scipy)
     RESULTS.mkdir(parents=True, exist_ok=True)

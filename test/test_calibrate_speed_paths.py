@@ -192,6 +192,11 @@ def test_ols_weights_leave_pairs_out_but_give_their_residuals():
     # the left-out pairs' residuals are those at the solution too
     e = cal.screening.normalised_squares(problem, b.params, False)
     np.testing.assert_allclose(np.sum(b.residuals ** 2, axis=1), e, rtol=1e-9)
+    # TLS takes subsets, not weights
+    weighted = replace(problem, weights=keep.astype(float))
+    with pytest.raises(ValueError, match='weights'):
+        est.tls_linearization(weighted, params, est.InputState(problem.pos_a, problem.quat_a),
+                              0.0)
     # a weighted problem needs the structured path
     generic = est.Problem(SPECS['three_marker'], problem.pos_a,
                           problem.quat_a, np.repeat(problem.pos_b[:, None], 3, axis=1), None,

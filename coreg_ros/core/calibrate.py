@@ -203,8 +203,10 @@ class _Fitter:
 
     def problem(self, keep: np.ndarray, with_priors: bool = True) -> Problem:
         """Return the pairs in ``keep`` as a Problem (the arrays themselves if all are kept)."""
-        def sub(x):
-            return x if x is None or keep.all() else x[keep]
+        idx = None if keep.all() else np.flatnonzero(keep)
+
+        def sub(x):  # np.take: a boolean index is 6× slower on (N, 4) arrays
+            return x if x is None or idx is None else np.take(x, idx, axis=0)
 
         return Problem(self.spec, sub(self.pos_a), sub(self.quat_a), sub(self.pos_b),
                        sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
@@ -282,8 +284,8 @@ class _Fitter:
         quat_t = np.ascontiguousarray(self.quat_a.T)
         pos_t[:, old_keep] = old.pos_t
         quat_t[:, old_keep] = old.quat_t
-        return InputState._pair_last(np.ascontiguousarray(pos_t[:, keep]),
-                                     np.ascontiguousarray(quat_t[:, keep]))
+        idx = np.flatnonzero(keep)
+        return InputState._pair_last(np.take(pos_t, idx, axis=1), np.take(quat_t, idx, axis=1))
 
     def squares(self, params: Parameters) -> np.ndarray:
         """Every pair's normalised squared residual d² at ``params`` (robust statistic)."""
@@ -328,7 +330,7 @@ class _Fitter:
                 sol = self.solve(new, sol.params, warm=True, with_priors=False)
             keep = new
         if masked:
-            sol = replace(sol, residuals=sol.residuals[keep])
+            sol = replace(sol, residuals=np.take(sol.residuals, np.flatnonzero(keep), axis=0))
         return keep, sol
 
     def _inliers(self, d2: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -360,16 +362,18 @@ class _Fitter:
                           None if self.quat_b is None else self.quat_b[gone], self.whiten_b,
                           self.whiten_a, None if self.scale is None else self.scale[gone])
         x_gone = InputState._pair_last(x.pos_t[:, ~stay], x.quat_t[:, ~stay])
+        stay_idx = np.flatnonzero(stay)
         sums = sol.sums
         S, b, cost, _, _, _ = tls_linearization(removed, sol.params, x_gone, sums.lam)
         n_fit = x.pos_t.shape[1]
 
         def dx(delta):
-            return structured.back_substitute(n_fit, sums.factors, delta)[:, stay]
+            return np.take(structured.back_substitute(n_fit, sums.factors, delta), stay_idx,
+                           axis=1)
 
         seed = (TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, sums.factors), dx)
-        start = InputState._pair_last(np.ascontiguousarray(x.pos_t[:, stay]),
-                                      np.ascontiguousarray(x.quat_t[:, stay]))
+        start = InputState._pair_last(np.take(x.pos_t, stay_idx, axis=1),
+                                      np.take(x.quat_t, stay_idx, axis=1))
         problem = self.problem(new, with_priors=False)
         out = solve_tls(problem, sol.params, max_iterations=self.settings.max_iterations,
                         xtol=XTOL, inputs=start, damping=sums.lam, seed=seed)
@@ -397,7 +401,8 @@ class _Fitter:
                         xtol=XTOL,
                         normal=(sol.info + H, sol.gradient + g, sol.chi2 + cost,
                                 sol.residuals))
-        check_observability(out.info, out.params, self.quat_a[new])
+        check_observability(out.info, out.params,
+                            np.take(self.quat_a, np.flatnonzero(new), axis=0))
         return out
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:

@@ -557,6 +557,8 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
         Largest share of the φ damping in a diagonal element of S, max_j λ·V_jj / S_jj.
 
     """
+    if problem.weights is not None:
+        raise ValueError('TLS takes subsets of the pairs, not pair weights (Problem.weights)')
     residuals = (_pair_last(problem.n, problem.spec.n_res), _pair_last(problem.n, 6))
     schur = structured.tls_schur if structured.applies(problem) else _tls_schur
     S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
