@@ -176,7 +176,9 @@ def profile_split(pid: int, seconds: float, rate: int = 200) -> dict | None:
     for stack, n in stacks.items():
         leaves[stack.rsplit(';', 1)[-1]] += n
     total = sum(stacks.values()) or 1
-    return {'samples': sum(stacks.values()), 'shares': split_stacks(stacks),
+    return {'samples': sum(stacks.values()), 'rate_hz': rate, 'seconds': max(1, int(seconds)),
+            'busy_python_seconds': sum(stacks.values()) / rate,
+            'shares': split_stacks(stacks),
             'top_frames': {f: n / total for f, n in leaves.most_common(TOP)}}
 
 
