@@ -144,6 +144,10 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
                 # the last diagnostics tick may lag the last message by up to 1 s
                 wall_streaming = min(wall, publisher_stats.get('wall_s', wall) + 1.0)
                 status = status or wait_for_diagnostics(s, timeout=3.0)
+                if status is None:
+                    tail = (folder / 'node.log').read_text().strip().splitlines()[-3:]
+                    raise RuntimeError(f'no /diagnostics from coreg_node (exit code '
+                                       f'{node.poll()}); its log ends: {" | ".join(tail)}')
                 values = diagnostics_values(status)
         finally:
             if publisher is not None and publisher.poll() is None:
