@@ -33,8 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coreg_ros.bag.posebag import BULK_ENV, read_pose_bag, write_pose_bag  # noqa: E402
 from coreg_ros.core.types import PoseStream  # noqa: E402
+from coreg_ros.files.bag.posebag import BULK_ENV, read_pose_bag, write_pose_bag  # noqa: E402
 
 #: Goals of issue 15 (read path).
 GOAL_READ_MSG_PER_S = 1_000_000

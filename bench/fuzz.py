@@ -358,7 +358,7 @@ class Material:
 
 
 def _material(root: Path, seed: int) -> Material:
-    from coreg_ros.bag.posebag import write_pose_bag
+    from coreg_ros.files.bag.posebag import write_pose_bag
     from coreg_ros.sim import simulate_recording
 
     rec = simulate_recording(int(seed) % 2**31, SIM_DURATION)
@@ -1117,7 +1117,7 @@ def _judge_signal_result(case: dict, res: dict, workdir: Path) -> None:
     """Results the fuzzer knows are wrong: a bag said written that is not, a node losing data."""
     code, out = res.get('code'), res.get('output', '')
     if case['target'] == 'record' and 'wrote ' in out:
-        from coreg_ros.bag.posebag import read_pose_bag
+        from coreg_ros.files.bag.posebag import read_pose_bag
         try:
             got = read_pose_bag(workdir / 'rec', ['/device_a/pose', '/device_b/pose'])
             res['recorded'] = {t: len(s) for t, s in got.items()}

@@ -50,7 +50,7 @@ def write_spec(path: Path, streams: dict) -> None:
 
 def _serialised(spec) -> tuple[list, list, list]:
     """Return (topics, per-message topic index, per-message CDR bytes) in stamp order."""
-    from coreg_ros.bag.cdr_pose import encode_pose_stamped
+    from coreg_ros.files.bag.cdr_pose import encode_pose_stamped
     topics, which, data, stamps = [], [], [], []
     for k in range(int(spec['n'])):
         topics.append(str(spec[f't{k}_name']))

@@ -30,10 +30,10 @@ import scipy  # noqa: E402
 
 from bench import estimator_bench as eb  # noqa: E402
 from bench import montecarlo as mc  # noqa: E402
-from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag  # noqa: E402
 from coreg_ros.core import quaternion as quat  # noqa: E402
 from coreg_ros.core.pairing import pair_streams  # noqa: E402
 from coreg_ros.core.types import PoseStream  # noqa: E402
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'
 TARGETS = {

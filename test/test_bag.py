@@ -1,4 +1,4 @@
-"""Tests of coreg_ros.bag: real rosbag2 recordings written and read back in tmp_path."""
+"""Tests of coreg_ros.files.bag: real rosbag2 recordings written and read back in tmp_path."""
 
 
 import numpy as np
@@ -6,10 +6,10 @@ import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from coreg_ros.bag import POSE_STAMPED, list_topics, read_pose_bag, write_pose_bag
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.types import PoseStream
+from coreg_ros.files.bag import POSE_STAMPED, list_topics, read_pose_bag, write_pose_bag
 
 STORAGES = ['sqlite3', 'mcap']
 STORAGE_FILE = {'sqlite3': '.db3', 'mcap': '.mcap'}
@@ -260,7 +260,7 @@ def test_hundred_thousand_messages_round_trip(tmp_path, storage):
 @pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
 @pytest.mark.parametrize('damage', ['no_metadata', 'truncated'])
 def test_salvage_recovers_what_a_damaged_bag_holds(tmp_path, storage, damage):
-    from coreg_ros.bag.fixbag import fix_bag
+    from coreg_ros.files.bag.fixbag import fix_bag
 
     # large enough for several mcap chunks (1 MiB each) and sqlite3 pages
     a, b = make_stream(20000, 1), make_stream(10000, 2)

@@ -14,11 +14,11 @@ import pytest
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from coreg_ros.bag import POSE_STAMPED, read_pose_bag, write_pose_bag
-from coreg_ros.bag.bulk_read import fetch
-from coreg_ros.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
 from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
+from coreg_ros.files.bag import POSE_STAMPED, read_pose_bag, write_pose_bag
+from coreg_ros.files.bag.bulk_read import fetch
+from coreg_ros.files.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 SUFFIX = {'sqlite3': '.db3', 'mcap': '.mcap'}

@@ -21,9 +21,9 @@ from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
 from coreg_ros.core.covariance import Prior, joint_pose_covariance
 from coreg_ros.core.models import SPECS, Parameters
 from coreg_ros.core.pipeline import calibrate_streams
-from coreg_ros.core.result_io import result_to_dict
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import UncertainPose
+from coreg_ros.files.results import result_to_dict
 from coreg_ros.sim import simulate_pairs, simulate_recording
 
 MODELS = tuple(SPECS)

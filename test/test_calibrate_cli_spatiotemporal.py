@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from coreg_ros.bag.posebag import write_pose_bag
 from coreg_ros.cli.main import main
 from coreg_ros.cli.options import EXIT_INCONSISTENT
 from coreg_ros.core.so3 import invert_poses
+from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording
 
 A, B = '/device_a/pose', '/device_b/pose'

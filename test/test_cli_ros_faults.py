@@ -18,7 +18,7 @@ from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import PY, run_cli
 from visualization_msgs.msg import Marker, MarkerArray
 
-from coreg_ros.bag.posebag import write_pose_bag
+from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.ros.convert import make_pose_stamped
 from coreg_ros.ros.node import LATCHED_QOS
 from coreg_ros.ros.uncertainty_outputs import FUSED_QOS, MARKER_QOS

@@ -7,7 +7,6 @@ same files); here the pure rules, quickly.
 
 import pytest
 
-from coreg_ros.cli.files import load_parameters
 from coreg_ros.core.config_schema import (
     DEFAULTS,
     check_parameters,
@@ -17,6 +16,7 @@ from coreg_ros.core.config_schema import (
 )
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.settings import Settings, settings_from_mapping
+from coreg_ros.files.parameters import load_parameters
 
 
 def test_every_key_has_a_type_and_an_example():

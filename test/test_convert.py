@@ -5,12 +5,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coreg_ros.bag.posebag import read_pose_bag
-from coreg_ros.cli.convert import read_pose_csv
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.so3 import invert_poses
+from coreg_ros.files.bag.posebag import read_pose_bag
+from coreg_ros.files.csv_poses import read_pose_csv
 from coreg_ros.sim import simulate_recording
 
 A = '/device_a/pose'

@@ -5,7 +5,6 @@ import json
 import numpy as np
 import pytest
 
-from coreg_ros.bag.posebag import write_pose_bag
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.directions import (
@@ -17,6 +16,7 @@ from coreg_ros.core.directions import (
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
+from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording
 
 A = '/device_a/pose'

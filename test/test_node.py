@@ -17,10 +17,10 @@ from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import run_cli, wait_counts
 import yaml
 
-from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.core.pipeline import calibrate_streams
-from coreg_ros.core.result_io import result_to_dict
 from coreg_ros.core.settings import Settings
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
+from coreg_ros.files.results import result_to_dict
 from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose
 from coreg_ros.ros.tools import (
     PLAY_QOS,

@@ -31,9 +31,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import wait_counts
 
-from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.ros import persistence
 from coreg_ros.ros.convert import make_pose_stamped, stamp_to_ns
 from coreg_ros.ros.tools import (

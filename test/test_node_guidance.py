@@ -14,10 +14,10 @@ from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import PY, run_cli
 from std_msgs.msg import Bool
 
-from coreg_ros.bag.posebag import write_pose_bag
 from coreg_ros.core import guidance as gd
 from coreg_ros.core import watchdog as wd
 from coreg_ros.core.types import PoseStream
+from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.ros.live_checks import STALE_QOS
 from coreg_ros.ros.tools import LATCHED_QOS, wait_for_message, wait_for_result
 from coreg_ros.ros.uncertainty_outputs import FUSED_QOS

@@ -14,8 +14,8 @@ import pytest
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import wait_counts
 
-from coreg_ros.bag.cdr_pose import encode_pose_stamped
-from coreg_ros.bag.posebag import read_pose_bag
+from coreg_ros.files.bag.cdr_pose import encode_pose_stamped
+from coreg_ros.files.bag.posebag import read_pose_bag
 from coreg_ros.ros.buffer import REASONS, StreamBuffer
 from coreg_ros.ros.node import PLAIN_ENV
 from coreg_ros.ros.raw_intake import RawIntake

@@ -13,7 +13,7 @@ from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import run_cli, wait_counts
 from test_spatiotemporal import _with_outliers
 
-from coreg_ros.bag.posebag import write_pose_bag
+from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.ros.tools import wait_for_diagnostics, wait_for_result
 from coreg_ros.sim import parse_effect, simulate_recording
 

@@ -18,8 +18,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import montecarlo as mc  # noqa: E402
 from coreg_ros import parallel  # noqa: E402
-from coreg_ros.bag.posebag import write_pose_bag  # noqa: E402
 from coreg_ros.cli.main import build_parser, main  # noqa: E402
+from coreg_ros.files.bag.posebag import write_pose_bag  # noqa: E402
 from coreg_ros.parallel import CaseFailure, SchedulerError, run_cases  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
 from coreg_ros.sim.effect_library import parse_effect  # noqa: E402

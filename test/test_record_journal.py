@@ -10,7 +10,7 @@ import pytest
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import run_cli
 
-from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.sim import simulate_recording
 
 pytestmark = pytest.mark.ros

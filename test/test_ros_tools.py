@@ -14,9 +14,9 @@ from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import PY, run_cli
 import yaml
 
-from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.core.settings import settings_from_mapping
 from coreg_ros.core.types import UncertainPose
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import REASONS, StreamBuffer
 from coreg_ros.ros.convert import (

@@ -115,15 +115,15 @@ def cmd_batch(args) -> int:
     import json
 
     from coreg_ros.cli.diagnose import case_progress
-    from coreg_ros.cli.files import write_json
     from coreg_ros.cli.options import config_frames, settings_from_args
+    from coreg_ros.files.atomic import write_json
     from coreg_ros.parallel import CaseFailure, run_cases
 
     root = Path(args.folder)
     bags = find_bags(root)
     settings = settings_from_args(args)
     if args.what == 'calibrate':
-        from coreg_ros.core.result_io import load_prior
+        from coreg_ros.files.results import load_prior
         prior = load_prior(args.prior) if args.prior else None
         fn, extra = calibrate_one, (settings, prior, config_frames(args),
                                     not args.no_direction_check)

@@ -84,11 +84,11 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
         the wrong way round when that explains it).
 
     """
-    from coreg_ros.bag.posebag import read_pose_bag
     from coreg_ros.core.directions import check_directions
     from coreg_ros.core.errors import InconsistentDataError
     from coreg_ros.core.pipeline import calibrate_streams
-    from coreg_ros.core.result_io import result_to_dict
+    from coreg_ros.files.bag.posebag import read_pose_bag
+    from coreg_ros.files.results import result_to_dict
 
     streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
     stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
@@ -119,9 +119,9 @@ def cmd_calibrate(args) -> int:
     """Calibrate a recording offline and print (and optionally write) the result."""
     import json
 
-    from coreg_ros.cli.files import write_json
-    from coreg_ros.core.result_io import load_prior
     from coreg_ros.core.result_text import format_result
+    from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.results import load_prior
     from coreg_ros.report.calibration_report import points_from_flat
 
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr

@@ -65,8 +65,8 @@ def diagnose_bag(bag, settings, progress=None):
         and the bag path added).
 
     """
-    from coreg_ros.bag.posebag import read_pose_bag
     from coreg_ros.core.diagnosis import diagnose_streams
+    from coreg_ros.files.bag.posebag import read_pose_bag
 
     streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
     diag = diagnose_streams(streams[settings.topic_a], [streams[t] for t in settings.topic_b],
@@ -79,9 +79,9 @@ def diagnose_bag(bag, settings, progress=None):
 
 def cmd_diagnose(args) -> int:
     """Diagnose the gap between a recording and the model with the stated noise."""
-    from coreg_ros.cli.files import write_json
     from coreg_ros.cli.options import settings_from_args
     from coreg_ros.core.diagnosis.text import format_diagnosis
+    from coreg_ros.files.atomic import write_json
 
     settings = settings_from_args(args)
     progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
@@ -136,7 +136,7 @@ def report_failures(command: str, failed: list) -> None:
 
 def cmd_validate(args) -> int:
     """Score the diagnosis on simulated recordings with hidden effects."""
-    from coreg_ros.cli.files import write_json
+    from coreg_ros.files.atomic import write_json
     from coreg_ros.parallel import CaseFailure, failures
     from coreg_ros.sim.validation import _jsonable, format_validation, validate
 

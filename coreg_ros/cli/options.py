@@ -62,8 +62,8 @@ def offset_or_auto(text: str):
 
 def settings_from_args(args):
     """Build Settings from --config (if any), overridden by the flags given."""
-    from coreg_ros.cli.files import load_parameters
     from coreg_ros.core.settings import Settings, settings_from_mapping
+    from coreg_ros.files.parameters import load_parameters
 
     settings = Settings()
     if args.config:
@@ -93,7 +93,7 @@ def config_frames(args) -> tuple:
     from coreg_ros.core.config_schema import NODE_DEFAULTS
     values = {}
     if getattr(args, 'config', None):
-        from coreg_ros.cli.files import load_parameters
+        from coreg_ros.files.parameters import load_parameters
         values = load_parameters(args.config)
     frames = tuple(values.get(k, NODE_DEFAULTS[k]) for k in ('frame_base_a', 'frame_base_b'))
     return frames if all(isinstance(f, str) and f for f in frames) else None

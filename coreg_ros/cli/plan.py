@@ -50,10 +50,10 @@ def register(subparsers) -> None:
 
 def _motion_from_bag(args, settings, cov_a, cov_b):
     """A's poses at the pair instants, the pair rate, and a calibration estimate if possible."""
-    from coreg_ros.bag.posebag import list_topics, read_pose_bag
     from coreg_ros.core.calibrate import calibrate
     from coreg_ros.core.errors import CoregError, InputError
     from coreg_ros.core.pipeline import pair_for
+    from coreg_ros.files.bag.posebag import list_topics, read_pose_bag
 
     topics = list_topics(args.bag)
     if settings.topic_a not in topics:
@@ -89,10 +89,10 @@ def _motion_from_bag(args, settings, cov_a, cov_b):
 
 def cmd_plan(args) -> int:
     """Predict the calibration accuracy and rank candidate additions to the motion."""
-    from coreg_ros.cli.files import write_json
     from coreg_ros.core.calibrate import noise_covariance
     from coreg_ros.core.planning import plan_recording
     from coreg_ros.core.settings import Settings
+    from coreg_ros.files.atomic import write_json
     from coreg_ros.sim import make_motion, random_truth
 
     settings = Settings(model=args.model, sigma_a=tuple(args.sigma_a),

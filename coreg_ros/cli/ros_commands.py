@@ -22,7 +22,7 @@ SERVICES = ('calibrate', 'reset', 'save_samples')
 
 def cmd_play(args) -> int:
     """Publish a bag on live topics with its original timing."""
-    from coreg_ros.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
+    from coreg_ros.files.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
     from coreg_ros.ros.tools import RosSession, play_streams
 
     topics = args.topics or [t for t, ty in list_topics(args.bag).items() if POSE_STAMPED in ty]
@@ -41,8 +41,8 @@ def cmd_play(args) -> int:
 
 def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
-    from coreg_ros.bag.posebag import write_pose_bag
     from coreg_ros.core.errors import BagError
+    from coreg_ros.files.bag.posebag import write_pose_bag
     from coreg_ros.ros.persistence import SampleJournal, read_journal
     from coreg_ros.ros.tools import RosSession, record_streams
 

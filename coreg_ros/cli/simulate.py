@@ -11,8 +11,8 @@ from coreg_ros.core.types import MODELS
 
 def cmd_simulate(args) -> int:
     """Write a simulated two-device recording and its ground truth beside it."""
-    from coreg_ros.bag.posebag import write_pose_bag
-    from coreg_ros.cli.files import write_json
+    from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.bag.posebag import write_pose_bag
     from coreg_ros.sim import simulate_recording
 
     kwargs = {}

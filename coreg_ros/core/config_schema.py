@@ -3,9 +3,9 @@ The schema of the parameter files: every key of ``config/coreg.yaml``, its type 
 
 One pure function, ``check_parameters``, decides which parameter mappings are accepted, for the
 node (its ROS parameter overrides, ``coreg_ros.ros.parameters``) and for the command line
-(``coreg --config``, ``coreg_ros.cli.files.load_parameters``) alike, so both accept and refuse
-the same files. The types come from the defaults: those of ``Settings`` for the calibration keys
-and ``NODE_DEFAULTS`` for the keys of the node only.
+(``coreg --config``, ``coreg_ros.files.parameters.load_parameters``) alike, so both accept and
+refuse the same files. The types come from the defaults: those of ``Settings`` for the
+calibration keys and ``NODE_DEFAULTS`` for the keys of the node only.
 
 A value of the wrong type is refused with one line naming the key, the expected type and an
 example; an integer is accepted where a number with a decimal point is expected (ROS would

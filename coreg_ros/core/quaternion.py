@@ -4,7 +4,7 @@ Unit quaternions in (w, x, y, z) order, rotation matrices and the reduced quater
 Every function is vectorised over leading axes: a quaternion argument has shape ``(..., 4)``
 in (w, x, y, z) order (Hamilton convention, active rotation), a rotation matrix ``(..., 3, 3)``,
 a rotation vector ``(..., 3)`` in radians. ROS messages carry (x, y, z, w); that order appears
-only at the message boundary (``coreg_ros.bag`` and ``coreg_ros.ros``).
+only at the message boundary (``coreg_ros.files.bag`` and ``coreg_ros.ros``).
 
 References
 ----------

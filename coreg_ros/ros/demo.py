@@ -18,8 +18,8 @@ import tempfile
 import time
 from typing import Optional
 
-from coreg_ros.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
 from coreg_ros.core.errors import CoregError
+from coreg_ros.files.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
 from coreg_ros.ros.domain import reserve_domain_id
 from coreg_ros.ros.tools import (
     RosSession,

@@ -67,8 +67,8 @@ from std_srvs.srv import Trigger
 
 from coreg_ros.core.errors import BagError, ConfigError, CoregError
 from coreg_ros.core.pipeline import calibrate_streams, pair_for
-from coreg_ros.core.result_io import load_prior
 from coreg_ros.core.settings import Settings
+from coreg_ros.files.results import load_prior
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import REASONS, GapCounter, StreamBuffer, reason_hint
 from coreg_ros.ros.convert import ns_to_stamp, pose_stamped_values, uncertain_pose_to_msg

@@ -248,7 +248,7 @@ def check_params_files(args: list[str], node_name: str) -> None:
     Check the parameter files of a command line before ROS parses them.
 
     ROS refuses an unparseable file, or a value of the wrong type, with a long traceback; this
-    runs the check of ``coreg --config`` (``cli.files.load_parameters``) on each file with a
+    runs the check of ``coreg --config`` (``files.parameters.load_parameters``) on each file with a
     section for ``node_name`` first. Unknown keys are not reported here (the node reports them
     from its overrides).
 
@@ -258,7 +258,7 @@ def check_params_files(args: list[str], node_name: str) -> None:
         One line naming the file, the key, the expected type and an example.
 
     """
-    from coreg_ros.cli.files import load_parameters
+    from coreg_ros.files.parameters import load_parameters
 
     for path in params_files(args):
         load_parameters(path, node_name, warn=lambda line: None)

@@ -34,10 +34,10 @@ from typing import Optional
 import numpy as np
 import yaml
 
-from coreg_ros.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.result_io import pose_from_dict
 from coreg_ros.core.types import PoseStream, UncertainPose
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
+from coreg_ros.files.results import pose_from_dict
 
 RESULT_FILE = 'result.yaml'
 #: Keys of the settings a stored result depends on (besides the frames).
@@ -89,7 +89,7 @@ def save_result(storage_dir: str, result_dict: dict, frames: dict, settings: dic
     storage_dir : str
         Directory (created if missing).
     result_dict : dict
-        ``coreg_ros.core.result_io.result_to_dict`` of the result.
+        ``coreg_ros.files.results.result_to_dict`` of the result.
     frames, settings : dict
         Frame ids of the published poses and the calibration settings used.
     name : str
@@ -265,7 +265,7 @@ def read_journal(folder, topics) -> dict[str, PoseStream]:
 
 
 def _topics_of(path: Path) -> list[str]:
-    from coreg_ros.bag.posebag import list_topics
+    from coreg_ros.files.bag.posebag import list_topics
     return list(list_topics(path))
 
 

@@ -7,7 +7,7 @@ a node taking one message per callback loses messages beyond about 2 x 3 kHz. He
 subscriptions are ``raw`` (the callback gets the CDR bytes), and the first callback of a wake
 takes *every* message waiting on *every* pose subscription (``take_message`` in a loop: a
 C call and two list appends per message), decodes each topic's batch with one numpy call
-(``coreg_ros.bag.cdr_pose``), validates and stores it with ``StreamBuffer.push_many``, and
+(``coreg_ros.files.bag.cdr_pose``), validates and stores it with ``StreamBuffer.push_many``, and
 then pauses ``PACE_S``, so the executor wakes at most ~1/``PACE_S`` times a second whatever
 the message rate; the messages wait in the middleware's history meanwhile (``SUB_DEPTH`` of
 the node is sized for that and for the GIL pauses of the other thread).
@@ -29,7 +29,7 @@ import time
 from geometry_msgs.msg import PoseStamped
 from rclpy.serialization import deserialize_message
 
-from coreg_ros.bag.cdr_pose import decode_pose_stamped
+from coreg_ros.files.bag.cdr_pose import decode_pose_stamped
 from coreg_ros.ros.convert import pose_stamped_values
 
 #: Seconds the stream thread pauses after a burst: bounds the executor's wakes (and so its

@@ -52,8 +52,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream, pending_pairs
-from coreg_ros.core.result_io import result_to_dict
 from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
+from coreg_ros.files.results import result_to_dict
 from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
 
 #: Samples of A and of each B topic looked at per tick (the newest ones).

@@ -208,7 +208,7 @@ def salvage_streams(path: Union[str, os.PathLike]) -> Salvaged:
         If there is no storage file, or no PoseStamped message could be read.
 
     """
-    from coreg_ros.bag.posebag import _typestore
+    from coreg_ros.files.bag.posebag import _typestore
 
     store = _typestore()
     out = Salvaged()

@@ -28,13 +28,13 @@ import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from ruamel.yaml import YAML
 
-from coreg_ros.bag import bulk_read, bulk_write
-from coreg_ros.bag.cdr_pose import decode_records, encode_records
-from coreg_ros.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
-from coreg_ros.bag.per_message import describe as _describe
-from coreg_ros.bag.per_message import typestore as _typestore
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.types import PoseStream
+from coreg_ros.files.bag import bulk_read, bulk_write
+from coreg_ros.files.bag.cdr_pose import decode_records, encode_records
+from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
+from coreg_ros.files.bag.per_message import describe as _describe
+from coreg_ros.files.bag.per_message import typestore as _typestore
 
 #: Storage names accepted by ``write_pose_bag`` (the rosbag2 storage identifiers).
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}

@@ -1,44 +1,10 @@
-"""
-Small file helpers of the front ends: atomic writes and the ROS parameter YAML.
-
-Results are written atomically (temporary file in the same directory, then ``os.replace``), so a
-crash never leaves a half-written result under the final name.
-"""
+"""ROS parameter YAML (``config/coreg.yaml``): the node and ``coreg --config`` read the same."""
 
 from __future__ import annotations
 
-import json
-import os
-from pathlib import Path
 import sys
-import tempfile
 
-from coreg_ros.core.errors import ConfigError, CoregError
-
-
-def write_atomic(path, text: str) -> Path:
-    """Write ``text`` to ``path`` atomically; returns the path."""
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-        with os.fdopen(fd, 'w', encoding='utf-8') as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual mode
-        os.replace(tmp, path)
-    except OSError as e:
-        raise CoregError(f'cannot write {path}: {e.strerror}; check the directory') from e
-    return path
-
-
-def write_json(path, data) -> Path:
-    """Write ``data`` as indented JSON, atomically."""
-    return write_atomic(path, json.dumps(data, indent=2) + '\n')
-
+from coreg_ros.core.errors import ConfigError
 
 #: Warnings already printed (a file is read more than once per command).
 _WARNED: set = set()

@@ -3,7 +3,7 @@ Repair a PoseStamped recording: sort by header stamp, drop repeated stamps, spli
 
 ``fix_bag`` is ``coreg fix-bag``: the coreg way to do what the pairing's refusals ask for
 (out-of-order or repeated stamps, a clock jump), reading and writing with
-``coreg_ros.bag.posebag`` (so the result is an ordinary rosbag2, either storage format).
+``coreg_ros.files.bag.posebag`` (so the result is an ordinary rosbag2, either storage format).
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from coreg_ros.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag, write_pose_bag
 from coreg_ros.core.errors import BagError, ConfigError
 from coreg_ros.core.types import PoseStream
+from coreg_ros.files.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag, write_pose_bag
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,7 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
     storage : {'sqlite3', 'mcap'}
         Storage of the new bag(s).
     salvage : bool
-        Read the storage file(s) directly (``coreg_ros.bag.salvage``): a recording cut short
+        Read the storage file(s) directly (``coreg_ros.files.bag.salvage``): a recording cut short
         (no metadata.yaml, a truncated mcap or sqlite3 file) gives what it still holds.
 
     Returns
@@ -130,7 +130,7 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
                           f'{split_at_jump}')
     stopped = []
     if salvage:
-        from coreg_ros.bag.salvage import salvage_streams
+        from coreg_ros.files.bag.salvage import salvage_streams
         found = salvage_streams(src)
         streams, stopped = found.streams, found.stopped
         topics, skipped = list(streams), []
