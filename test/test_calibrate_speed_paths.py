@@ -69,6 +69,7 @@ def test_fast_and_plain_paths_agree(monkeypatch, model, method, seed):
     noisy = _with_outliers(noisy, rng)
     # a subsample start at this size (every 4th pair), as for 1M pairs with the default
     monkeypatch.setattr(cal, 'SUBSAMPLE', n // 4)
+    monkeypatch.setattr(cal, 'SUBSAMPLE_TLS', n // 8)
     settings = Settings(model=model, method=method, sigma_a=SIGMA_A, sigma_b=SIGMA_B)
     fast, plain = _fit_both(monkeypatch, noisy, settings)
     assert fast.success and plain.success
@@ -91,6 +92,7 @@ def test_fast_and_plain_paths_agree_with_a_prior(monkeypatch):
     noisy, _, truth = simulate_pairs(rng, 4000, 'full_pose', sigma_a=SIGMA_A, sigma_b=SIGMA_B)
     noisy = _with_outliers(noisy, rng)
     monkeypatch.setattr(cal, 'SUBSAMPLE', 1000)
+    monkeypatch.setattr(cal, 'SUBSAMPLE_TLS', 1000)
     prior = Prior(base_to_base=UncertainPose(truth.p0, truth.q0, np.diag([1e-4] * 3 + [1e-5] * 3)))
     settings = Settings(model='full_pose', method='tls', sigma_a=SIGMA_A, sigma_b=SIGMA_B)
     fast = calibrate(noisy, settings, prior=prior)

@@ -165,8 +165,11 @@ MAX_ROUNDS = 10
 XTOL = 5e-3
 
 #: Pairs the start (closed form, then OLS) uses at most, every k-th pair, before the fit of
-#: all pairs (see ``_Fitter._start``).
+#: all pairs (see ``_Fitter._start``): for OLS on all pairs, a start close enough that it
+#: converges in two passes; for TLS, whose first steps from the measured inputs are many σ
+#: anyway, fewer (the same three TLS passes at 100k and 1M pairs from either size).
 SUBSAMPLE = 100_000
+SUBSAMPLE_TLS = 25_000
 #: First LM damping of a TLS refit that starts at the last fit's inputs.
 WARM_DAMPING = 1e-9
 #: The fast paths, each of which gives the answer of the plain one (to within the stopping
@@ -258,7 +261,8 @@ class _Fitter:
         needs three linearisations from either start.) Its observability is not checked
         here: the fit of all pairs checks it.
         """
-        stride = problem.n // SUBSAMPLE if FAST_START else 0
+        size = SUBSAMPLE_TLS if self.settings.method == 'tls' else SUBSAMPLE
+        stride = problem.n // size if FAST_START else 0
         if stride < 2:
             return initialize(self.spec, problem.pos_a, problem.quat_a, problem.pos_b,
                               problem.quat_b), False
