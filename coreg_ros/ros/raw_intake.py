@@ -1,9 +1,10 @@
 """
 The node's pose intake: serialized messages taken in bursts, decoded and validated in bulk.
 
-Why: rclpy's executor costs some 50-100 us of Python per callback (wait set, task, guard
-conditions), and deserialising a PoseStamped into a Python message another ~30 us: measured,
-a node taking one message per callback loses messages beyond about 2 x 3 kHz. Here the
+Why (bench/bench_node.py, py-spy): with one message per callback, rclpy's executor costs
+some 80 us of Python per message (wait set, task, guard conditions) and taking and
+deserialising it into a Python message another ~40 us; such a node needs ~0.9 of a core at
+2 x 2 kHz and loses 8-40 % of 2 x 5 kHz. Here the
 subscriptions are ``raw`` (the callback gets the CDR bytes), and the first callback of a wake
 takes *every* message waiting on *every* pose subscription (``take_message`` in a loop: a
 C call and two list appends per message), decodes each topic's batch with one numpy call
