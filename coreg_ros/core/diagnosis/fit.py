@@ -243,17 +243,29 @@ class Model:
             st, Jz = ev.st, ev.Jz
             r, J = self._weighted(state, st, Jz)
             obj += -2.0 * float(np.sum(vm.loglik(state.var, st)))
-            Jf = J.reshape(-1, p)
-            H += Jf.T @ Jf
-            g += Jf.T @ r.reshape(-1)
-            if folds is not None:
+            if folds is None:
+                Jf = J.reshape(-1, p)
+                H += Jf.T @ Jf
+                g += Jf.T @ r.reshape(-1)
+            else:
+                # the blocks' normal equations sum to the whole: each product is formed once
                 fo = folds[pos:pos + len(ch)]
+                rest = np.ones(len(ch), dtype=bool)
                 for k in range(n_folds):
                     sel = fo == k
                     if sel.any():
+                        rest &= ~sel
                         Js = J[sel].reshape(-1, p)
-                        Hk[k] += Js.T @ Js
-                        gk[k] += Js.T @ r[sel].reshape(-1)
+                        hk = Js.T @ Js
+                        gs = Js.T @ r[sel].reshape(-1)
+                        Hk[k] += hk
+                        gk[k] += gs
+                        H += hk
+                        g += gs
+                if rest.any():
+                    Js = J[rest].reshape(-1, p)
+                    H += Js.T @ Js
+                    g += Js.T @ r[rest].reshape(-1)
             parts.append(st)
             if keep:
                 kept.append(ev)
