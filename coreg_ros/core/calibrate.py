@@ -334,7 +334,9 @@ class _Fitter:
                 sol = self.solve(new, sol.params, warm=True, with_priors=False)
             keep = new
         if masked:
-            sol = replace(sol, residuals=np.take(sol.residuals, np.flatnonzero(keep), axis=0))
+            # the residuals are stored pair-last (m, N): gather along the contiguous rows
+            res = np.take(sol.residuals.T, np.flatnonzero(keep), axis=1).T
+            sol = replace(sol, residuals=res)
         return keep, sol
 
     def _inliers(self, d2: np.ndarray, keep: np.ndarray) -> np.ndarray:
