@@ -32,7 +32,11 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 #: Rows per SQLite query: bounds the concatenated blob (SQLite's limit is 1e9 bytes).
-_SQLITE_PAGE = 1 << 18
+_SQLITE_PAGE = 1 << 20
+
+#: Topic ids read in bulk are below this; a row's blob size and topic id travel as
+#: ``size * _TOPIC_ID_LIMIT + topic_id``.
+_TOPIC_ID_LIMIT = 1 << 20
 
 #: MCAP opcodes and the fixed part of a Message record after opcode and length:
 #: channel_id u16, sequence u32, log_time u64, publish_time u64.
@@ -96,7 +100,7 @@ def _fetch(reader: Any, connections: Sequence[Any]) -> dict[str, Fetched]:
         if not cids:
             continue
         kind = type(storage).__name__
-        if kind == 'Sqlite3Reader':
+        if kind in ('Sqlite3Reader', '_LightSqlite3Reader'):
             got = _sqlite_storage(storage, cids)
         elif kind == 'McapReader':
             got = _mcap_storage(storage, cids)
@@ -152,60 +156,101 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
         # group_concat passes blobs through text, which is byte-exact only in UTF-8 databases.
         raise Unsupported(f'database encoding {encoding}')
     ids = sorted(cids)
-    # The rows in rosbags' order, walked like rosbags does: through the timestamp index (so a
-    # damaged index fails here as it fails there), one keyset page at a time. Per page SQLite
-    # concatenates the blobs and, as text, the log times, row ids and topic ids, and gives
-    # each connection's smallest and largest blob size.
-    size_cols = ''.join(f', min(length(data)) FILTER (WHERE topic_id={int(c)}), '
-                        f'max(length(data)) FILTER (WHERE topic_id={int(c)})' for c in ids)
-    rows = (f"SELECT data, timestamp, id, topic_id FROM messages "
-            f"WHERE topic_id IN ({','.join('?' * len(ids))}) AND (timestamp, id) > (?, ?) "
-            f"ORDER BY timestamp, id LIMIT {_SQLITE_PAGE}")
-    query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
-             f"group_concat(id), group_concat(topic_id), count(*){size_cols} FROM ({rows})")
+    if ids[0] <= 0 or ids[-1] >= _TOPIC_ID_LIMIT:
+        raise Unsupported('topic ids out of range')
     parts: dict[str, list[Fetched]] = {t: [] for t in cids.values()}
-    after = (-2**63, -2**63)
-    while True:
-        args = (*ids, *after)
-        (blob, ts_text, id_text, tid_text, count, *limits), = db.execute(query, args).fetchall()
-        if not count:
-            break
-        log_ns, rid, tid = (np.fromstring(t, dtype=np.int64, sep=',')
-                            for t in (ts_text, id_text, tid_text))
-        if any(a.size != count for a in (log_ns, rid, tid)):
-            raise Unsupported('log times, row ids or topic ids did not parse')
-        # The aggregate kept the subquery's order (checked, not assumed).
-        if (np.any(log_ns[1:] < log_ns[:-1])
-                or np.any((log_ns[1:] == log_ns[:-1]) & (rid[1:] <= rid[:-1]))
-                or (log_ns[0], rid[0]) <= after):
-            raise Unsupported('rows did not come in (timestamp, id) order')
-        after = (int(log_ns[-1]), int(rid[-1]))
-        fixed = {c: limits[2 * k] for k, c in enumerate(ids)
-                 if limits[2 * k] is not None and limits[2 * k] == limits[2 * k + 1]}
-        if len(fixed) == len(ids):
-            size = np.zeros(max(ids) + 1, np.int64)
-            size[list(fixed)] = list(fixed.values())
-            size = size[tid]
-        else:  # some connection's sizes vary in this page: ask for every size
-            (text,), = db.execute(f'SELECT group_concat(length(data)) FROM ({rows})',
-                                  args).fetchall()
-            size = np.fromstring(text, dtype=np.int64, sep=',')
-        if size.size != count or not isinstance(blob, bytes) or len(blob) != int(size.sum()):
-            raise Unsupported('concatenated blobs have the wrong size')
-        mem = np.frombuffer(blob, dtype=np.uint8)
+    for lo, hi in _sqlite_pages(db):
+        page = _sqlite_page(db, ids, lo, hi)
+        if page is None:
+            continue
+        log_ns, tid, size, mem = page
         starts = np.cumsum(size) - size
         for topic in parts:
             topic_ids = [c for c, t in cids.items() if t == topic]
-            pick = np.isin(tid, topic_ids)
-            if not pick.any():
+            pick = np.isin(tid, topic_ids) if len(cids) > 1 else slice(None)
+            mine = size[pick]
+            if not mine.size:
                 continue
             block = None
-            if all(c in fixed for c in topic_ids) and len({fixed[c] for c in topic_ids}) == 1:
-                block = _gather(mem, starts[pick], fixed[topic_ids[0]])
+            if mine.size == size.size and np.all(mine == mine[0]):
+                block = mem.reshape(mine.size, -1)  # every row of the page: no copy
+            elif np.all(mine == mine[0]):
+                block = _gather(mem, starts[pick], int(mine[0]))
             parts[topic].append((log_ns[pick], block))
-        if count < _SQLITE_PAGE:
-            break
     return {topic: _concat(items) for topic, items in parts.items()}
+
+
+def _sqlite_pages(db: Any) -> list[tuple[Optional[int], Optional[int]]]:
+    """
+    Log-time ranges [lo, hi) of about ``_SQLITE_PAGE`` rows each (None: unbounded).
+
+    Bounds are log times taken from the timestamp index, so that the rows of one log time
+    (ties) always fall into one page and each page is one index range scan.
+    """
+    (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
+    bounds: list[Optional[int]] = [None]
+    while total > _SQLITE_PAGE:
+        lo = bounds[-1]
+        where = '' if lo is None else 'WHERE timestamp >= ?'
+        args = () if lo is None else (lo,)
+        got = db.execute(f'SELECT timestamp FROM messages {where} ORDER BY timestamp '
+                         f'LIMIT 1 OFFSET ?', (*args, _SQLITE_PAGE)).fetchall()
+        if not got:
+            break
+        (nxt,), = got
+        if lo is not None and nxt <= lo:  # more than a page of ties at lo: skip past them
+            (nxt,), = db.execute('SELECT min(timestamp) FROM messages WHERE timestamp > ?',
+                                 (lo,)).fetchall()
+            if nxt is None:
+                break
+        bounds.append(int(nxt))
+    bounds.append(None)
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
+def _sqlite_page(db: Any, ids: list[int], lo: Optional[int],
+                 hi: Optional[int]) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                      np.ndarray]]:
+    """
+    One page of the wanted rows in rosbags' order, fetched in one SQLite statement.
+
+    Returns the log times, topic ids and blob sizes (int64, (N,)) and the N blobs laid end
+    to end (uint8), or None for an empty page.
+    """
+    cond = [f"topic_id IN ({','.join(str(int(c)) for c in ids)})"]
+    args: list[int] = []
+    if lo is not None:
+        cond.append('timestamp >= ?')
+        args.append(lo)
+    if hi is not None:
+        cond.append('timestamp < ?')
+        args.append(hi)
+    rows = (f"SELECT data, timestamp, length(data) * {_TOPIC_ID_LIMIT} + topic_id AS tag "
+            f"FROM messages WHERE {' AND '.join(cond)} ORDER BY timestamp, id")
+    # rosbags reads with ORDER BY timestamp, which SQLite answers by walking the timestamp
+    # index: (timestamp, row id) order. The same plan here (no sorting step) gives the same
+    # order, and group_concat appends the rows in the order the subquery yields them.
+    plan = ' '.join(str(r[-1]) for r in db.execute(f'EXPLAIN QUERY PLAN {rows}', args))
+    if 'SCAN messages USING INDEX' not in plan or 'TEMP B-TREE' in plan:
+        raise Unsupported(f'query plan {plan}')
+    # Per row, one integer holds both the blob size and the topic id (parsed from text in
+    # one numpy call): cheaper for SQLite than per-topic size aggregates.
+    query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
+             f"group_concat(tag), count(*) FROM ({rows})")
+    (blob, ts_text, tag_text, count), = db.execute(query, args).fetchall()
+    if not count:
+        return None
+    log_ns, tag = (np.fromstring(t, dtype=np.int64, sep=',') for t in (ts_text, tag_text))
+    if log_ns.size != count or tag.size != count:
+        raise Unsupported('log times or tags did not parse')
+    if np.any(log_ns[1:] < log_ns[:-1]):
+        raise Unsupported('rows did not come in log-time order')
+    if (lo is not None and log_ns[0] < lo) or (hi is not None and log_ns[-1] >= hi):
+        raise Unsupported('rows outside their page')
+    size, tid = np.divmod(tag, _TOPIC_ID_LIMIT)
+    if not isinstance(blob, bytes) or len(blob) != int(size.sum()):
+        raise Unsupported('concatenated blobs have the wrong size')
+    return log_ns, tid, size, np.frombuffer(blob, dtype=np.uint8)
 
 
 # --- mcap -----------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag import bulk_read, bulk_write
 from coreg_ros.files.bag.cdr_pose import decode_records, encode_records
+from coreg_ros.files.bag.light_open import open_light
 from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
 from coreg_ros.files.bag.per_message import describe as _describe
 from coreg_ros.files.bag.per_message import typestore as _typestore
@@ -195,6 +196,10 @@ def read_pose_bag(path: PathLike, topics: Iterable[str], *,
     if not wanted:
         raise BagError(f'no topics asked for from bag {str(path)!r}; name at least one topic '
                        f'(list_topics() shows what the bag holds)')
+    if _use_bulk(bulk):
+        fast = read_fast(path, wanted)
+        if fast is not None:
+            return fast
     with _OpenBag(path) as reader:
         types = _topic_types(reader)
         missing = [t for t in wanted if t not in types]
@@ -219,6 +224,48 @@ def read_pose_bag(path: PathLike, topics: Iterable[str], *,
                 reader, [c for c in connections if c.topic in rest], rest, path,
                 _typestore()))
     return {topic: streams[topic] for topic in wanted}
+
+
+def read_fast(path: Path, wanted: list[str]) -> Optional[dict[str, PoseStream]]:
+    """
+    Try the fast path of ``read_pose_bag``: light open, every topic through the bulk path.
+
+    The bag is opened by ``light_open`` (rosbags minus the sqlite3 message counts). Unless
+    every wanted topic is a PoseStamped topic of the bag and comes out of the bulk fetch and
+    decoder, this returns None and ``read_pose_bag`` starts over with plain rosbags, which
+    gives the usual results and errors; so does any exception here.
+
+    Parameters
+    ----------
+    path : Path
+        The rosbag2 directory.
+    wanted : list of str
+        Topic names, without repeats.
+
+    Returns
+    -------
+    streams : dict of str to PoseStream, or None
+        As ``read_pose_bag`` returns them, or None when the bag needs the general path.
+
+    """
+    try:
+        reader = open_light(path)
+    except Exception:  # noqa: BLE001 - plain rosbags opens it again and names the problem
+        return None
+    try:
+        types = _topic_types(reader)
+        if any(types.get(t) != [POSE_STAMPED] for t in wanted):
+            return None
+        connections = [c for c in reader.connections if c.topic in wanted]
+        streams = _read_bulk(reader, connections, wanted)
+        if any(t not in streams for t in wanted):
+            return None
+        return {topic: streams[topic] for topic in wanted}
+    except Exception:  # noqa: BLE001 - as above
+        return None
+    finally:
+        with suppress(Exception):
+            reader.close()
 
 
 def _use_bulk(bulk: Optional[bool]) -> bool:
