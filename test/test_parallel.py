@@ -159,3 +159,23 @@ def test_workers_options():
     assert parser.parse_args(['validate-diagnosis', '--workers', '2']).workers == 2
     args = parser.parse_args(['batch', 'diagnose', 'f', '--out', 'o', '--scheduler', 'tcp://h:1'])
     assert args.scheduler == 'tcp://h:1' and args.what == 'diagnose'
+
+
+def test_validate_scores_the_cases_that_ran_and_lists_the_one_that_raised(monkeypatch):
+    from coreg_ros.sim import validation
+
+    real = validation.run_case
+    drawn = []
+
+    def flaky(case, options=None):
+        drawn.append(case['seed'])
+        if len(drawn) == 2:  # the second case hits a fault of the harness's making
+            raise RuntimeError('injected fault')
+        return real(case, options)
+
+    monkeypatch.setattr(validation, 'run_case', flaky)
+    out = validation.validate(3, seed=11, workers=1, duration=(15.0, 20.0))
+    assert [f['seed'] for f in out['failed']] == [drawn[1]]
+    assert 'injected fault' in out['failed'][0]['error']
+    assert out['summary']['cases'] == 2  # the failure is not scored
+    assert len(out['results']) == 3

@@ -383,17 +383,24 @@ def validate(cases: int, seed: int, progress=None, options=None, workers: int = 
     """
     Run ``cases`` blind validation cases drawn from ``seed``; returns results and summary.
 
+    A case that raises comes back as a ``CaseFailure`` in ``results`` (also listed under
+    ``failed`` with its seed) and is not scored; the other cases go on.
+
     Every case carries its own seed (drawn up front from ``seed``), so the results are the same
     whatever the number of workers. ``workers`` local processes, or the Dask cluster at
     ``scheduler``, run them (``coreg_ros.parallel.run_cases``).
     """
-    from coreg_ros.parallel import run_cases
+    from coreg_ros.parallel import CaseFailure, run_cases
 
     rng = np.random.default_rng(seed)
     drawn = [draw_case(rng, duration=duration or DURATION) for _ in range(cases)]
     results = run_cases(run_case, drawn, args=(options,), workers=workers, scheduler=scheduler,
                         progress=progress)
-    return {'seed': seed, 'results': results, 'summary': summarize_validation(results)}
+    # a case that raised is reported with its seed (``failed``) and left out of the scores
+    done = [r for r in results if not isinstance(r, CaseFailure)]
+    return {'seed': seed, 'results': results,
+            'failed': [r.as_dict() for r in results if isinstance(r, CaseFailure)],
+            'summary': summarize_validation(done)}
 
 
 def _jsonable(o):
