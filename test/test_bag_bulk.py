@@ -7,7 +7,9 @@ by write_pose_bag; every read is done twice, ``bulk=True`` and ``bulk=False``, a
 results must be identical: stamps exactly, floats bit for bit, or the same BagError.
 """
 
+import re
 import shutil
+import sqlite3
 
 import numpy as np
 import pytest
@@ -16,9 +18,10 @@ from rosbags.typesys import Stores, get_typestore
 
 from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
-from coreg_ros.files.bag import POSE_STAMPED, read_pose_bag, write_pose_bag
+from coreg_ros.files.bag import POSE_STAMPED, bulk_read, read_pose_bag, write_pose_bag
 from coreg_ros.files.bag.bulk_read import fetch
 from coreg_ros.files.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
+from coreg_ros.files.bag.posebag import read_fast
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 SUFFIX = {'sqlite3': '.db3', 'mcap': '.mcap'}
@@ -184,6 +187,7 @@ def test_random_bags_bulk_equals_per_message(tmp_path, storage, seed):
     assert not isinstance(ref, str), ref
     assert sum(len(s) for s in ref.values()) > 0
     assert bulk_path_used(tmp_path / 'bag', topics)
+    assert fast_path_used(tmp_path / 'bag', topics)
 
 
 def bulk_path_used(path, topics):
@@ -191,6 +195,11 @@ def bulk_path_used(path, topics):
     with Reader(path) as reader:
         got = fetch(reader, [c for c in reader.connections if c.topic in topics])
     return got is not None and all(block is not None for _, block in got.values())
+
+
+def fast_path_used(path, topics):
+    """Whether read_pose_bag's fast try (light open + bulk) answers without plain rosbags."""
+    return read_fast(path, list(topics)) is not None
 
 
 @pytest.mark.parametrize(('storage', 'mode', 'bulk'), [
@@ -206,6 +215,7 @@ def test_compressed_bags(tmp_path, storage, mode, bulk):
     ref = assert_same_outcome(tmp_path / 'bag', topics)
     assert not isinstance(ref, str), ref
     assert bulk_path_used(tmp_path / 'bag', topics) == bulk
+    assert fast_path_used(tmp_path / 'bag', topics) == bulk
 
 
 @pytest.mark.parametrize('storage', STORAGES)
@@ -246,7 +256,108 @@ def test_many_chunks_and_storage_files(tmp_path, storage):
         assert len(reader.storage.storages) == 2
     both = assert_same_outcome(split, ['/dev0/pose'])
     assert bulk_path_used(split, ['/dev0/pose'])
+    assert fast_path_used(split, ['/dev0/pose'])
     assert len(both['/dev0/pose']) == 2 * len(topics['/dev0/pose'])
+
+
+# --- sqlite3: the light open and the paged fetch ------------------------------------------
+
+def sqlite_pages(path):
+    """The log-time pages bulk_read splits the bag's (first) storage file into."""
+    with Reader(path) as reader:
+        return bulk_read._sqlite_pages(reader.storage.storages[0].dbconn)
+
+
+@pytest.mark.parametrize('page', [1, 7, 100])
+@pytest.mark.parametrize('seed', range(3))
+def test_sqlite_pages_of_any_size_give_the_same_arrays(tmp_path, monkeypatch, page, seed):
+    """Pages of a few rows, with runs of equal log times longer than a page."""
+    rng = np.random.default_rng(3000 + seed)
+    topics = write_random_bag(tmp_path / 'bag', 'sqlite3', rng, n_max=300)
+    monkeypatch.setattr(bulk_read, '_SQLITE_PAGE', page)
+    assert len(sqlite_pages(tmp_path / 'bag')) > 1
+    ref = assert_same_outcome(tmp_path / 'bag', topics)
+    assert not isinstance(ref, str), ref
+    assert fast_path_used(tmp_path / 'bag', topics)
+
+
+def test_sqlite_pages_cover_every_row_once(tmp_path, monkeypatch):
+    rng = np.random.default_rng(12)
+    write_random_bag(tmp_path / 'bag', 'sqlite3', rng, n_max=500)
+    monkeypatch.setattr(bulk_read, '_SQLITE_PAGE', 10)
+    pages = sqlite_pages(tmp_path / 'bag')
+    with sqlite3.connect(tmp_path / 'bag' / 'bag.db3') as db:
+        logs = np.array([t for t, in db.execute('SELECT timestamp FROM messages')])
+    inside = [(logs >= (lo if lo is not None else -2**63))
+              & (logs < (hi if hi is not None else 2**63 - 1)) for lo, hi in pages]
+    assert np.array_equal(np.sum(inside, axis=0), np.ones(logs.size))
+    assert len(pages) >= logs.size // 10 // 4  # ties make pages longer, not fewer than this
+
+
+def test_metadata_counts_that_disagree_with_the_storage(tmp_path):
+    """The light open takes nothing from the per-topic counts: same arrays as rosbags."""
+    rng = np.random.default_rng(21)
+    path = tmp_path / 'bag'
+    topics = write_random_bag(path, 'sqlite3', rng)
+    meta = path / 'metadata.yaml'
+    text, n = re.subn(r'message_count: \d+', 'message_count: 3', meta.read_text())
+    assert n >= 2
+    meta.write_text(text)
+    ref = assert_same_outcome(path, topics)
+    assert not isinstance(ref, str), ref
+    assert fast_path_used(path, topics)
+
+
+def test_dropped_timestamp_index_reads_through_rosbags(tmp_path):
+    """Without the index rosbags sorts, and ties may come otherwise: plain rosbags reads it."""
+    rng = np.random.default_rng(22)
+    path = tmp_path / 'bag'
+    topics = write_random_bag(path, 'sqlite3', rng)
+    with sqlite3.connect(path / 'bag.db3') as db:
+        db.execute('DROP INDEX timestamp_idx')
+    ref = assert_same_outcome(path, topics)
+    assert not isinstance(ref, str), ref
+    assert not fast_path_used(path, topics)
+
+
+def test_damaged_timestamp_index_gives_the_same_outcome(tmp_path):
+    """Byte flips in the index pages: the same arrays or the same BagError both ways."""
+    path = tmp_path / 'bag'
+    write_pose_bag(path, streams_for(np.random.default_rng(6), 3000), storage='sqlite3')
+    data = path / 'bag.db3'
+    with sqlite3.connect(data) as db:
+        (page_size,), = db.execute('PRAGMA page_size')
+        pages = [p for p, in db.execute(
+            "SELECT pageno FROM dbstat WHERE name = 'timestamp_idx' ORDER BY pageno")]
+    del db
+    assert len(pages) > 3
+    pristine = data.read_bytes()
+    ref = read_pose_bag(path, ['/t0', '/t1', '/t2'], bulk=False)
+    rng = np.random.default_rng(10)
+    changed = 0
+    for pageno in rng.choice(pages, 4, replace=False).tolist():
+        start = (pageno - 1) * page_size
+        for where in [start, start + 3, start + 8, *(start + rng.integers(
+                page_size // 2, page_size, 5))]:
+            damaged = bytearray(pristine)
+            damaged[where] ^= 0x5A
+            data.write_bytes(bytes(damaged))
+            got = assert_same_outcome(path, ['/t0', '/t1', '/t2'])
+            try:
+                assert not isinstance(got, str)
+                assert_identical(got, ref)
+            except AssertionError:
+                changed += 1  # the damage is seen (an error, or other order or log times)
+    assert changed > 0
+
+
+def test_a_message_stored_as_text_is_left_to_rosbags(tmp_path):
+    path = tmp_path / 'bag'
+    write_pose_bag(path, streams_for(np.random.default_rng(8), 500), storage='sqlite3')
+    with sqlite3.connect(path / 'bag.db3') as db:
+        db.execute("UPDATE messages SET data = 'not a blob' WHERE id = 7")
+    assert not fast_path_used(path, ['/t0', '/t1', '/t2'])
+    assert isinstance(assert_same_outcome(path, ['/t0', '/t1', '/t2']), str)
 
 
 # --- writing ------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ the caller reads the bag through rosbags, which raises the usual errors for dama
 from __future__ import annotations
 
 from collections.abc import Sequence
+import re
 from typing import Any, Optional
 
 import numpy as np
@@ -158,16 +159,27 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
     ids = sorted(cids)
     if ids[0] <= 0 or ids[-1] >= _TOPIC_ID_LIMIT:
         raise Unsupported('topic ids out of range')
+    # rosbags' own query must walk the timestamp index too (its tie order is then the row
+    # id order of the index; a sorting step could order ties otherwise).
+    theirs = ('SELECT topics.id,messages.timestamp,messages.data FROM messages JOIN topics '
+              'ON messages.topic_id=topics.id WHERE topics.id IN '
+              f"({','.join('?' * len(ids))}) ORDER BY timestamp")
+    index = _index_walked(db, theirs, ids)
     parts: dict[str, list[Fetched]] = {t: [] for t in cids.values()}
     for lo, hi in _sqlite_pages(db):
-        page = _sqlite_page(db, ids, lo, hi)
+        page = _sqlite_page(db, ids, lo, hi, index)
         if page is None:
             continue
         log_ns, tid, size, mem = page
         starts = np.cumsum(size) - size
         for topic in parts:
             topic_ids = [c for c, t in cids.items() if t == topic]
-            pick = np.isin(tid, topic_ids) if len(cids) > 1 else slice(None)
+            if len(cids) == 1:
+                pick = slice(None)
+            elif len(topic_ids) == 1:
+                pick = tid == topic_ids[0]
+            else:
+                pick = np.isin(tid, topic_ids)
             mine = size[pick]
             if not mine.size:
                 continue
@@ -208,8 +220,17 @@ def _sqlite_pages(db: Any) -> list[tuple[Optional[int], Optional[int]]]:
     return list(zip(bounds[:-1], bounds[1:], strict=True))
 
 
-def _sqlite_page(db: Any, ids: list[int], lo: Optional[int],
-                 hi: Optional[int]) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray,
+def _index_walked(db: Any, query: str, args: Sequence[int]) -> str:
+    """Name the index SQLite walks to answer ``query`` (no sorting step), else Unsupported."""
+    plan = ' '.join(str(r[-1]) for r in db.execute(f'EXPLAIN QUERY PLAN {query}', args))
+    found = re.search(r'(?:SCAN|SEARCH) messages USING INDEX (\S+)', plan)
+    if found is None or 'TEMP B-TREE' in plan or 'AUTOMATIC' in plan:
+        raise Unsupported(f'query plan {plan}')
+    return found.group(1)
+
+
+def _sqlite_page(db: Any, ids: list[int], lo: Optional[int], hi: Optional[int],
+                 index: str) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray,
                                                       np.ndarray]]:
     """
     One page of the wanted rows in rosbags' order, fetched in one SQLite statement.
@@ -225,16 +246,17 @@ def _sqlite_page(db: Any, ids: list[int], lo: Optional[int],
     if hi is not None:
         cond.append('timestamp < ?')
         args.append(hi)
-    rows = (f"SELECT data, timestamp, length(data) * {_TOPIC_ID_LIMIT} + topic_id AS tag "
+    # Per row, one integer holds both the blob size and the topic id (parsed from text in
+    # one numpy call): cheaper for SQLite than per-topic size aggregates. A value that is not
+    # a blob (rosbags would hand it on as text or a number) gets size -1.
+    tag = f"iif(typeof(data) = 'blob', length(data), -1) * {_TOPIC_ID_LIMIT} + topic_id"
+    rows = (f"SELECT data, timestamp, {tag} AS tag "
             f"FROM messages WHERE {' AND '.join(cond)} ORDER BY timestamp, id")
     # rosbags reads with ORDER BY timestamp, which SQLite answers by walking the timestamp
     # index: (timestamp, row id) order. The same plan here (no sorting step) gives the same
     # order, and group_concat appends the rows in the order the subquery yields them.
-    plan = ' '.join(str(r[-1]) for r in db.execute(f'EXPLAIN QUERY PLAN {rows}', args))
-    if 'SCAN messages USING INDEX' not in plan or 'TEMP B-TREE' in plan:
-        raise Unsupported(f'query plan {plan}')
-    # Per row, one integer holds both the blob size and the topic id (parsed from text in
-    # one numpy call): cheaper for SQLite than per-topic size aggregates.
+    if _index_walked(db, rows, args) != index:
+        raise Unsupported('the page query walks another index than rosbags')
     query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
              f"group_concat(tag), count(*) FROM ({rows})")
     (blob, ts_text, tag_text, count), = db.execute(query, args).fetchall()
@@ -248,7 +270,7 @@ def _sqlite_page(db: Any, ids: list[int], lo: Optional[int],
     if (lo is not None and log_ns[0] < lo) or (hi is not None and log_ns[-1] >= hi):
         raise Unsupported('rows outside their page')
     size, tid = np.divmod(tag, _TOPIC_ID_LIMIT)
-    if not isinstance(blob, bytes) or len(blob) != int(size.sum()):
+    if np.any(size < 0) or not isinstance(blob, bytes) or len(blob) != int(size.sum()):
         raise Unsupported('concatenated blobs have the wrong size')
     return log_ns, tid, size, np.frombuffer(blob, dtype=np.uint8)
 
