@@ -13,12 +13,12 @@ from coreg_ros.core.diagnosis.detect import detect, ljung_box
 from coreg_ros.core.diagnosis.engine import _params_of
 from coreg_ros.core.diagnosis.fit import Model, start_state
 from coreg_ros.core.diagnosis.summary import effect_estimate
-from coreg_ros.core.diagnosis.threads import single_blas_thread
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.effect_library import EFFECT_NAMES as SIM_EFFECT_NAMES
 from coreg_ros.sim.effect_library import parse_effect
+from coreg_ros.threads import one_blas_thread
 
 REPORT_KEYS = {'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after',
                'location', 'verdict'}
@@ -85,7 +85,7 @@ def test_effect_model_recovers_injected_parameter(spec, name, get, truth):
     if truth is None:  # jitter: the stamp errors actually drawn
         truth = rec.truth.effects[0]['empirical_sigma_s']
     pairs, _ = pair_for(rec.stream_a, list(rec.streams_b), settings)
-    with single_blas_thread():
+    with one_blas_thread():
         res = calibrate(pairs, settings)
         data = prepare(pairs, settings, rec.stream_a)
         base = Model(data, ()).fit(start_state(_params_of(res, data.spec)))
@@ -178,10 +178,19 @@ def test_trajectory_interpolation_and_velocity():
     assert np.allclose(w[0], [0, 0, 1.0], atol=1e-3)
 
 
-def test_single_blas_thread_is_harmless():
-    with single_blas_thread():
+def test_one_blas_thread_holds_blas_at_one_thread_and_restores_it():
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return [i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas']
+
+    before = blas_threads()
+    assert before  # numpy's BLAS is loaded
+    with one_blas_thread():
+        assert set(blas_threads()) == {1}
         a = np.ones((50, 50))
         assert (a @ a)[0, 0] == 50.0
+    assert blas_threads() == before
 
 
 def test_position_only_model_diagnosis():

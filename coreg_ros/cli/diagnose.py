@@ -67,10 +67,13 @@ def diagnose_bag(bag, settings, progress=None):
     """
     from coreg_ros.core.diagnosis import diagnose_streams
     from coreg_ros.files.bag.posebag import read_pose_bag
+    from coreg_ros.threads import one_blas_thread
 
     streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
-    diag = diagnose_streams(streams[settings.topic_a], [streams[t] for t in settings.topic_b],
-                            settings, progress=progress)
+    with one_blas_thread():  # small products: BLAS threads only spin (coreg_ros.threads)
+        diag = diagnose_streams(streams[settings.topic_a],
+                                [streams[t] for t in settings.topic_b], settings,
+                                progress=progress)
     report = diag.report
     report['settings'] = settings.as_dict()
     report['bag'] = str(bag)

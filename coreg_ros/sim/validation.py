@@ -181,6 +181,7 @@ def run_case(case: dict, options=None) -> dict:
     from coreg_ros.core.diagnosis import diagnose_streams
     from coreg_ros.core.settings import Settings
     from coreg_ros.sim import simulate_recording
+    from coreg_ros.threads import one_blas_thread
 
     effects = _make_effects(case)
     rec = simulate_recording(case['seed'], case['duration'], case['model'],
@@ -190,7 +191,8 @@ def run_case(case: dict, options=None) -> dict:
     settings = Settings(model=case['model'], sigma_a=tuple(case['sigma_a']),
                         sigma_b=tuple(case['sigma_b']))
     t0 = time.perf_counter()
-    diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings, options=options)
+    with one_blas_thread():
+        diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings, options=options)
     elapsed = time.perf_counter() - t0
     r = diag.report
     named = [e['name'] for e in r['effects']]

@@ -35,7 +35,6 @@ from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model, start_state
 from coreg_ros.core.diagnosis.summary import effect_estimate, gap_measures, transforms
-from coreg_ros.core.diagnosis.threads import single_blas_thread
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
@@ -434,9 +433,8 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
         As ``calibrate`` does.
 
     """
-    with single_blas_thread():
-        return _diagnose(pairs, settings, stream_a, options or Options(),
-                         progress or (lambda f, s: None), cov_a, cov_b, context or {})
+    return _diagnose(pairs, settings, stream_a, options or Options(),
+                     progress or (lambda f, s: None), cov_a, cov_b, context or {})
 
 
 def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) -> Diagnosis:
@@ -672,24 +670,23 @@ def _coarse_shift(stream_a, streams_b, settings, pairs, options) -> float:
                      quat_b=None if p.quat_b is None else p.quat_b[::step],
                      a_var_scale=None if p.a_var_scale is None else p.a_var_scale[::step])
 
-    with single_blas_thread():
+    try:
+        here = calibrate(thin(pairs), settings.updated(robust=False))
+    except Exception:  # noqa: BLE001 - a refusal at the given offset: try the other
+        here = None
+    best, best_chi = 0.0, here.chi2 / max(here.dof, 1) if here is not None else np.inf
+    for tau in far:
+        moved = settings.updated(time_offset=tau)
+        p2, _ = pair_for(stream_a, streams_b, moved)
+        if len(p2) < max(50, 0.5 * len(pairs)):
+            continue
         try:
-            here = calibrate(thin(pairs), settings.updated(robust=False))
-        except Exception:  # noqa: BLE001 - a refusal at the given offset: try the other
-            here = None
-        best, best_chi = 0.0, here.chi2 / max(here.dof, 1) if here is not None else np.inf
-        for tau in far:
-            moved = settings.updated(time_offset=tau)
-            p2, _ = pair_for(stream_a, streams_b, moved)
-            if len(p2) < max(50, 0.5 * len(pairs)):
-                continue
-            try:
-                res = calibrate(thin(p2), moved.updated(robust=False))
-            except Exception:  # noqa: BLE001 - unobservable or too few: not this one
-                continue
-            chi = res.chi2 / max(res.dof, 1)
-            if chi < COARSE_GAIN * best_chi:
-                best, best_chi = tau - settings.time_offset, chi
+            res = calibrate(thin(p2), moved.updated(robust=False))
+        except Exception:  # noqa: BLE001 - unobservable or too few: not this one
+            continue
+        chi = res.chi2 / max(res.dof, 1)
+        if chi < COARSE_GAIN * best_chi:
+            best, best_chi = tau - settings.time_offset, chi
     return float(best)
 
 
