@@ -218,7 +218,7 @@ class TlsSums:
 
 
 def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
-                         ftol: float, damping: float = 1e-6, first=None):
+                         ftol: float, damping: float = 1e-6, first=None, min_steps: int = 0):
     """
     Levenberg-Marquardt iterations shared by OLS and TLS.
 
@@ -236,6 +236,9 @@ def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: 
 
     ``damping`` is the first λ (lower for a start next to the minimum); ``first``, if given,
     is the linearisation at ``state`` with that damping (made by the caller without a pass).
+    ``min_steps`` accepted steps come before a small step may prove convergence: TLS from the
+    measured inputs must move them at least once, since a small step of φ says nothing about
+    the inputs (whose adjustment lowers the cost by about the input noise's share of chi2).
 
     """
     lam = damping
@@ -246,7 +249,7 @@ def _levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: 
             delta = np.linalg.lstsq(lin.info, lin.rhs, rcond=None)[0]
             # Only a step damped as little as the last accepted one may prove convergence: a
             # damping raised by rejections shrinks any step below xtol·σ eventually.
-            if not rejected and _step_is_small(delta, lin.info, xtol):
+            if not rejected and it > min_steps and _step_is_small(delta, lin.info, xtol):
                 return state, 1, it, lin, lam
             lam_next = max(lam / 10.0, 1e-12)
             # the residuals at the current state are not needed while the trial is made
@@ -640,7 +643,8 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         # residuals None: if this very state is returned, the posterior is made afresh
         return _Linearization(sums.S, sums.b, sums.cost, propose)
 
-    if inputs is None:
+    cold = inputs is None  # inputs at their measured values: they must move at least once
+    if cold:
         inputs = InputState(problem.pos_a, problem.quat_a)
     elif inputs.pos_t.shape != (3, problem.n):
         raise ValueError(f'inputs for {inputs.pos_t.shape[1]} pairs, problem has {problem.n}')
@@ -648,7 +652,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     xtol = XTOL if xtol is None else xtol
     first = None if seed is None else seeded(*seed)
     (params, x), status, it, last, lam = _levenberg_marquardt(
-        state, linearize, max_iterations, xtol, ftol, damping, first)
+        state, linearize, max_iterations, xtol, ftol, damping, first, min_steps=int(cold))
     if status > 0 and last.residuals is not None and last.damping_share <= DAMPING_SHARE:
         # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
         # is almost undamped: its Schur complement is the posterior information (relative
