@@ -36,8 +36,6 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
-
 from bench import estimator_bench as eb  # noqa: E402
 from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening  # noqa: E402
 from coreg_ros.core.estimator import Problem, solve_ols, solve_tls  # noqa: E402
@@ -45,6 +43,7 @@ from coreg_ros.core.initialize import initialize  # noqa: E402
 from coreg_ros.core.models import SPECS  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs  # noqa: E402
+import numpy as np  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'
 #: Goals at 1M pairs, seconds of the whole calibrate().
@@ -128,7 +127,7 @@ def time_before(pairs, settings: Settings, commit: str, repeats: int, cap: float
 
 
 def _scipy(problem: Problem, method: str, start, cap: float) -> dict:
-    """scipy's time on the same problem (``estimator_bench``'s formulations), capped."""
+    """Scipy's time on the same problem (``estimator_bench``'s formulations), capped."""
     if method == 'ols':
         def job():
             t, (_, res) = eb.best_time(lambda: eb.scipy_ols(problem, start), 1)

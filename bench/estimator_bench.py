@@ -26,23 +26,22 @@ import time
 import tracemalloc
 from typing import Optional
 
-import numpy as np
-from scipy import optimize, sparse
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
 from coreg_ros.core.covariance import joint_pose_covariance
 from coreg_ros.core.estimator import Problem, solve_ols, solve_tls
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import (
-    SPECS,
-    Parameters,
     error_rotation_jacobian,
     linearize,
     output_error,
+    Parameters,
+    SPECS,
 )
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs
+import numpy as np
+from scipy import optimize, sparse
 
 SIGMA_A = (2e-4, 5e-4)
 SIGMA_B = (5e-4, 2e-3)
@@ -202,7 +201,7 @@ def best_time(fn: Callable, repeats: int):
 
 
 def peak_bytes(fn: Callable) -> int:
-    """tracemalloc peak during fn() above the memory traced when it starts."""
+    """Tracemalloc peak during fn() above the memory traced when it starts."""
     gc.collect()
     tracemalloc.start()
     try:
@@ -319,7 +318,7 @@ def bench_size(n: int, methods=('ols', 'tls'), scipy_cap: float = 120.0,
 
 
 def profile_tls(n: int = 100_000, top: int = 12) -> str:
-    """cProfile of ``solve_tls`` at N pairs: the top entries by internal time."""
+    """CProfile of ``solve_tls`` at N pairs: the top entries by internal time."""
     import cProfile
     import io
     import pstats

@@ -31,14 +31,13 @@ import sys
 import time
 from typing import Optional
 
-import numpy as np
-from scipy import stats
-
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.calibrate import calibrate, noise_covariance
 from coreg_ros.core.settings import Settings
-from coreg_ros.parallel import CaseFailure, add_arguments, failures, run_cases
+from coreg_ros.parallel import add_arguments, CaseFailure, failures, run_cases
 from coreg_ros.sim import simulate_pairs
+import numpy as np
+from scipy import stats
 
 #: Device A: fixed tracker, position 0.1 mm, orientation 2 mrad (0.11°).
 SIGMA_A = (1.0e-4, 2.0e-3)

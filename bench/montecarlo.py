@@ -34,15 +34,14 @@ import sys
 import time
 from typing import Optional
 
-import numpy as np
-from scipy import stats
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate, noise_covariance
 from coreg_ros.core.crlb import cramer_rao_bound
 from coreg_ros.core.settings import Settings
-from coreg_ros.parallel import CaseFailure, add_arguments, failures, run_cases
+from coreg_ros.parallel import add_arguments, CaseFailure, failures, run_cases
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs
+import numpy as np
+from scipy import stats
 
 #: Two-sided 0.1 % normal quantile: sampling tolerances are this many standard errors.
 Z_TOL = float(stats.norm.isf(0.0005))

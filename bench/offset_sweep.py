@@ -26,7 +26,7 @@ if str(ROOT) not in sys.path:
 
 from coreg_ros.core.pipeline import calibrate_streams  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
-from coreg_ros.parallel import CaseFailure, add_arguments, run_cases  # noqa: E402
+from coreg_ros.parallel import add_arguments, CaseFailure, run_cases  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
 
 

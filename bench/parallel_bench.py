@@ -69,9 +69,8 @@ def time_validation(cases: int, seed: int, workers: int,
 
 def dask_overhead(tasks: int = OVERHEAD_TASKS) -> dict:
     """Seconds per no-op task through ``run_cases`` on a 2-worker LocalCluster."""
-    from distributed import LocalCluster
-
     from coreg_ros.parallel import run_cases
+    from distributed import LocalCluster
 
     t0 = time.perf_counter()
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,

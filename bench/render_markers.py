@@ -25,15 +25,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream
+from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration
 from coreg_ros.core.settings import Settings
 from coreg_ros.ros.uncertainty_outputs import AXIS_LENGTH, pose_markers
 from coreg_ros.sim import simulate_pairs
+import numpy as np
 
 #: Device A: position 0.1 mm, orientation 2 mrad; device B: 2 mm, 0.8 mrad (Hoff-like).
 SIGMA_A = (1.0e-4, 2.0e-3)
@@ -80,10 +79,9 @@ def offline_markers(gain=None) -> tuple[list, dict]:
 
 def live_markers(timeout: float) -> list:
     """Receive the latched MarkerArray of a running coreg_node."""
-    from visualization_msgs.msg import MarkerArray
-
     from coreg_ros.ros.tools import RosSession, wait_for_message
     from coreg_ros.ros.uncertainty_outputs import MARKER_QOS
+    from visualization_msgs.msg import MarkerArray
 
     with RosSession('render_markers', signals=False) as session:
         msg = wait_for_message(session, MarkerArray, '/coreg_node/uncertainty_markers',

@@ -17,7 +17,6 @@ import json  # noqa: E402
 from pathlib import Path  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 
@@ -25,15 +24,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
-import scipy  # noqa: E402
-
 from bench import estimator_bench as eb  # noqa: E402
 from bench import montecarlo as mc  # noqa: E402
 from coreg_ros.core import quaternion as quat  # noqa: E402
 from coreg_ros.core.pairing import pair_streams  # noqa: E402
 from coreg_ros.core.types import PoseStream  # noqa: E402
-from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
 
 RESULTS = ROOT / 'bench' / 'results'
 TARGETS = {
@@ -72,29 +69,6 @@ def bench_pairing(n: int = 1_000_000, repeats: int = 3) -> dict:
                                       repeats)
     return {'n_a': n, 'n_b': n, 'n_paired': int(report.n_paired), 'seconds': t,
             'ns_per_sample': 1e9 * t / n}
-
-
-def bench_bags(n_messages: int = 100_000, repeats: int = 2) -> dict:
-    a, b = _streams(n_messages // 2)
-    streams = {'/device_a/pose': a, '/device_b/pose': b}
-    out = {}
-    with tempfile.TemporaryDirectory(prefix='coreg_bench_bag_') as tmp:
-        for storage in ('sqlite3', 'mcap'):
-            best_w, best_r = np.inf, np.inf
-            for k in range(repeats):
-                path = Path(tmp) / f'{storage}_{k}'
-                t = time.perf_counter()
-                write_pose_bag(path, streams, storage=storage)
-                best_w = min(best_w, time.perf_counter() - t)
-                t = time.perf_counter()
-                got = read_pose_bag(path, list(streams))
-                best_r = min(best_r, time.perf_counter() - t)
-                assert sum(len(s) for s in got.values()) == n_messages
-            size = sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
-            out[storage] = {'messages': n_messages, 'write_seconds': best_w,
-                            'read_seconds': best_r, 'write_msgs_per_s': n_messages / best_w,
-                            'read_msgs_per_s': n_messages / best_r, 'bytes': size}
-    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -182,21 +156,6 @@ def other_table(results: dict) -> str:
     if p:
         lines.append(f'| pairing (interpolate A at B) | {p["n_a"]:,} × {p["n_b"]:,} samples '
                      f'| {p["seconds"]:.2f} s | {p["ns_per_sample"]:.0f} ns/sample |')
-    for storage, b in (results.get('bags') or {}).items():
-        lines.append(f'| bag write ({storage}) | {b["messages"]:,} PoseStamped '
-                     f'| {b["write_seconds"]:.2f} s | {b["write_msgs_per_s"]:,.0f} msg/s |')
-        lines.append(f'| bag read ({storage}) | {b["messages"]:,} PoseStamped '
-                     f'| {b["read_seconds"]:.2f} s | {b["read_msgs_per_s"]:,.0f} msg/s |')
-    node = results.get('node')
-    if isinstance(node, dict) and 'sent' in node:
-        lines.append(f'| node: 2 streams at {node["rate_hz"]:g} Hz | {node["duration_s"]:g} s, '
-                     f'{node["sent"]:,} msgs | dropped {node["dropped"]} | node CPU '
-                     f'{node["node_cpu_percent"]:.0f} % of a core |')
-        lines.append(f'| node: ~/calibrate (TLS) | {node["n_pairs"]} pairs '
-                     f'| {node["calibrate_seconds"]:.2f} s (estimator '
-                     f'{node["estimator_seconds"]} s) | success {node["success"]} |')
-    elif node:
-        lines.append(f'| node | – | {node} | – |')
     fz = results.get('fuzz')
     if isinstance(fz, dict):
         t = fz['totals']
@@ -211,12 +170,6 @@ def other_table(results: dict) -> str:
                      f'(×{st["ratio"]:.2f}, goal ≤ {st["goal_ratio"]:g}) '
                      f'| τ {st["estimate_s"] * 1e3:.3f} ± {st["sigma_s"] * 1e3:.4f} ms '
                      f'(true {st["true_offset_s"] * 1e3:g}) |')
-    diag = results.get('diagnosis')
-    if isinstance(diag, dict) and 'runtime' in diag:
-        d = diag['runtime']
-        lines.append(f'| diagnosis (coreg diagnose) | {d["n_pairs"]:,} pairs, {d["effect"]} '
-                     f'| {d["seconds"]:.1f} s (goal {d["goal_seconds"]:g} s) '
-                     f'| named {", ".join(d["named"]) or "none"} |')
     return '\n'.join(lines)
 
 
@@ -245,8 +198,16 @@ def main(argv=None) -> int:
     parser.add_argument('--no-mc', action='store_true', help='skip the Monte Carlo')
     parser.add_argument('--mc-scale', type=float, default=1.0, help='Monte Carlo trials × this')
     parser.add_argument('--mc-workers', type=int, default=2)
-    parser.add_argument('--node-duration', type=float, default=60.0,
-                        help='node benchmark streaming time, s (0 skips it)')
+    parser.add_argument('--node-duration', type=float, default=10.0,
+                        help='node benchmark streaming time per rate and path, s (0 skips it)')
+    parser.add_argument('--bag-messages', type=int, default=500_000,
+                        help='PoseStamped messages per topic in the bag benchmark (0 skips it)')
+    parser.add_argument('--no-bag-calibrate', action='store_true',
+                        help='skip coreg calibrate on the 2M-pair recording (before/after)')
+    parser.add_argument('--parallel-cases', type=int, default=40,
+                        help='validation cases run with 1 and 2 workers (0 skips it)')
+    parser.add_argument('--no-calibrate-speed', action='store_true',
+                        help='skip the whole calibrate() at 100k and 1M pairs')
     parser.add_argument('--diagnosis-cases', type=int, default=0,
                         help='also run the blind diagnosis validation on this many cases '
                              '(the 60k-pair diagnosis timing always runs)')
@@ -285,7 +246,29 @@ def main(argv=None) -> int:
     if not args.no_profile and 100_000 in args.sizes:
         _section(results, 'tls_profile_100k', eb.profile_tls, 100_000)
     _section(results, 'pairing', bench_pairing)
-    _section(results, 'bags', bench_bags)
+    # scale and speed: each module measures its goal against a baseline of the same run
+    scale = []  # (key, title, module)
+    if not args.no_calibrate_speed:
+        from bench import calibrate_speed_bench
+        _section(results, 'calibrate_speed', calibrate_speed_bench.run,
+                 with_scipy=not args.no_scipy, scipy_cap=args.scipy_cap)
+        scale.append(('calibrate_speed', 'Whole calibrate() at 100k and 1M pairs',
+                      calibrate_speed_bench))
+    if args.bag_messages > 0:
+        from bench import bag_bench
+        _section(results, 'bags', bag_bench.run, n=args.bag_messages,
+                 calibrate=not args.no_bag_calibrate, calibrate_storages=('sqlite3', 'mcap'))
+        scale.append(('bags', 'Bags: bulk read/write vs rosbags per message', bag_bench))
+    if not args.no_diagnosis:
+        from bench import bench_diagnosis
+        _section(results, 'diagnosis', bench_diagnosis.run, args.diagnosis_cases, 2024,
+                 jobs=2, timing=True)
+        scale.append(('diagnosis', 'Diagnosis of a 60k-pair recording, every candidate model',
+                      bench_diagnosis))
+    if args.parallel_cases > 0:
+        from bench import parallel_bench
+        _section(results, 'parallel', parallel_bench.run, args.parallel_cases)
+        scale.append(('parallel', 'Many cases in parallel (validate-diagnosis)', parallel_bench))
     if args.node_duration > 0:
         try:
             from bench import bench_node
@@ -293,10 +276,7 @@ def main(argv=None) -> int:
             results['node'] = f'not available: {type(e).__name__}: {e}'
         else:
             _section(results, 'node', bench_node.run, args.node_duration)
-    if not args.no_diagnosis:
-        from bench import bench_diagnosis
-        _section(results, 'diagnosis', bench_diagnosis.run, args.diagnosis_cases, 2024,
-                 jobs=2, timing=True)
+            scale.append(('node', 'The node under 2 × 2, 5 and 10 kHz', bench_node))
     if not args.no_mc:
         _section(results, 'montecarlo', mc.run_all, args.mc_scale, args.mc_workers, log=log)
     if args.fuzz_n > 0:
@@ -315,6 +295,11 @@ def main(argv=None) -> int:
     if isinstance(mc_reports, list):
         tables += [f'### Monte Carlo (fixed truth and motion, noise redrawn per trial; '
                    f'scale {args.mc_scale:g})', '', mc.markdown_table(mc_reports), '']
+    for key, title, module in scale:
+        if isinstance(results.get(key), dict):
+            tables += [f'### {title}', '', module.table(results[key]), '']
+        else:
+            tables += [f'### {title}', '', f'not measured: {results.get(key)}', '']
     if isinstance(results.get('watchdog'), dict):
         tables += ['### Watchdog (stable streams and steps at 100 Hz)', '',
                    results['watchdog']['table'], '']

@@ -39,15 +39,15 @@ from coreg_ros.core.pipeline import calibrate_streams, pair_for  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.core.types import Pairs, PoseStream  # noqa: E402
 from coreg_ros.core.watchdog import (  # noqa: E402
-    DESIGN_INFLATION,
-    OK,
-    Watchdog,
     cusum_threshold,
+    DESIGN_INFLATION,
     llr_constants,
+    OK,
     run_length,
+    Watchdog,
 )
 from coreg_ros.sim import DEFAULT_START_NS, simulate_recording  # noqa: E402
-from coreg_ros.sim.changes import Change, apply_change  # noqa: E402
+from coreg_ros.sim.changes import apply_change, Change  # noqa: E402
 
 SIGMA_A = (2e-4, 5e-4)
 SIGMA_B = (5e-4, 2e-3)

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 from typing import Optional, Union
 
-import numpy as np
-
 from coreg_ros.core.covariance import Prior
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
+import numpy as np
 
 #: Stamp spacing given to synchronised arrays without stamps (1 kHz), ns.
 _SYNC_STEP_NS = 1_000_000

@@ -20,8 +20,8 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
 from coreg_ros.ros.tools import (  # noqa: E402
-    RosSession,
     diagnostics_values,
+    RosSession,
     wait_for_diagnostics,
 )
 

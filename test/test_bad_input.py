@@ -7,15 +7,14 @@ problem; never a bare numpy / LinAlg / attribute error from deep inside the esti
 
 from dataclasses import replace
 
-import numpy as np
-import pytest
-
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.errors import CoregError, InputError, TooFewPairsError
 from coreg_ros.core.pairing import pair_streams, validate_stream
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_pairs, simulate_recording
+import numpy as np
+import pytest
 
 MODELS = ('full_pose', 'position_only', 'three_marker')
 GAP = 50_000_000

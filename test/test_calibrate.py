@@ -10,21 +10,20 @@ Bonferroni correction over the seeds of a test, never per axis.
 
 import json
 
-import numpy as np
-import pytest
-from scipy import stats
-from scipy.spatial.transform import Rotation
-
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
-from coreg_ros.core.covariance import Prior, joint_pose_covariance
-from coreg_ros.core.models import SPECS, Parameters
+from coreg_ros.core.covariance import joint_pose_covariance, Prior
+from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.files.results import result_to_dict
 from coreg_ros.sim import simulate_pairs, simulate_recording
+import numpy as np
+import pytest
+from scipy import stats
+from scipy.spatial.transform import Rotation
 
 MODELS = tuple(SPECS)
 ZERO = (0.0, 0.0)

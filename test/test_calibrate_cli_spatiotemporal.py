@@ -3,14 +3,13 @@
 from dataclasses import replace
 import json
 
-import numpy as np
-import pytest
-
 from coreg_ros.cli.main import main
 from coreg_ros.cli.options import EXIT_INCONSISTENT
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording
+import numpy as np
+import pytest
 
 A, B = '/device_a/pose', '/device_b/pose'
 

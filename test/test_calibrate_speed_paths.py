@@ -15,9 +15,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import numpy as np
-import pytest
-
 from coreg_ros.core import calibrate as cal
 from coreg_ros.core import estimator as est
 from coreg_ros.core import linearized, screening
@@ -30,6 +27,8 @@ from coreg_ros.core.observability import rotation_spread
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.sim import simulate_pairs
+import numpy as np
+import pytest
 
 SIGMA_A = (2e-4, np.radians(0.5))
 SIGMA_B = (5e-4, 2e-3)

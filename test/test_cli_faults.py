@@ -10,15 +10,14 @@ import sys
 import time
 import xml.etree.ElementTree as ET
 
-import numpy as np
-import pytest
-from test_convert import write_csv
-
 from coreg_ros.cli.main import main
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.sim import simulate_recording
+import numpy as np
+import pytest
+from test_convert import write_csv
 
 ROOT = Path(__file__).resolve().parents[1]
 A, B = '/device_a/pose', '/device_b/pose'

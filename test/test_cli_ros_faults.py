@@ -10,6 +10,11 @@ import signal
 import subprocess
 import time
 
+from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.ros.convert import make_pose_stamped
+from coreg_ros.ros.node import LATCHED_QOS
+from coreg_ros.ros.uncertainty_outputs import FUSED_QOS, MARKER_QOS
+from coreg_ros.sim import simulate_recording
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import pytest
@@ -17,12 +22,6 @@ from rclpy.qos import qos_profile_sensor_data
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import PY, run_cli
 from visualization_msgs.msg import Marker, MarkerArray
-
-from coreg_ros.files.bag.posebag import write_pose_bag
-from coreg_ros.ros.convert import make_pose_stamped
-from coreg_ros.ros.node import LATCHED_QOS
-from coreg_ros.ros.uncertainty_outputs import FUSED_QOS, MARKER_QOS
-from coreg_ros.sim import simulate_recording
 
 pytestmark = pytest.mark.ros
 

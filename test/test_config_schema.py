@@ -5,11 +5,9 @@ The node applies the same function to its overrides (``test_node_faults.py`` run
 same files); here the pure rules, quickly.
 """
 
-import pytest
-
 from coreg_ros.core.config_schema import (
-    DEFAULTS,
     check_parameters,
+    DEFAULTS,
     example,
     kind_of,
     nearest_key,
@@ -17,6 +15,7 @@ from coreg_ros.core.config_schema import (
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.settings import Settings, settings_from_mapping
 from coreg_ros.files.parameters import load_parameters
+import pytest
 
 
 def test_every_key_has_a_type_and_an_example():

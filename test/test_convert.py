@@ -2,9 +2,6 @@
 
 from pathlib import Path
 
-import numpy as np
-import pytest
-
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
@@ -12,6 +9,8 @@ from coreg_ros.core.so3 import invert_poses
 from coreg_ros.files.bag.posebag import read_pose_bag
 from coreg_ros.files.csv_poses import read_pose_csv
 from coreg_ros.sim import simulate_recording
+import numpy as np
+import pytest
 
 A = '/device_a/pose'
 B = '/device_b/pose'

@@ -7,16 +7,15 @@ reduced-quaternion coordinates, and by Monte Carlo against the empirical covaria
 ``(p_true - p_est, log(q_true ⊗ q_est*))`` over repeated simulated datasets.
 """
 
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.covariance import joint_pose_covariance, tangent_map, UNKNOWN
+from coreg_ros.core.models import Parameters, SPECS
+from coreg_ros.core.settings import Settings
+from coreg_ros.sim import make_motion, random_truth, simulate_pairs
 import numpy as np
 import pytest
 from scipy import stats
-
-from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import UNKNOWN, joint_pose_covariance, tangent_map
-from coreg_ros.core.models import SPECS, Parameters
-from coreg_ros.core.settings import Settings
-from coreg_ros.sim import make_motion, random_truth, simulate_pairs
 
 MODELS = tuple(SPECS)
 

@@ -2,22 +2,21 @@
 
 import json
 
-import numpy as np
-import pytest
-
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.directions import (
-    MAX_PAIRS,
+    check_directions,
     DirectionFit,
     DirectionReport,
-    check_directions,
+    MAX_PAIRS,
 )
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording
+import numpy as np
+import pytest
 
 A = '/device_a/pose'
 B = '/device_b/pose'

@@ -7,9 +7,8 @@ import subprocess
 import sys
 import time
 
-import pytest
-
 from coreg_ros.ros.domain import reserve_domain_id
+import pytest
 
 BIN = Path(sys.executable).parent
 ROOT = Path(__file__).resolve().parents[1]

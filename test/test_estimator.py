@@ -6,16 +6,15 @@ independently (by finite differences of a residual function written in this file
 Schur-complement covariance, the stationarity of the solution and the chi-square.
 """
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import noise_covariance, whitening
 from coreg_ros.core.estimator import Problem, solve_ols, solve_tls
 from coreg_ros.core.initialize import initialize, project_to_so3, rotations_from_pairs
-from coreg_ros.core.models import SPECS, Parameters, output_error
-from coreg_ros.sim import Truth, simulate_pairs
+from coreg_ros.core.models import output_error, Parameters, SPECS
+from coreg_ros.sim import simulate_pairs, Truth
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 MODELS = tuple(SPECS)
 ZERO = (0.0, 0.0)

@@ -10,22 +10,21 @@ ellipsoid coverage within 93-97 % fail only for a real mismatch.
 
 from dataclasses import replace
 
-import numpy as np
-import pytest
-from scipy import stats
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.fusion_stream import (
-    FusionCalibration,
     fused_stream,
+    FusionCalibration,
     pending_pairs,
 )
 from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
 from coreg_ros.sim import random_rotation, simulate_pairs, simulate_recording
+import numpy as np
+import pytest
+from scipy import stats
 
 N_MC = 20_000
 #: Hoff & Vincent's complementary devices (docs/hoff_experiment.md).
@@ -171,7 +170,7 @@ def test_incremental_pairing_equals_pair_streams(model, offset_ns):
     cursor, got = None, []
     rng = np.random.default_rng(0)
     # A arrives 25 ms after its stamp, B 2 ms after (so B often waits for A), markers 9 ms
-    latency = {t: 9_000_000 for t in bs} | {a: 25_000_000, bs[0]: 2_000_000}
+    latency = dict.fromkeys(bs, 9000000) | {a: 25_000_000, bs[0]: 2_000_000}
     events = _arrivals(rec.streams, latency)
     for j, (_, topic, _) in enumerate(events):
         count[topic] += 1

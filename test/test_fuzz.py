@@ -88,9 +88,8 @@ def test_the_fuzzer_flags_a_known_wrong_result(tmp_path):
     """A success far from the truth is flagged (the oracle itself is checked)."""
     import json
 
-    import numpy as np
-
     from coreg_ros.sim import simulate_recording
+    import numpy as np
 
     truth = simulate_recording(3, 1.0).truth
     cov = list(np.diag([1e-8] * 6).ravel())

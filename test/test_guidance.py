@@ -1,27 +1,26 @@
 """Guidance while collecting: σ now (against the calibration's own), the best next motion."""
 
-import numpy as np
-import pytest
-
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.errors import CoregError, InputError
 from coreg_ros.core.guidance import (
+    batch_from_pairs,
+    candidate_motions,
+    Estimate,
     GROUPS,
+    GuidanceAccumulator,
+    information,
     KEY_NEXT,
     KEY_READY,
     KEY_SIGMA_PREFIX,
     KEY_SUMMARY,
-    Estimate,
-    GuidanceAccumulator,
     PairFeed,
-    batch_from_pairs,
-    candidate_motions,
-    information,
 )
 from coreg_ros.core.pipeline import calibrate_streams, pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs
 from coreg_ros.sim import add_pose_noise, simulate_recording
+import numpy as np
+import pytest
 
 # the noise of the sample recording bags/sample_full_pose
 SIGMA_A = (2e-4, 5e-4)

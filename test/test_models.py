@@ -7,24 +7,23 @@ The paper's Jacobians (eqs. 48-49) have index typos, so every Jacobian is checke
 perturbation ``q_A ← Exp(δ) ⊗ q_A``, ``p_A ← p_A + δp`` (the one ``linearize`` documents).
 """
 
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.models import (
+    error_rotation_jacobian,
+    linearize,
+    output_error,
+    Parameters,
+    predict,
+    S0,
+    S1,
+    SPECS,
+    tangent_of_chart,
+)
 from hypothesis import given, settings
 import hypothesis.strategies as st
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from coreg_ros.core import quaternion as quat
-from coreg_ros.core.models import (
-    S0,
-    S1,
-    SPECS,
-    Parameters,
-    error_rotation_jacobian,
-    linearize,
-    output_error,
-    predict,
-    tangent_of_chart,
-)
 
 MODELS = tuple(SPECS)
 CHARTS = [(k, s) for k in range(4) for s in (1.0, -1.0)]

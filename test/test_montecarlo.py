@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench import montecarlo as mc  # noqa: E402
 from coreg_ros.core import quaternion as quat  # noqa: E402
 from coreg_ros.core.calibrate import calibrate, noise_covariance  # noqa: E402
-from coreg_ros.core.crlb import CRLB_DIMENSION, cramer_rao_bound, model_jacobians  # noqa: E402
+from coreg_ros.core.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs  # noqa: E402
 

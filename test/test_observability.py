@@ -3,17 +3,16 @@ Tests of the observability checks: motion that cannot determine the calibration 
 a message that names the unobservable parameter and the motion that would fix it.
 """
 
-import numpy as np
-import pytest
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
 from coreg_ros.core.errors import CoregError, UnobservableError
 from coreg_ros.core.estimator import Problem, solve_ols
-from coreg_ros.core.models import SPECS, Parameters
+from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.observability import check_motion, check_observability, rotation_spread
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_pairs
+import numpy as np
+import pytest
 
 MODELS = tuple(SPECS)
 METHODS = ('ols', 'tls')

@@ -1,15 +1,14 @@
 """Tests of coreg_ros.core.pairing: the one pairing rule of the package."""
 
 
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.errors import InputError
+from coreg_ros.core.pairing import pair_streams, UNPAIRED_REASONS, validate_stream
+from coreg_ros.core.types import PoseStream
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
-
-from coreg_ros.core import quaternion as quat
-from coreg_ros.core.errors import InputError
-from coreg_ros.core.pairing import UNPAIRED_REASONS, pair_streams, validate_stream
-from coreg_ros.core.types import PoseStream
 
 MS = 1_000_000
 T0 = 1_700_000_000 * 10**9 + 123  # realistic epoch stamps: too large for exact float64 seconds

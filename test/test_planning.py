@@ -10,9 +10,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-import pytest
-
 from coreg_ros.cli import plan as plan_cli
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
@@ -25,6 +22,8 @@ from coreg_ros.core.planning import (
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, UncertainPose
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs
+import numpy as np
+import pytest
 
 SIGMA_A, SIGMA_B = (2e-4, 5e-4), (5e-4, 2e-3)
 COV_A, COV_B = noise_covariance(SIGMA_A), noise_covariance(SIGMA_B)

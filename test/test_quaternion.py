@@ -6,15 +6,14 @@ Quaternions are (w, x, y, z) in the package; scipy's Rotation is used with ``sca
 near 180° (jaxlie style), where conversions are most fragile.
 """
 
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.errors import CoregError, InputError
 from hypothesis import given, settings
 import hypothesis.extra.numpy as hnp
 import hypothesis.strategies as st
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
-
-from coreg_ros.core import quaternion as quat
-from coreg_ros.core.errors import CoregError, InputError
 
 PROPERTY = settings(max_examples=60, deadline=None)
 

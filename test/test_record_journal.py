@@ -5,13 +5,12 @@ import subprocess
 import sys
 import time
 
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
+from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import run_cli
-
-from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
-from coreg_ros.sim import simulate_recording
 
 pytestmark = pytest.mark.ros
 

@@ -7,13 +7,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-import pytest
-from rclpy.parameter import Parameter
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import PY, run_cli
-import yaml
-
 from coreg_ros.core.settings import settings_from_mapping
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
@@ -27,8 +20,14 @@ from coreg_ros.ros.convert import (
 )
 from coreg_ros.ros.domain import reserve_domain_id
 from coreg_ros.ros.node import CoregNode
-from coreg_ros.ros.tools import RosSession, play_streams
+from coreg_ros.ros.tools import play_streams, RosSession
 from coreg_ros.sim import simulate_recording
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from ros_fixtures import *  # noqa: F401,F403
+from ros_fixtures import PY, run_cli
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -5,9 +5,6 @@ outliers rejected, priors, and the fit verdict. Statistical claims by Monte Carl
 
 from dataclasses import replace
 
-import numpy as np
-import pytest
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.covariance import Prior
 from coreg_ros.core.errors import InconsistentDataError
@@ -16,6 +13,8 @@ from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import PoseStream, UncertainPose
 from coreg_ros.core.uncertainty import pose_error
 from coreg_ros.sim import parse_effect, simulate_recording
+import numpy as np
+import pytest
 
 
 def _streams(rec):

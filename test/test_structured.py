@@ -11,16 +11,15 @@ solutions. A problem with ``a_scale`` set to ones is the same problem, solved ge
 import contextlib
 import dataclasses
 
-import numpy as np
-import pytest
-
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import structured
 from coreg_ros.core.calibrate import whitening
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
-from coreg_ros.sim import Truth, simulate_pairs
+from coreg_ros.sim import simulate_pairs, Truth
+import numpy as np
+import pytest
 
 N = 400
 ISOTROPIC = (np.diag([1e-6] * 3 + [4e-5] * 3), np.diag([4e-6] * 3 + [3e-4] * 3))

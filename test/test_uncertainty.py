@@ -9,14 +9,13 @@ coverage within 93-97 %) therefore fail only for a real mismatch, the noise bein
 enough (≤ 0.05 rad) for first-order propagation to hold.
 """
 
-import numpy as np
-import pytest
-from scipy import stats
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import CalibrationResult, UncertainPose
+import numpy as np
+import pytest
+from scipy import stats
 
 N_MC = 20_000
 

@@ -6,13 +6,12 @@ correlations. The identities are exact up to rounding for first-order propagatio
 Jacobians are the exact derivatives of the same functions.
 """
 
-from hypothesis import given, settings
-from hypothesis import strategies as st
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.types import UncertainPose
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import numpy as np
 
 SEEDS = st.integers(min_value=0, max_value=2 ** 32 - 1)
 

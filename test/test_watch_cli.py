@@ -11,18 +11,17 @@ import pytest
 
 pytest.importorskip('rich')
 
-from ros_fixtures import *  # noqa: E402,F401,F403 (ros_domain, ros_session)
-
 from coreg_ros.cli import watch  # noqa: E402
-from coreg_ros.cli.watch import DashboardState, Status, bar, render_text, sigma_rows  # noqa: E402
+from coreg_ros.cli.watch import bar, DashboardState, render_text, sigma_rows, Status  # noqa: E402
 from coreg_ros.core import guidance as g  # noqa: E402
 from coreg_ros.core import watchdog as w  # noqa: E402
-from coreg_ros.core.guidance import Estimate, GuidanceAccumulator, batch_from_pairs  # noqa: E402
+from coreg_ros.core.guidance import batch_from_pairs, Estimate, GuidanceAccumulator  # noqa: E402
 from coreg_ros.core.pipeline import calibrate_streams, pair_for  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.core.watchdog import Watchdog  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
 from coreg_ros.sim.changes import apply_changes  # noqa: E402
+from ros_fixtures import *  # noqa: E402,F401,F403 (ros_domain, ros_session)
 
 SIGMA_A = (2e-4, 5e-4)
 SIGMA_B = (5e-4, 2e-3)

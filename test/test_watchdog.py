@@ -1,9 +1,5 @@
 """The watchdog: false-alarm design, detection and attribution of T0, T1, clock, noise changes."""
 
-import numpy as np
-import pytest
-from scipy import stats
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.guidance import PairFeed
@@ -11,22 +7,25 @@ from coreg_ros.core.pipeline import calibrate_streams, pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
 from coreg_ros.core.watchdog import (
+    Calibration,
+    cusum_threshold,
     DESIGN_INFLATION,
     ERROR,
     KEY_CHANGE,
     KEY_STALE,
     KEY_STATE,
-    OK,
-    WARN,
-    Calibration,
-    Watchdog,
-    cusum_threshold,
     llr_constants,
+    OK,
     recalibration_prior,
     run_length,
+    WARN,
+    Watchdog,
 )
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.changes import apply_change, apply_changes, parse_change
+import numpy as np
+import pytest
+from scipy import stats
 
 # the noise of the sample recording bags/sample_full_pose, pairs at 100 Hz
 SIGMA_A = (2e-4, 5e-4)

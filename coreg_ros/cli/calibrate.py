@@ -8,19 +8,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import sys
-from typing import TYPE_CHECKING, Any, Optional
-
-import numpy as np
+from typing import Any, Optional, TYPE_CHECKING
 
 from coreg_ros.cli.argtypes import finite
 from coreg_ros.cli.options import (
-    EXIT_INCONSISTENT,
     add_calibration_options,
     config_frames,
+    EXIT_INCONSISTENT,
     settings_from_args,
 )
 from coreg_ros.cli.policy import PROG
 from coreg_ros.core.types import PoseStream
+import numpy as np
 
 if TYPE_CHECKING:  # the fit machinery is imported when a fit is checked, not by `coreg --help`
     from coreg_ros.core.directions import DirectionReport

@@ -12,14 +12,14 @@ import sys
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B
 from coreg_ros.files.csv_poses import (
+    check_conventions,
+    CsvStream,
     FRAME_A,
     FRAME_B,
     QUATERNION_ORDERS,
+    read_pose_csv,
     TIME_UNITS,
     UNITS,
-    CsvStream,
-    check_conventions,
-    read_pose_csv,
 )
 
 

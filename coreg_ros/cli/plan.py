@@ -10,10 +10,9 @@ model (``coreg_ros.core.planning``).
 
 from __future__ import annotations
 
-import numpy as np
-
 from coreg_ros.cli.argtypes import positive
 from coreg_ros.core.types import MODELS
+import numpy as np
 
 PRESETS = ('diverse', 'single_axis', 'no_rotation', 'static')
 

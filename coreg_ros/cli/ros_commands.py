@@ -22,8 +22,8 @@ SERVICES = ('calibrate', 'reset', 'save_samples')
 
 def cmd_play(args) -> int:
     """Publish a bag on live topics with its original timing."""
-    from coreg_ros.files.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
-    from coreg_ros.ros.tools import RosSession, play_streams
+    from coreg_ros.files.bag.posebag import list_topics, POSE_STAMPED, read_pose_bag
+    from coreg_ros.ros.tools import play_streams, RosSession
 
     topics = args.topics or [t for t, ty in list_topics(args.bag).items() if POSE_STAMPED in ty]
     if not topics:
@@ -43,8 +43,8 @@ def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
     from coreg_ros.core.errors import BagError
     from coreg_ros.files.bag.posebag import write_pose_bag
-    from coreg_ros.ros.persistence import SampleJournal, read_journal
-    from coreg_ros.ros.tools import RosSession, record_streams
+    from coreg_ros.ros.persistence import read_journal, SampleJournal
+    from coreg_ros.ros.tools import record_streams, RosSession
 
     out = Path(args.out_bag)
     partial = out.with_name(out.name + '.partial')
@@ -78,7 +78,7 @@ def cmd_record(args) -> int:
 
 def cmd_call(args) -> int:
     """Call one of coreg_node's Trigger services; exit 0 if it answered success."""
-    from coreg_ros.ros.tools import RosSession, call_trigger, service_name
+    from coreg_ros.ros.tools import call_trigger, RosSession, service_name
 
     name = service_name(args.service, args.node)
     with RosSession('coreg_call') as session:
@@ -90,7 +90,7 @@ def cmd_call(args) -> int:
 
 def cmd_echo(args) -> int:
     """Print the messages of a topic with its publishers' type and QoS (latched ones too)."""
-    from coreg_ros.ros.tools import RosSession, echo_topic, service_name
+    from coreg_ros.ros.tools import echo_topic, RosSession, service_name
 
     topic = service_name(args.topic, args.node)
     timeout = args.timeout

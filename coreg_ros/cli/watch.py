@@ -402,12 +402,11 @@ def register(subparsers) -> None:
 def cmd_watch(args) -> int:
     """Run the dashboard until Ctrl-C (or one frame with ``--once``)."""
     # a missing rich or ROS 2 is one line by the error policy (coreg_ros.cli.policy)
+    from coreg_ros.ros.tools import RosSession
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rich.console import Console
     from rich.live import Live
-
-    from coreg_ros.ros.tools import RosSession
 
     state = DashboardState(node=args.node.lstrip('/'))
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,

@@ -10,9 +10,6 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Optional
 
-import numpy as np
-from scipy import stats
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import screening, structured
 from coreg_ros.core.covariance import Prior, result_poses
@@ -26,17 +23,19 @@ from coreg_ros.core.estimator import (
     InputState,
     Problem,
     Solution,
-    TlsSums,
     solve_ols,
     solve_tls,
     tls_linearization,
+    TlsSums,
 )
 from coreg_ros.core.initialize import initialize
-from coreg_ros.core.linearized import PairData, normalised_squares
-from coreg_ros.core.models import SPECS, ModelSpec, Parameters
+from coreg_ros.core.linearized import normalised_squares, PairData
+from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.observability import check_motion, check_observability
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
+import numpy as np
+from scipy import stats
 
 
 def noise_covariance(sigma) -> np.ndarray:

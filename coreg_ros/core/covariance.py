@@ -13,19 +13,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.models import (
-    S0,
-    S1,
+    error_rotation_jacobian,
     ModelSpec,
     Parameters,
-    error_rotation_jacobian,
+    S0,
+    S1,
     tangent_of_chart,
 )
 from coreg_ros.core.types import UncertainPose
+import numpy as np
 
 #: Diagonal value that marks a component as not estimated (sensor_msgs' "unknown" convention).
 UNKNOWN = -1.0

@@ -35,12 +35,11 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import MODELS
+import numpy as np
 
 #: Dimension of ψ per model.
 CRLB_DIMENSION = {'full_pose': 12, 'position_only': 9, 'three_marker': 15}

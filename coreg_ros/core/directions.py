@@ -14,8 +14,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional, Union
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.errors import CoregError
@@ -25,6 +23,7 @@ from coreg_ros.core.settings import Settings
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.timing import coarse_offsets
 from coreg_ros.core.types import Pairs, PoseStream, TimeOffset
+import numpy as np
 
 #: Largest number of pairs each trial fit uses (evenly spread over the recording).
 MAX_PAIRS = 3000

@@ -22,15 +22,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import batched, structured
 from coreg_ros.core.models import (
-    ModelSpec,
-    Parameters,
     error_rotation_jacobian,
     linearize,
+    ModelSpec,
+    Parameters,
 )
+import numpy as np
 
 #: Pairs processed at once; bounds the transient memory (about 3 KB per pair in a chunk).
 CHUNK = 4096

@@ -30,11 +30,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional, Union
 
-import numpy as np
-
 from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.types import CalibrationResult, Pairs, PoseStream, UncertainPose
-from coreg_ros.core.uncertainty import UNKNOWN, fuse_arrays, through_calibration_arrays
+from coreg_ros.core.uncertainty import fuse_arrays, through_calibration_arrays, UNKNOWN
+import numpy as np
 
 #: Models whose B measurement carries an orientation that can be fused.
 ORIENTED_MODELS = ('full_pose',)

@@ -14,10 +14,9 @@ All solves are O(N) accumulations into small matrices followed by an SVD:
 
 from __future__ import annotations
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.models import ModelSpec, Parameters
+import numpy as np
 
 
 def project_to_so3(M: np.ndarray) -> np.ndarray:

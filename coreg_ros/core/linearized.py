@@ -20,9 +20,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.models import linearize, Parameters
 import numpy as np
-
-from coreg_ros.core.models import Parameters, linearize
 
 #: Pairs linearised at once (bounds the transient memory to a few MB).
 CHUNK = 8192

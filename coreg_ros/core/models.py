@@ -26,10 +26,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.so3 import skew
+import numpy as np
 
 S0 = slice(3, 6)
 S1 = slice(9, 12)

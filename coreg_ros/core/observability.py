@@ -10,11 +10,10 @@ the parameter direction named and the motion that would fix it.
 
 from __future__ import annotations
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import UnobservableError
 from coreg_ros.core.models import Parameters, tangent_of_chart
+import numpy as np
 
 RANK_TOLERANCE = 1e-10
 WEAK_POSITION_M = 0.1

@@ -16,11 +16,10 @@ from collections.abc import Sequence
 import numbers
 from typing import Union
 
-import numpy as np
-
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.quaternion import slerp, validate_quaternions
 from coreg_ros.core.types import PairingReport, Pairs, PoseStream
+import numpy as np
 
 #: Largest position (m) a tracker reading may have: beyond it the unit or the value is wrong.
 MAX_POSITION_M = 1e6

@@ -19,12 +19,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Optional, Union
 
-import numpy as np
-from scipy import stats
-
 from coreg_ros.core.calibrate import (
-    MAX_REJECTED_SHARE,
     calibrate,
+    MAX_REJECTED_SHARE,
     noise_covariance,
     output_covariance,
 )
@@ -37,21 +34,23 @@ from coreg_ros.core.errors import (
     UnobservableError,
 )
 from coreg_ros.core.linearized import PairData
-from coreg_ros.core.models import SPECS, Parameters
+from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.pairing import pair_streams, validated_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.timing import (
-    OffsetStep,
     clock_step,
     coarse_offsets,
     offset_step,
     offsets_by_block,
+    OffsetStep,
     query_seconds,
     velocity_noise_cov,
 )
-from coreg_ros.core.trajectory import VELOCITY_HALF_WINDOW, Trajectory
+from coreg_ros.core.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
 from coreg_ros.core.verdict import judge, unit_mismatch
+import numpy as np
+from scipy import stats
 
 #: A step of τ below this (s) is applied without re-pairing (the pairs are linear in τ over
 #: it: ½ a δτ² is 0.5 µm at 1 m/s² acceleration).

@@ -27,13 +27,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import observability
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.crlb import CRLB_DIMENSION, cramer_rao_bound, model_jacobians
+from coreg_ros.core.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import MODELS
+import numpy as np
 
 #: Amplitude (rad) and frequency (Hz) of the added back-and-forth rotation about the weakest axis.
 ADDED_ROTATION = (0.8, 0.1)

@@ -15,9 +15,8 @@ parameter estimation. UUCS-00-018. Section 3.1 (reduced quaternion, eqs. 7-10), 
 
 from __future__ import annotations
 
-import numpy as np
-
 from coreg_ros.core.errors import InputError
+import numpy as np
 
 #: Largest accepted deviation of a measured quaternion's norm from 1 before it is refused.
 UNIT_NORM_TOLERANCE = 1e-2

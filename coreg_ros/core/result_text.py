@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
+import numpy as np
 
 if TYPE_CHECKING:  # types.CalibrationResult.summary() imports this module
     from coreg_ros.core.types import CalibrationResult, PairingReport, TimeOffset, UncertainPose

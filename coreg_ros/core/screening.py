@@ -24,10 +24,9 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import structured as st
-from coreg_ros.core.models import Parameters, output_error
+from coreg_ros.core.models import output_error, Parameters
+import numpy as np
 
 #: Pairs per chunk (the working set of a chunk stays in cache).
 CHUNK = 8192

@@ -12,10 +12,9 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-import numpy as np
-
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import METHODS, MODELS
+import numpy as np
 
 DEFAULT_TOPIC_A = '/device_a/pose'
 DEFAULT_TOPIC_B = ('/device_b/pose',)

@@ -6,9 +6,8 @@ Rotation vectors φ (rad) with ``Exp(φ)`` about the fixed axes, as in DESIGN.md
 
 from __future__ import annotations
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
+import numpy as np
 
 
 def skew(v: np.ndarray) -> np.ndarray:

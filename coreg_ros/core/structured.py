@@ -33,11 +33,10 @@ import functools
 import operator
 from typing import NamedTuple, Optional, Union
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConvergenceError
 from coreg_ros.core.models import Parameters, tangent_of_chart
+import numpy as np
 
 #: Pairs processed at once. Larger than the generic CHUNK: the per-pair state here is small
 #: (about 1.5 KB transient) and longer vectors amortise numpy's per-call overhead.

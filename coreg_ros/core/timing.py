@@ -26,14 +26,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-from scipy import fft
-
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.linearized import Chunk, PairData, chunks
+from coreg_ros.core.linearized import Chunk, chunks, PairData
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.trajectory import Trajectory
 from coreg_ros.core.types import PoseStream
+import numpy as np
+from scipy import fft
 
 #: Largest posterior σ of τ (s) for which τ counts as determined by the motion.
 MAX_SIGMA_S = 0.010

@@ -11,9 +11,8 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
+import numpy as np
 
 #: Half-width of the finite-difference window for velocities, s (at least two A samples).
 VELOCITY_HALF_WINDOW = 0.04

@@ -15,14 +15,13 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional
 
-import numpy as np
-from scipy import stats
-
 from coreg_ros.core.covariance import Prior
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
 from coreg_ros.core.uncertainty import pose_error
+import numpy as np
+from scipy import stats
 
 #: A fit (or a prior) with a p-value below this does not match the stated noise.
 CONSISTENT_P = 1e-3

@@ -13,16 +13,15 @@ or a direction that disagree.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
+from decimal import Decimal, InvalidOperation, ROUND_HALF_EVEN
 from pathlib import Path
 import re
-
-import numpy as np
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
+import numpy as np
 
 #: Quaternion column orders accepted by ``--quaternion-order``.
 QUATERNION_ORDERS = ('xyzw', 'wxyz')

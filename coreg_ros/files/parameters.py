@@ -66,9 +66,8 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
         nothing, as ROS treats it.
 
     """
-    import yaml
-
     from coreg_ros.core.config_schema import check_parameters
+    import yaml
 
     try:
         with open(path, encoding='utf-8') as f:

@@ -27,11 +27,10 @@ from collections.abc import Mapping
 import math
 from typing import Any
 
-import numpy as np
-
 from coreg_ros.core.covariance import Prior
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import CalibrationResult, UncertainPose
+import numpy as np
 
 
 def pose_to_dict(pose: UncertainPose) -> dict:

@@ -23,11 +23,10 @@ import io
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.types import CalibrationResult, PairingReport, UncertainPose
+import numpy as np
 
 #: Frames user points may be given in.
 POINT_FRAMES = ('a_base', 'a_tool')

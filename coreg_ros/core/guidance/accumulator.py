@@ -5,21 +5,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core.crlb import CRLB_DIMENSION
 from coreg_ros.core.errors import InputError, UnobservableError
 from coreg_ros.core.guidance.feed import PairBatch
 from coreg_ros.core.guidance.fisher import (
-    Estimate,
     _weak_prior,
     device_covariances,
+    Estimate,
     information,
     sigma_groups,
 )
 from coreg_ros.core.guidance.keys import (
     AXES,
     GROUP_TITLES,
+    is_rotation_group,
     KEY_DURATION,
     KEY_NEXT,
     KEY_NEXT_RATIO,
@@ -33,12 +32,12 @@ from coreg_ros.core.guidance.keys import (
     KEY_TARGET_TIME,
     KEY_WORST,
     KEY_WORST_RATIO,
-    is_rotation_group,
 )
 from coreg_ros.core.guidance.motions import candidate_motions
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.observability import check_motion
 from coreg_ros.core.types import MODELS
+import numpy as np
 
 #: Pairs kept for re-linearising (evenly decimated beyond this).
 MAX_STORED_PAIRS = 50_000

@@ -5,11 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.trajectory import VELOCITY_HALF_WINDOW, Trajectory
+from coreg_ros.core.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.types import Pairs
+import numpy as np
 
 # --------------------------------------------------------------------------- pairs and velocity
 

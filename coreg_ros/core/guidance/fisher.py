@@ -5,15 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import noise_covariance
 from coreg_ros.core.crlb import CRLB_DIMENSION, model_jacobians
 from coreg_ros.core.guidance.keys import GROUPS, is_rotation_group
 from coreg_ros.core.initialize import initialize
-from coreg_ros.core.models import SPECS, Parameters
+from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.types import CalibrationResult
+import numpy as np
 
 #: Re-linearise (rebuild the information) when T0's rotation estimate moves by more (rad).
 RELINEARISE_ROTATION = np.deg2rad(2.0)

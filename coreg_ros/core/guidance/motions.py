@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.guidance.keys import AXES
+import numpy as np
 
 #: Recording time each candidate motion adds, s.
 CANDIDATE_SECONDS = 10.0

@@ -55,11 +55,11 @@ from coreg_ros.core.uncertainty.fusion import (
     fuse_arrays,
 )
 from coreg_ros.core.uncertainty.geometry import (
-    AxisCone,
-    Ellipsoid,
     axis_cones,
     axis_covariance,
+    AxisCone,
     cone_mesh,
+    Ellipsoid,
     ellipsoid_axes,
     ellipsoid_orientation,
 )

@@ -9,12 +9,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.covariance import UNKNOWN
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import UncertainPose
+import numpy as np
 
 #: Below this absolute value a Jacobian entry does not propagate an unknown component.
 _ZERO = 1e-12

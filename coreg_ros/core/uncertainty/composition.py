@@ -5,8 +5,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.so3 import skew
@@ -19,6 +17,7 @@ from coreg_ros.core.uncertainty._unknown import (
     _symmetric,
     _unknown_mask,
 )
+import numpy as np
 
 
 def compose_jacobians(p_ab, q_ab, p_bc) -> tuple[np.ndarray, np.ndarray]:

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+from coreg_ros.core import quaternion as quat
 import numpy as np
 from scipy import stats
-
-from coreg_ros.core import quaternion as quat
 
 
 def pose_error(p_true, q_true, p_est, q_est) -> np.ndarray:

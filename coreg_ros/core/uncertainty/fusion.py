@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.so3 import left_jacobian
@@ -14,6 +12,7 @@ from coreg_ros.core.uncertainty._unknown import (
     _symmetric,
     _unknown_mask,
 )
+import numpy as np
 
 
 def _information(cov: np.ndarray) -> np.ndarray:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.so3 import skew
@@ -16,6 +14,7 @@ from coreg_ros.core.uncertainty._unknown import (
     _symmetric,
 )
 from coreg_ros.core.uncertainty.consistency import coverage_probability
+import numpy as np
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-from scipy import stats
-
 from coreg_ros.core.covariance import Prior
 from coreg_ros.core.guidance import (
     Estimate,
@@ -16,6 +13,8 @@ from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import CalibrationResult
 from coreg_ros.core.watchdog.keys import KIND_TEXT
 from coreg_ros.core.watchdog.residuals import Calibration, Linearised
+import numpy as np
+from scipy import stats
 
 #: In the attribution fits, a pair's -2 log-likelihood is clipped at the χ²_m quantile
 #: 1 - FIT_CLIP_TAIL (and such pairs are left out of the refit): outliers do not decide.

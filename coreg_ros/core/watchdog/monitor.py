@@ -5,15 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.guidance import (
-    PairBatch,
     device_covariances,
+    PairBatch,
 )
 from coreg_ros.core.types import CalibrationResult
-from coreg_ros.core.watchdog.attribution import Attribution, attribute
+from coreg_ros.core.watchdog.attribution import attribute, Attribution
 from coreg_ros.core.watchdog.keys import (
     ERROR,
     KEY_ALARM_STAMP,
@@ -36,11 +34,12 @@ from coreg_ros.core.watchdog.keys import (
 )
 from coreg_ros.core.watchdog.residuals import Calibration, linearise
 from coreg_ros.core.watchdog.threshold import (
-    DESIGN_INFLATION,
-    TARGET_RUN_LENGTH,
     cusum_threshold,
+    DESIGN_INFLATION,
     llr_constants,
+    TARGET_RUN_LENGTH,
 )
+import numpy as np
 
 #: Fewest pairs after the change point before the attribution is trusted, and the fewest
 #: seconds (whichever takes longer).

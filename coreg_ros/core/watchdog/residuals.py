@@ -4,19 +4,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.crlb import CRLB_DIMENSION
 from coreg_ros.core.guidance import (
     CHUNK,
-    Estimate,
-    PairBatch,
     effective_covariance,
+    Estimate,
     jacobians,
+    PairBatch,
 )
-from coreg_ros.core.models import S0, S1, SPECS, Parameters, tangent_of_chart
+from coreg_ros.core.models import Parameters, S0, S1, SPECS, tangent_of_chart
 from coreg_ros.core.types import CalibrationResult
+import numpy as np
 
 # --------------------------------------------------------------------------- the calibration
 
