@@ -12,7 +12,8 @@ PoseStamped bags at memory speed (issue 15): bulk path against rosbags' per-mess
   without (after).
 
 ``python bench/bag_bench.py [--n N] [--seconds S] [--calibrate-storages sqlite3 mcap]
-[--no-calibrate]`` prints the tables and writes ``bench/results/bag_bench.json``; ``run()``
+[--no-calibrate] [--repeat R]`` (reads alternate, best of R each) prints the tables and
+writes ``bench/results/bag_bench.json``; ``run()``
 returns the dict.
 """
 
@@ -90,16 +91,24 @@ def _identical(a: dict, b: dict) -> bool:
     return True
 
 
-def _read_write(n: int, topics: int, storage: str, tmp: Path) -> dict:
+def _read_write(n: int, topics: int, storage: str, tmp: Path, repeat: int = 1) -> dict:
     streams = _streams(n, topics)
     total = n * topics
     names = list(streams)
     t_wb, _ = _timed(write_pose_bag, tmp / f'bulk_{storage}', streams, storage, bulk=True)
     t_wr, _ = _timed(write_pose_bag, tmp / f'ref_{storage}', streams, storage, bulk=False)
-    t_rb, got = _timed(read_pose_bag, tmp / f'bulk_{storage}', names, bulk=True)
-    t_rr, ref = _timed(read_pose_bag, tmp / f'bulk_{storage}', names, bulk=False)
+    # Reads alternate (bulk, rosbags, bulk, ...) so that both see the same load; best of
+    # ``repeat`` each.
+    bulk_s, ref_s = [], []
+    for _ in range(repeat):
+        t, got = _timed(read_pose_bag, tmp / f'bulk_{storage}', names, bulk=True)
+        bulk_s.append(t)
+        t, ref = _timed(read_pose_bag, tmp / f'bulk_{storage}', names, bulk=False)
+        ref_s.append(t)
+    t_rb, t_rr = min(bulk_s), min(ref_s)
     return {
-        'storage': storage, 'messages': total,
+        'storage': storage, 'messages': total, 'read_repeats': repeat,
+        'read_bulk_runs_s': bulk_s, 'read_rosbags_runs_s': ref_s,
         'read_bulk_s': t_rb, 'read_rosbags_s': t_rr,
         'read_bulk_msg_per_s': total / t_rb, 'read_rosbags_msg_per_s': total / t_rr,
         'read_ratio': t_rr / t_rb,
@@ -147,7 +156,7 @@ def _calibrate(storage: str, seconds: float, rate: float, tmp: Path) -> dict:
 
 def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = True,
         seconds: float = 2000.0, rate: float = 1000.0,
-        calibrate_storages=('sqlite3',)) -> dict:
+        calibrate_storages=('sqlite3',), repeat: int = 1) -> dict:
     """
     Measure the bulk and per-message paths in one run.
 
@@ -157,6 +166,8 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
         Messages per topic and topics of the read/write benchmark.
     storages : sequence of str
         Storages of the read/write benchmark.
+    repeat : int
+        Reads of each path (alternating); the best of each is reported.
     calibrate : bool
         Also time ``coreg calibrate`` on a simulated recording of ``seconds`` s with A and B
         at ``rate`` Hz, before (``COREG_BAG_BULK=0``) and after, per ``calibrate_storages``.
@@ -173,7 +184,7 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
               'calibrate': []}
     with tempfile.TemporaryDirectory(prefix='bag_bench_') as tmp:
         for storage in storages:
-            result['io'].append(_read_write(n, topics, storage, Path(tmp)))
+            result['io'].append(_read_write(n, topics, storage, Path(tmp), repeat))
         if calibrate:
             for storage in calibrate_storages:
                 result['calibrate'].append(_calibrate(storage, seconds, rate, Path(tmp)))
@@ -226,9 +237,12 @@ def main() -> None:
     parser.add_argument('--calibrate-storages', nargs='+', default=['sqlite3'],
                         choices=STORAGES)
     parser.add_argument('--no-calibrate', action='store_true')
+    parser.add_argument('--repeat', type=int, default=1,
+                        help='reads of each path, alternating; the best of each counts')
     args = parser.parse_args()
     result = run(args.n, args.topics, calibrate=not args.no_calibrate, seconds=args.seconds,
-                 rate=args.rate, calibrate_storages=args.calibrate_storages)
+                 rate=args.rate, calibrate_storages=args.calibrate_storages,
+                 repeat=args.repeat)
     print(table(result))
     out = ROOT / 'bench' / 'results' / 'bag_bench.json'
     out.parent.mkdir(parents=True, exist_ok=True)

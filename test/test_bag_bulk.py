@@ -53,7 +53,7 @@ def message(stamp, frame, p, q):
 
 
 def bits(a):
-    """A float array's bits, so that NaN == NaN and -0.0 != 0.0."""
+    """Return a float array's bits, so that NaN == NaN and -0.0 != 0.0."""
     return np.ascontiguousarray(a, dtype=np.float64).view(np.int64)
 
 
@@ -73,7 +73,7 @@ def assert_identical(got, ref):
 
 
 def outcome(path, topics, bulk):
-    """The streams, or the BagError text, of read_pose_bag."""
+    """Return the streams, or the BagError text, of read_pose_bag."""
     try:
         return read_pose_bag(path, topics, bulk=bulk)
     except BagError as err:
@@ -143,7 +143,7 @@ def test_decoder_declines_what_is_not_one_layout():
 
 def write_random_bag(path, storage, rng, *, n_max=1500, mixed=False, compression=None):
     """
-    A bag written message by message with rosbags' Writer, log times shuffled with ties.
+    Write a bag message by message with rosbags' Writer, log times shuffled with ties.
 
     Returns the topic names. With ``mixed`` one topic has messages of two frames and another
     has some big-endian messages (the bulk decoder declines both).
@@ -263,9 +263,11 @@ def test_many_chunks_and_storage_files(tmp_path, storage):
 # --- sqlite3: the light open and the paged fetch ------------------------------------------
 
 def sqlite_pages(path):
-    """The log-time pages bulk_read splits the bag's (first) storage file into."""
+    """Return the log-time pages bulk_read splits the bag's (first) storage file into."""
     with Reader(path) as reader:
-        return bulk_read._sqlite_pages(reader.storage.storages[0].dbconn)
+        db = reader.storage.storages[0].dbconn
+        (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
+        return bulk_read._sqlite_pages(db, total)
 
 
 @pytest.mark.parametrize('page', [1, 7, 100])

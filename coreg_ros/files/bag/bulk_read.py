@@ -166,7 +166,8 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
               f"({','.join('?' * len(ids))}) ORDER BY timestamp")
     index = _index_walked(db, theirs, ids)
     parts: dict[str, list[Fetched]] = {t: [] for t in cids.values()}
-    for lo, hi in _sqlite_pages(db):
+    (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
+    for lo, hi in _sqlite_pages(db, total):
         page = _sqlite_page(db, ids, lo, hi, index)
         if page is None:
             continue
@@ -192,21 +193,23 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
     return {topic: _concat(items) for topic, items in parts.items()}
 
 
-def _sqlite_pages(db: Any) -> list[tuple[Optional[int], Optional[int]]]:
+def _sqlite_pages(db: Any, total: int) -> list[tuple[Optional[int], Optional[int]]]:
     """
-    Log-time ranges [lo, hi) of about ``_SQLITE_PAGE`` rows each (None: unbounded).
+    Log-time ranges [lo, hi) of the ``total`` rows, about equal in rows (None: unbounded).
 
-    Bounds are log times taken from the timestamp index, so that the rows of one log time
-    (ties) always fall into one page and each page is one index range scan.
+    As few pages as keep each at about ``_SQLITE_PAGE`` rows or less. Bounds are log times
+    taken from the timestamp index, so that the rows of one log time (ties) always fall into
+    one page and each page is one index range scan.
     """
-    (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
+    count = max(1, -(-total // _SQLITE_PAGE))
+    step = max(1, -(-total // count))
     bounds: list[Optional[int]] = [None]
-    while total > _SQLITE_PAGE:
+    while total > step:
         lo = bounds[-1]
         where = '' if lo is None else 'WHERE timestamp >= ?'
         args = () if lo is None else (lo,)
         got = db.execute(f'SELECT timestamp FROM messages {where} ORDER BY timestamp '
-                         f'LIMIT 1 OFFSET ?', (*args, _SQLITE_PAGE)).fetchall()
+                         f'LIMIT 1 OFFSET ?', (*args, step)).fetchall()
         if not got:
             break
         (nxt,), = got
