@@ -3,13 +3,16 @@ Raw bytes of PoseStamped topics out of rosbag2 storage files, with no Python ste
 
 rosbags' ``Reader.messages()`` yields one Python tuple per message, which caps any reader
 built on it near a few hundred thousand messages a second. Here the storage files that
-rosbags has opened (it keeps the metadata, the connections, decompression of file-compressed
-bags and all error reporting) are read in bulk:
+rosbags has opened (its Reader, or ``light_open``'s lighter sqlite3 plugin; rosbags keeps
+the metadata, the connections, decompression of file-compressed bags and all error
+reporting) are read in bulk:
 
 * sqlite3: the rows are walked in rosbags' order (log time, ties by row id: its
-  ``ORDER BY timestamp`` scan of the timestamp index) in pages of 2**18 rows, and SQLite
-  concatenates each page's blobs (``group_concat``), log times, row ids and topic ids;
-  numpy checks the order and splits the page by topic.
+  ``ORDER BY timestamp`` scan of the timestamp index; the query plans of both are compared)
+  in pages of up to 2**20 rows split at log times, so ties never straddle two pages. One
+  statement per page has SQLite concatenate the blobs (``group_concat``) and, as text, the
+  log times and one integer per row holding blob size and topic id; numpy parses those in
+  one call each, checks the order and the byte count, and splits the page by topic.
 * mcap: each chunk holding a wanted channel is read and decompressed with rosbags' own
   routine (size and CRC checks included); its message index records give every message
   record's offset, and numpy gathers all record headers and payloads at once. Gaps between

@@ -171,7 +171,9 @@ def read_pose_bag(path: PathLike, topics: Iterable[str], *,
     bulk : bool, optional
         Decode each topic in bulk with numpy (``cdr_pose``) when its messages share one
         layout, else message by message with rosbags; both give identical arrays. Default:
-        on, unless the environment variable ``COREG_BAG_BULK`` is ``0``.
+        on, unless the environment variable ``COREG_BAG_BULK`` is ``0``. With bulk on, the
+        bag is first opened lightly (``light_open``: rosbags without its sqlite3 message
+        counts) and read in bulk; anything unusual starts over with plain rosbags.
 
     Returns
     -------
