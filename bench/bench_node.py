@@ -40,10 +40,10 @@ if str(ROOT) not in sys.path:
 
 from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
 from coreg_ros.ros.tools import (  # noqa: E402
-    RosSession,
     call_trigger,
     diagnostics_values,
     play_streams,
+    RosSession,
     service_name,
     wait_for_diagnostics,
 )
@@ -174,7 +174,7 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
 def run(duration: float = 10.0, rates=(2000.0, 5000.0, 10000.0), paths=('raw', 'plain'),
         profile: bool = True) -> dict:
     """
-    The node's throughput: every rate with every path, in one run (same machine load).
+    Measure the node's throughput: every rate with every path, in one run (same load).
 
     Parameters
     ----------
@@ -207,7 +207,7 @@ def run(duration: float = 10.0, rates=(2000.0, 5000.0, 10000.0), paths=('raw', '
 
 
 def _per_message_us(case: dict) -> dict:
-    """The profile's parts in us per message, and what py-spy does not see (DDS threads)."""
+    """Return the profile's parts in us per message, and what py-spy does not see."""
     prof = case.get('profile') or {}
     shares = prof.get('shares') or {}
     if not shares:
@@ -346,10 +346,9 @@ def run_calibrate(duration: float = 60.0, rate_hz: float = 1000.0, reliable: boo
 
 
 def _live_statuses(session) -> dict:
-    """The guidance and watchdog statuses of the next /diagnostics message (level, message)."""
-    from diagnostic_msgs.msg import DiagnosticArray
-
+    """Return the guidance and watchdog statuses of the next /diagnostics (level, message)."""
     from coreg_ros.ros.tools import wait_for_message
+    from diagnostic_msgs.msg import DiagnosticArray
     msg = wait_for_message(session, DiagnosticArray, '/diagnostics', 10, 3.0)
     out = {}
     for st in [] if msg is None else msg.status:

@@ -66,9 +66,8 @@ def _serialised(spec) -> tuple[list, list, list]:
 
 def publish_main(spec_path: str, out_path: str) -> int:
     """Publish a spec (see the module docstring); write what was achieved to ``out_path``."""
-    from geometry_msgs.msg import PoseStamped
-
     from coreg_ros.ros.tools import PLAY_QOS, RosSession
+    from geometry_msgs.msg import PoseStamped
     spec = np.load(spec_path)
     topics, which, data, due = _serialised(spec)
     with RosSession('coreg_bench_publisher', signals=False) as s:
@@ -125,7 +124,7 @@ PARTS = (
 
 
 def split_stacks(stacks: Counter) -> dict:
-    """Sampled counts -> {part: share of the samples}; stacks are ';'-joined frames."""
+    """Return {part: share of the samples} of sampled stacks (';'-joined frames)."""
     counts = Counter()
     for stack, n in stacks.items():
         frames = stack.split(';')
@@ -138,7 +137,7 @@ def split_stacks(stacks: Counter) -> dict:
 
 
 def _idle(frames: list) -> bool:
-    """True for a sample in the intake's pause (a sleep py-spy may not see as idle)."""
+    """Tell a sample in the intake's pause (a sleep py-spy may not see as idle)."""
     return bool(frames) and frames[-1].startswith('_pause (')
 
 

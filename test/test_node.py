@@ -1,5 +1,7 @@
 """
-Integration tests of coreg_node with real rclpy: the node runs in a subprocess, the test
+Integration tests of coreg_node with real rclpy.
+
+The node runs in a subprocess, the test
 process publishes as the tracker drivers and calls the services. Each test has its own domain.
 """
 
@@ -10,27 +12,26 @@ import subprocess
 import sys
 import time
 
-from geometry_msgs.msg import PoseStamped
-import numpy as np
-import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import run_cli, wait_counts
-import yaml
-
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.files.results import result_to_dict
 from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose
 from coreg_ros.ros.tools import (
-    PLAY_QOS,
     call_trigger,
     diagnostics_values,
+    PLAY_QOS,
     play_streams,
     wait_for_diagnostics,
     wait_for_result,
 )
 from coreg_ros.sim import simulate_recording
+from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
+from ros_fixtures import *  # noqa: F401,F403
+from ros_fixtures import run_cli, wait_counts
+import yaml
 
 A, B = '/device_a/pose', '/device_b/pose'
 CALIBRATE, RESET = '/coreg_node/calibrate', '/coreg_node/reset'
@@ -181,9 +182,8 @@ def test_shutdown_after_a_signal_tolerates_the_handler_race(handler_wins, ros_do
     # On SIGINT rclpy's handler shuts the context down from its own thread; when it does so
     # between try_shutdown's ok() check and its shutdown(), rcl raises "already called" (seen
     # once in CI: the node then exited 1). That must pass quietly; any other error must not.
-    import rclpy
-
     from coreg_ros.ros import node as node_module
+    import rclpy
     context = rclpy.Context()
     # not rclpy.init: that would change the process's signal handlers
     context.init(domain_id=ros_domain.domain_id)

@@ -1,6 +1,8 @@
 """
-The node's faults of issue 12, each reproduced with a real coreg_node in a subprocess on a private
-domain, real publishers in the test process and real bags on disk.
+The node's faults of issue 12.
+
+Each reproduced with a real coreg_node in a subprocess on a private domain, real publishers
+in the test process and real bags on disk.
 
 1. a failing ~/save_samples (storage_dir under a regular file) must not kill the services;
 2. a stored result is republished only by a node of the same configuration, with its stamp;
@@ -20,6 +22,21 @@ import subprocess
 import sys
 import time
 
+from coreg_ros.core.pipeline import calibrate_streams
+from coreg_ros.core.settings import Settings
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
+from coreg_ros.ros import persistence
+from coreg_ros.ros.convert import make_pose_stamped, stamp_to_ns
+from coreg_ros.ros.tools import (
+    call_trigger,
+    diagnostics_values,
+    PLAY_QOS,
+    play_streams,
+    wait_for_diagnostics,
+    wait_for_result,
+)
+from coreg_ros.ros.uncertainty_outputs import stored_result_dict
+from coreg_ros.sim import simulate_recording
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import (
     PoseStamped,
@@ -30,22 +47,6 @@ import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import wait_counts
-
-from coreg_ros.core.pipeline import calibrate_streams
-from coreg_ros.core.settings import Settings
-from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
-from coreg_ros.ros import persistence
-from coreg_ros.ros.convert import make_pose_stamped, stamp_to_ns
-from coreg_ros.ros.tools import (
-    PLAY_QOS,
-    call_trigger,
-    diagnostics_values,
-    play_streams,
-    wait_for_diagnostics,
-    wait_for_result,
-)
-from coreg_ros.ros.uncertainty_outputs import stored_result_dict
-from coreg_ros.sim import simulate_recording
 
 A, B = '/device_a/pose', '/device_b/pose'
 NODE = '/coreg_node'

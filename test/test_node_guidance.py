@@ -1,18 +1,12 @@
 """
-Guidance and the watchdog in the live node, with real rclpy: recordings played into coreg_node
+Guidance and the watchdog in the live node, with real rclpy.
+
+Recordings played into coreg_node
 (``coreg play``), /diagnostics and ``~/fused_pose`` read as a user would.
 """
 
 import subprocess
 import time
-
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseWithCovarianceStamped
-import numpy as np
-import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import PY, run_cli
-from std_msgs.msg import Bool
 
 from coreg_ros.core import guidance as gd
 from coreg_ros.core import watchdog as wd
@@ -23,6 +17,13 @@ from coreg_ros.ros.tools import LATCHED_QOS, wait_for_message, wait_for_result
 from coreg_ros.ros.uncertainty_outputs import FUSED_QOS
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.changes import apply_changes
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+import numpy as np
+import pytest
+from ros_fixtures import *  # noqa: F401,F403
+from ros_fixtures import PY, run_cli
+from std_msgs.msg import Bool
 
 pytestmark = pytest.mark.ros
 
@@ -171,7 +172,7 @@ STEPS = [('t0_step=2mm', 't0', wd.KEY_TRANSLATION, 'T0 moved'),
 
 
 def _true_size(change: dict, key: str) -> float:
-    """The injected size in the unit of the /diagnostics key (mm, degrees, ms)."""
+    """Return the injected size in the unit of the /diagnostics key (mm, degrees, ms)."""
     if key == wd.KEY_TRANSLATION:
         return float(np.linalg.norm(change['translation_m'])) * 1e3
     if key == wd.KEY_ROTATION:

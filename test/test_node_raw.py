@@ -1,6 +1,8 @@
 """
-The node's raw intake (``coreg_ros.ros.raw_intake``): bulk validation equals one-by-one, the raw
-path stores the same samples as the plain one, and 2 x 2 kHz arrive without a loss.
+The node's raw intake (``coreg_ros.ros.raw_intake``).
+
+Bulk validation equals one-by-one, the raw path stores the same samples as the plain one,
+and 2 x 2 kHz arrive without a loss.
 
 The buffer and intake tests run real code on real CDR bytes without ROS; the node tests run
 coreg_node in a subprocess with real rclpy (both paths: ``COREG_NODE_PLAIN=1`` is the plain one).
@@ -8,18 +10,17 @@ coreg_node in a subprocess with real rclpy (both paths: ``COREG_NODE_PLAIN=1`` i
 
 import time
 
-from geometry_msgs.msg import PoseStamped
-import numpy as np
-import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import wait_counts
-
 from coreg_ros.files.bag.cdr_pose import encode_pose_stamped
 from coreg_ros.files.bag.posebag import read_pose_bag
 from coreg_ros.ros.buffer import REASONS, StreamBuffer
 from coreg_ros.ros.node import PLAIN_ENV
 from coreg_ros.ros.raw_intake import RawIntake
-from coreg_ros.ros.tools import PLAY_QOS, call_trigger
+from coreg_ros.ros.tools import call_trigger, PLAY_QOS
+from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
+from ros_fixtures import *  # noqa: F401,F403
+from ros_fixtures import wait_counts
 
 A, B = '/device_a/pose', '/device_b/pose'
 SAVE = '/coreg_node/save_samples'
@@ -33,7 +34,7 @@ def _state(buf: StreamBuffer) -> tuple:
 
 
 def _bad_stream(rng, n: int, frames=('f0',)):
-    """n messages with every kind of bad one: NaN, inf, huge, non-unit, repeats, going back."""
+    """N messages with every kind of bad one: NaN, inf, huge, non-unit, repeats, going back."""
     stamps = np.cumsum(rng.integers(-3, 8, n)) + 10_000
     stamps[rng.random(n) < 0.05] = stamps[0]  # far back, or a duplicate of the first
     pos = rng.normal(size=(n, 3))
@@ -192,7 +193,7 @@ def _play_bad_streams(session):
 
 
 def _saved(session, node, sent) -> tuple[dict, dict]:
-    """Counts of the node's diagnostics and its saved samples, once all ``sent`` arrived."""
+    """Return the node's diagnostics counts and saved samples once all ``sent`` arrived."""
     values = wait_counts(session, {f'{t} received': n for t, n in sent.items()})
     ok, path = call_trigger(session, SAVE, timeout=20)
     assert ok, path

@@ -1,21 +1,21 @@
 """
-The live node and ``coreg calibrate`` give the same numbers from the same messages, clock
-offset and rejected pairs included, and the node refuses to publish an inconsistent fit.
+The live node and ``coreg calibrate`` give the same numbers from the same messages.
+
+Clock offset and rejected pairs included; and the node refuses to publish an inconsistent fit.
 """
 
 import json
 import subprocess
 import sys
 
+from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.ros.tools import wait_for_diagnostics, wait_for_result
+from coreg_ros.sim import parse_effect, simulate_recording
 import numpy as np
 import pytest
 from ros_fixtures import *  # noqa: F401,F403
 from ros_fixtures import run_cli, wait_counts
 from test_spatiotemporal import _with_outliers
-
-from coreg_ros.files.bag.posebag import write_pose_bag
-from coreg_ros.ros.tools import wait_for_diagnostics, wait_for_result
-from coreg_ros.sim import parse_effect, simulate_recording
 
 pytestmark = pytest.mark.ros
 

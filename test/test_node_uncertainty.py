@@ -1,11 +1,23 @@
 """
-Integration tests of the node's uncertainty outputs (``~/fused_pose``, ``~/uncertainty_markers``)
-with real rclpy: coreg_node runs in a subprocess on a private domain, the test process plays the
-two devices, calibrates, subscribes and sets parameters.
+Integration tests of the node's uncertainty outputs (``~/fused_pose``, ``~/uncertainty_markers``).
+
+With real rclpy: coreg_node runs in a subprocess on a private domain, the test process plays
+the two devices, calibrates, subscribes and sets parameters.
 """
 
 import math
 
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core import uncertainty as unc
+from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration
+from coreg_ros.core.pairing import pair_streams
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import TimeOffset
+from coreg_ros.files.results import pose_from_dict
+from coreg_ros.ros.convert import msg_to_uncertain_pose, stamp_to_ns
+from coreg_ros.ros.tools import call_trigger, play_streams, wait_for_message, wait_for_result
+from coreg_ros.ros.uncertainty_outputs import AXIS_LENGTH, CONE_SEGMENTS, MARKER_QOS
+from coreg_ros.sim import simulate_recording
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
@@ -15,18 +27,6 @@ from ros_fixtures import wait_counts
 from scipy import stats
 from visualization_msgs.msg import Marker, MarkerArray
 import yaml
-
-from coreg_ros.core import quaternion as quat
-from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream
-from coreg_ros.core.pairing import pair_streams
-from coreg_ros.core.settings import Settings
-from coreg_ros.core.types import TimeOffset
-from coreg_ros.files.results import pose_from_dict
-from coreg_ros.ros.convert import msg_to_uncertain_pose, stamp_to_ns
-from coreg_ros.ros.tools import call_trigger, play_streams, wait_for_message, wait_for_result
-from coreg_ros.ros.uncertainty_outputs import AXIS_LENGTH, CONE_SEGMENTS, MARKER_QOS
-from coreg_ros.sim import simulate_recording
 
 A, B = '/device_a/pose', '/device_b/pose'
 NODE = '/coreg_node'
@@ -59,7 +59,7 @@ def _calibrate(session, node, seed=3):
 
 
 def _more(rec, seed, duration, after_s, **kwargs):
-    """A new recording of the same rig, starting ``after_s`` seconds after ``rec`` began."""
+    """Return a new recording of the same rig, starting ``after_s`` s after ``rec`` began."""
     return simulate_recording(seed, duration, truth=rec.truth,
                               start_ns=rec.start_ns + int(after_s * 1e9), **kwargs)
 
@@ -85,7 +85,7 @@ def _settle(session, seconds):
 
 
 def _true_marker(rec, stamps):
-    """True pose of B's marker in B's base frame at ``stamps`` (T0 · T_A(t) · T1)."""
+    """Return the true pose of B's marker in B's base frame at ``stamps`` (T0 T_A(t) T1)."""
     t = rec.truth
     pa, qa = rec.motion.pose((np.asarray(stamps) - rec.start_ns) * 1e-9)
     R0 = quat.to_matrix(t.q0)

@@ -13,10 +13,9 @@ from __future__ import annotations
 import math
 import threading
 
-import numpy as np
-
 from coreg_ros.core.quaternion import UNIT_NORM_TOLERANCE
 from coreg_ros.core.types import PoseStream
+import numpy as np
 
 #: Reasons a message is rejected, in the order they are checked (one reason per message).
 REASONS = ('non_finite', 'non_unit_quaternion', 'frame_id_changed', 'stamp_backwards',

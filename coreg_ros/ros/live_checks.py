@@ -35,18 +35,17 @@ import time
 import traceback
 from typing import Optional
 
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-import numpy as np
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Bool
-
 from coreg_ros.core import guidance as gd
 from coreg_ros.core import watchdog as wd
 from coreg_ros.core.crlb import CRLB_DIMENSION
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.types import CalibrationResult, PoseStream, TimeOffset, UncertainPose
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Bool
 
 #: B samples before the last paired stamp paired again each tick, s (their A neighbours may
 #: have arrived late); the feed ignores the pairs it has already seen.

@@ -53,6 +53,24 @@ import time
 import traceback
 from typing import Optional
 
+from coreg_ros.core.errors import BagError, ConfigError, CoregError
+from coreg_ros.core.pipeline import calibrate_streams, pair_for
+from coreg_ros.core.settings import Settings
+from coreg_ros.files.bag.per_message import typestore as bag_typestore
+from coreg_ros.files.results import load_prior
+from coreg_ros.ros import persistence
+from coreg_ros.ros.buffer import GapCounter, reason_hint, REASONS, StreamBuffer
+from coreg_ros.ros.convert import ns_to_stamp, pose_stamped_values, uncertain_pose_to_msg
+from coreg_ros.ros.live_checks import LiveChecks
+from coreg_ros.ros.parameters import (
+    CALIBRATION_KEYS,
+    check_params_files,
+    declare_parameters,
+    read_config,
+    settings_from_values,
+)
+from coreg_ros.ros.raw_intake import RawIntake
+from coreg_ros.ros.uncertainty_outputs import stored_result_dict, UncertaintyOutputs
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
@@ -64,24 +82,6 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
-
-from coreg_ros.core.errors import BagError, ConfigError, CoregError
-from coreg_ros.core.pipeline import calibrate_streams, pair_for
-from coreg_ros.core.settings import Settings
-from coreg_ros.files.results import load_prior
-from coreg_ros.ros import persistence
-from coreg_ros.ros.buffer import REASONS, GapCounter, StreamBuffer, reason_hint
-from coreg_ros.ros.convert import ns_to_stamp, pose_stamped_values, uncertain_pose_to_msg
-from coreg_ros.ros.live_checks import LiveChecks
-from coreg_ros.ros.parameters import (
-    CALIBRATION_KEYS,
-    check_params_files,
-    declare_parameters,
-    read_config,
-    settings_from_values,
-)
-from coreg_ros.ros.raw_intake import RawIntake
-from coreg_ros.ros.uncertainty_outputs import UncertaintyOutputs, stored_result_dict
 
 NODE_NAME = 'coreg_node'
 #: Seconds between two warnings about the same topic and rejection reason.
@@ -213,6 +213,9 @@ class CoregNode(Node):
         self.live = LiveChecks(self)
         self._republish_stored()
         self._start_journal()
+        # rosbags' type store takes ~0.2 s to build (more under load): built now, not at the
+        # first journal flush, where it would hold up the fused-pose and diagnostics timers.
+        bag_typestore()
         self.create_timer(FLUSH_PERIOD, self._guarded_timer('journal', self.flush_journal))
         self.get_logger().info(
             f'listening to A {settings.topic_a}, B {", ".join(settings.topic_b)} '

@@ -11,14 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 import os
 
+from coreg_ros.core.config_schema import check_parameters, DEFAULTS, example, RANGES
+from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.settings import Settings, settings_from_mapping
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-
-from coreg_ros.core.config_schema import DEFAULTS, RANGES, check_parameters, example
-from coreg_ros.core.errors import ConfigError
-from coreg_ros.core.settings import Settings, settings_from_mapping
 
 
 def _float_range(lo: float, hi: float) -> list:

@@ -27,11 +27,10 @@ from __future__ import annotations
 from collections.abc import Callable
 import time
 
-from geometry_msgs.msg import PoseStamped
-from rclpy.serialization import deserialize_message
-
 from coreg_ros.files.bag.cdr_pose import decode_pose_stamped
 from coreg_ros.ros.convert import pose_stamped_values
+from geometry_msgs.msg import PoseStamped
+from rclpy.serialization import deserialize_message
 
 #: Seconds the stream thread pauses after a burst: bounds the executor's wakes (and so its
 #: per-callback cost) to ~1 / PACE_S a second; messages wait at most this long in the history.
