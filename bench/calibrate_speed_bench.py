@@ -18,19 +18,19 @@ pinned to one thread (as ``bench/run.py``). Run alone: ``python bench/calibrate_
 prints the table and writes bench/results/calibrate_speed_bench.json.
 """
 
+import argparse
+import json
 import os
+from pathlib import Path
+import pickle
+import subprocess
+import sys
+import tempfile
+from typing import Optional
 
+# Before numpy is imported (the standard library above does not load BLAS).
 for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ[_var] = '1'
-
-import argparse  # noqa: E402
-import json  # noqa: E402
-from pathlib import Path  # noqa: E402
-import pickle  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-from typing import Optional  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -155,6 +155,7 @@ def bench_case(n: int, noise: str, repeats: int = 3, scipy_cap: float = 120.0,
     ols_fit = None
     for method in ('ols', 'tls'):
         settings = Settings(sigma_a=sigma_a, sigma_b=sigma_b, method=method)
+
         def whole(settings=settings):
             return calibrate(pairs, settings)
 
@@ -294,8 +295,8 @@ def table(result: dict) -> str:
         before = r.get('before', {})
         scipy = r.get('scipy', {})
         scipy_s = _s(scipy.get('seconds')) if scipy.get('seconds') else scipy.get('status', '–')
-        before_s = _s(before.get('seconds')) if before.get('seconds') else before.get('status',
-                                                                                    '–')
+        before_s = (_s(before.get('seconds')) if before.get('seconds')
+                    else before.get('status', '–'))
         lines.append(
             f'| {r["n"]:,} | {r["noise"]} | {r["method"].upper()} | {r["calibrate_seconds"]:.2f} '
             f'| {r["calibrate_us_per_pair"]:.2f} | {r["iterations"]} | {r["rejected"]} '

@@ -18,8 +18,6 @@ import sys
 import time
 from typing import Optional
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -28,6 +26,7 @@ from coreg_ros.core.pipeline import calibrate_streams  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.parallel import add_arguments, CaseFailure, run_cases  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
+import numpy as np  # noqa: E402
 
 
 def draw_cases(seed: int, cases: int) -> list:

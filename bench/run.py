@@ -6,19 +6,19 @@ BLAS/OpenMP are pinned to one thread before numpy is imported, so that timings a
 shared machine; every timing is the best of a few repeats.
 """
 
+import argparse
+import datetime
+import json
 import os
+from pathlib import Path
+import platform
+import sys
+import time
+import traceback
 
+# Before numpy is imported (the standard library above does not load BLAS).
 for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ[_var] = '1'
-
-import argparse  # noqa: E402
-import datetime  # noqa: E402
-import json  # noqa: E402
-from pathlib import Path  # noqa: E402
-import platform  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import traceback  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -146,7 +146,7 @@ def targets_table(rows: list, results: dict) -> tuple:
                        st['ratio'] <= st['goal_ratio']))
     lines = ['| target | goal | measured | met |', '|---|---|---|---|']
     lines += [f'| {a} | {b} | {c} | {"yes" if d else "**no**"} |' for a, b, c, d in checks]
-    return '\n'.join(lines), [dict(target=a, goal=b, measured=c, met=bool(d))
+    return '\n'.join(lines), [{'target': a, 'goal': b, 'measured': c, 'met': bool(d)}
                               for a, b, c, d in checks]
 
 

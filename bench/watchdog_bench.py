@@ -28,8 +28,6 @@ from pathlib import Path
 import sys
 import time
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -48,6 +46,7 @@ from coreg_ros.core.watchdog import (  # noqa: E402
 )
 from coreg_ros.sim import DEFAULT_START_NS, simulate_recording  # noqa: E402
 from coreg_ros.sim.changes import apply_change, Change  # noqa: E402
+import numpy as np  # noqa: E402
 
 SIGMA_A = (2e-4, 5e-4)
 SIGMA_B = (5e-4, 2e-3)

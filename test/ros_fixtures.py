@@ -13,9 +13,6 @@ import subprocess
 import sys
 import time
 
-import pytest
-import yaml
-
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
@@ -24,6 +21,8 @@ from coreg_ros.ros.tools import (  # noqa: E402
     RosSession,
     wait_for_diagnostics,
 )
+import pytest  # noqa: E402
+import yaml  # noqa: E402
 
 __all__ = ['ros_domain', 'ros_session', 'start_node', 'NodeProcess', 'run_cli', 'wait_counts',
            'diag_int']

@@ -11,7 +11,8 @@ import pytest
 
 pytest.importorskip('rich')
 
-from coreg_ros.cli import watch  # noqa: E402
+# After the importorskip: coreg_ros.cli.watch needs rich.
+from coreg_ros.cli import watch  # noqa: E402, I100
 from coreg_ros.cli.watch import bar, DashboardState, render_text, sigma_rows, Status  # noqa: E402
 from coreg_ros.core import guidance as g  # noqa: E402
 from coreg_ros.core import watchdog as w  # noqa: E402
