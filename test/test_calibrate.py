@@ -199,7 +199,7 @@ def test_tls_with_negligible_a_noise_matches_ols():
     for model in MODELS:
         noisy, _, _ = simulate_pairs(np.random.default_rng(5), 150, model, sigma_a=ZERO,
                                      sigma_b=SIGMA_B)
-        s = dict(model=model, sigma_a=(1e-8, 1e-8), sigma_b=SIGMA_B)
+        s = {'model': model, 'sigma_a': (1e-8, 1e-8), 'sigma_b': SIGMA_B}
         ols = calibrate(noisy, Settings(method='ols', **s))
         tls = calibrate(noisy, Settings(method='tls', **s))
         sd = np.sqrt(np.diag(ols.param_cov))
@@ -212,7 +212,7 @@ def test_tls_with_negligible_a_noise_matches_ols():
 def test_tls_beats_ols_when_a_is_noisy():
     """With A as noisy as B, OLS's covariance is too small; TLS's is honest (Ikits §5)."""
     model = 'full_pose'
-    s = dict(model=model, sigma_a=SIGMA_B, sigma_b=SIGMA_B)
+    s = {'model': model, 'sigma_a': SIGMA_B, 'sigma_b': SIGMA_B}
     chi2 = {'ols': [], 'tls': []}
     for seed in range(6):
         noisy, _, _ = simulate_pairs(np.random.default_rng(seed), 150, model, sigma_a=SIGMA_B,

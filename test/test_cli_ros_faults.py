@@ -187,6 +187,7 @@ def test_matching_qos_takes_the_weakest_publisher():
     from coreg_ros.ros.tools import matching_qos
 
     class Info:
+
         def __init__(self, qos):
             self.qos_profile = qos
     assert matching_qos([Info(LATCHED_QOS)]).durability == LATCHED_QOS.durability

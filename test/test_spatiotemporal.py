@@ -327,7 +327,7 @@ def test_swapped_roles_are_flagged():
     result, _ = calibrate_streams(a, bs, Settings())
     assert 'swap roles' not in result.verdict
     far = replace(result, tool_to_marker=UncertainPose(np.array([2.5, 0.0, 0.0]),
-                                                      result.tool_to_marker.quat_wxyz,
-                                                      result.tool_to_marker.covariance))
+                                                       result.tool_to_marker.quat_wxyz,
+                                                       result.tool_to_marker.covariance))
     judged = judge(far, a, bs, Settings())
     assert 'swap roles' in judged.verdict and '--invert-a --invert-b' in judged.verdict

@@ -60,7 +60,7 @@ def _motion_from_bag(args, settings, cov_a, cov_b):
                          f'(topics: {", ".join(sorted(topics))})')
     have_b = all(t in topics for t in settings.topic_b)
     streams = read_pose_bag(args.bag, [settings.topic_a] + (list(settings.topic_b)
-                                                              if have_b else []))
+                                                            if have_b else []))
     a = streams[settings.topic_a]
     if len(a) < 2:
         raise InputError(f'topic {settings.topic_a} has {len(a)} sample(s); record longer')

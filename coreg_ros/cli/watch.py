@@ -370,6 +370,7 @@ def render_text(state: DashboardState, width: int = 100, now: Optional[float] = 
 
 
 class _Null:
+
     def write(self, _text: str) -> int:
         return 0
 
@@ -425,7 +426,7 @@ def cmd_watch(args) -> int:
             got = session.spin_until(lambda: state.received_at is not None, timeout)
             if not got:
                 return fail('watch', f'no status of {state.node} on {args.topic} within '
-                             f'{timeout:g} s; is the node running (and on this ROS domain)?')
+                            f'{timeout:g} s; is the node running (and on this ROS domain)?')
             console.print(render(state))
             return 0
         period = 1.0 / args.refresh
@@ -437,7 +438,7 @@ def cmd_watch(args) -> int:
                 if (timeout is not None and state.received_at is None
                         and time.monotonic() - started > timeout):
                     return fail('watch', f'no status of {state.node} on {args.topic} within '
-                                 f'{timeout:g} s')
+                                f'{timeout:g} s')
     return 0
 
 

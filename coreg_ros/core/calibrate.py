@@ -271,7 +271,7 @@ class _Fitter:
         start = initialize(self.spec, small.pos_a, small.quat_a, small.pos_b, small.quat_b)
         try:
             start = solve_ols(small, start, max_iterations=self.settings.max_iterations,
-                        xtol=XTOL).params
+                              xtol=XTOL).params
         except (np.linalg.LinAlgError, ValueError, ConvergenceError):
             pass  # the fit of all pairs starts from what there is, and says what is wrong
         return start, True

@@ -74,7 +74,7 @@ class DirectionFit:
     def flags(self) -> str:
         """The ``coreg convert`` flags giving these directions, e.g. ``'--invert-b'``."""
         return ' '.join(f for f, inv in (('--invert-a', self.invert_a),
-                                          ('--invert-b', self.invert_b)) if inv)
+                                         ('--invert-b', self.invert_b)) if inv)
 
     def as_dict(self) -> dict:
         """JSON-friendly form (inf as None)."""

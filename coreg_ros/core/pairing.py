@@ -312,7 +312,7 @@ def pair_streams(stream_a: PoseStream,
     if interp.any():
         # An exact match keeps its sample unchanged; only true interpolations are slerped.
         quat_a[interp] = slerp(a.quat_wxyz[lo_k[interp]], a.quat_wxyz[hi_k[interp]],
-                           alpha_k[interp])
+                               alpha_k[interp])
     a_var_scale = alpha_k ** 2 + (1.0 - alpha_k) ** 2
 
     if three:

@@ -299,7 +299,7 @@ def plan_recording(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b, rat
 
     base = predict(pos_a, quat_a)
     baseline = PlannedAddition('baseline', f'the motion as given ({n / rate:.0f} s, {n} pairs)',
-                         base, 1.0 if base is not None else 0.0)
+                               base, 1.0 if base is not None else 0.0)
     out = []
     for name, (text, p, q) in planned_motions(pos_a, quat_a, rate, extra).items():
         pred = predict(p, q)

@@ -136,4 +136,3 @@ def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = Non
     known = {f.name for f in fields(Settings)}
     base = base or Settings()
     return base.updated(**{k: v for k, v in values.items() if k in known})
-

@@ -414,8 +414,8 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
         H = np.zeros((frame.P, frame.P))
         if frame.has_rot:
             _add_rotation_block(H, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
-        return fw @ f.T, H, _sum_gradient(frame, ch, ch.gp), np.einsum('ij,ij->', r2,
-                                                                        ch.r_out)
+        return (fw @ f.T, H, _sum_gradient(frame, ch, ch.gp),
+                np.einsum('ij,ij->', r2, ch.r_out))
 
     F, H, g, cost = _sum_chunks(chunk, problem.n)
     H += frame.gram(F, frame.Qp_bar)

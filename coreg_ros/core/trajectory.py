@@ -17,6 +17,7 @@ import numpy as np
 #: Half-width of the finite-difference window for velocities, s (at least two A samples).
 VELOCITY_HALF_WINDOW = 0.04
 
+
 class Trajectory:
     """
     Device A's tool pose as a function of time, sampled; linear / normalised-lerp interpolation.

@@ -1,3 +1,4 @@
+# noqa: A005 (coreg_ros.core.types: imported as a package module, never as `types`)
 """
 Plain data containers shared by the core, the simulator, the bag layer and the node.
 

@@ -99,7 +99,7 @@ def _format_ns(ns) -> str:
 
 def _fields(line: str) -> list:
     line = line.strip()
-    return [f for f in _SPLIT.split(line)] if line else []
+    return list(_SPLIT.split(line)) if line else []
 
 
 def _is_number(token: str) -> bool:
@@ -272,8 +272,6 @@ def read_pose_csv(path, *, quaternion_order: str = 'xyzw', units: str = 'm',
     return CsvStream(stream=stream, has_orientation=has_orientation, header=header,
                      n_dropped=n_dropped, n_reordered=n_reordered,
                      nonnegative_columns=nonnegative)
-
-
 
 
 #: Ratio of two streams' position spreads (or time spans) taken as a unit factor of 1000.

@@ -210,8 +210,8 @@ def residuals_figure(result: CalibrationResult):
             label='pairs')
     xs = np.linspace(0, hi, 300)
     ax.plot(xs, stats.chi2.pdf(xs, m), 'r', lw=1.5, label=f'χ²({m})')
-    ax.set_xlabel('squared whitened residual of a pair' + (' (output + input)' if has_inp
-                                                            else ''))
+    ax.set_xlabel('squared whitened residual of a pair'
+                  + (' (output + input)' if has_inp else ''))
     ax.set_title(f'per-pair χ²: mean {chi.mean():.2f} (expected ≈ {m})', fontsize=10)
     ax.legend(fontsize=8)
     ax = fig.add_subplot(2, 2, 3)

@@ -251,8 +251,6 @@ def through_calibration(result: CalibrationResult, pose_a: UncertainPose) -> Unc
     return UncertainPose(p, q, c)
 
 
-
-
 # --------------------------------------------------------------------------- inversion
 
 def inverse_jacobian(p, q) -> np.ndarray:

@@ -176,8 +176,6 @@ def axis_cones(pose: UncertainPose, n_sigma: float = 3.0) -> list[AxisCone]:
     return cones
 
 
-
-
 # --------------------------------------------------------------------------- display geometry
 
 def ellipsoid_orientation(ell: Ellipsoid) -> np.ndarray:

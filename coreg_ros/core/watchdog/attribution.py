@@ -161,8 +161,8 @@ def attribute(calibration: Calibration, lin: Linearised) -> Attribution:
     order = sorted(scores, key=scores.get)
     kind, runner = order[0], order[1]
     margin = scores[runner] - scores[kind]
-    out = dict(kind=kind, decided=bool(margin >= DECISIVE), runner_up=runner, margin=margin,
-               scores=scores, n_pairs=n)
+    out = {'kind': kind, 'decided': bool(margin >= DECISIVE), 'runner_up': runner,
+           'margin': margin, 'scores': scores, 'n_pairs': n}
     C = calibration.cov
     if kind in fits:
         G, delta, cov = fits[kind]
