@@ -25,7 +25,7 @@ def _plt():
 
 def _standardized(diag):
     """Raw standardized errors (n, m) before (base fit) and after (held-out final)."""
-    from coreg_ros.core.diagnosis.engine import base_errors
+    from coreg_ros.core.diagnosis.residuals import base_errors
 
     e, sd, z, lam, _ = base_errors(diag.data, diag.base)
     before = e / sd

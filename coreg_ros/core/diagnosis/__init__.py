@@ -6,6 +6,8 @@ Pure: numpy and scipy only. ``diagnose(pairs, settings)`` returns a ``Diagnosis`
 """
 
 from coreg_ros.core.diagnosis.effects import EFFECT_NAMES
-from coreg_ros.core.diagnosis.engine import Diagnosis, Options, diagnose, diagnose_streams
+from coreg_ros.core.diagnosis.engine import diagnose, Diagnosis
+from coreg_ros.core.diagnosis.options import Options
+from coreg_ros.core.diagnosis.streams import diagnose_streams
 
 __all__ = ['EFFECT_NAMES', 'Diagnosis', 'Options', 'diagnose', 'diagnose_streams']

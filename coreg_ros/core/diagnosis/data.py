@@ -13,14 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import noise_covariance, output_covariance
-from coreg_ros.core.models import SPECS, ModelSpec
+from coreg_ros.core.models import ModelSpec, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.trajectory import Trajectory
 from coreg_ros.core.types import Pairs, PoseStream
+import numpy as np
 
 
 @dataclass(eq=False)

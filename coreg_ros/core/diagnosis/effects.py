@@ -18,10 +18,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.diagnosis.data import DiagData
+import numpy as np
 
 #: The ten effects, in the order of DESIGN.md §5 (same names as the simulator's library).
 EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distortion',

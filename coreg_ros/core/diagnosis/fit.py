@@ -1,15 +1,11 @@
 """
-Fitting the measurement model extended by effects, and its held-out likelihood.
+Fitting the measurement model extended by effects.
 
 A ``Model`` is a tuple of effect names. Its parameters are the calibration φ, the time and
 mean effects' θ (fitted jointly by Gauss-Newton / Levenberg-Marquardt on the per-pair
 weighted output error) and the variance effects' parameters (maximum likelihood given the
-errors, ``variance.py``), alternated until they settle (IRLS for outliers).
-
-Cross-validation on blocks (contiguous in time, or cells of the workspace) is done without
-refitting from scratch: the normal equations are accumulated per block at the all-data
-solution, and the solution without block k is one Gauss-Newton step away,
-``δ_k = -(H - H_k)⁻¹ (g - g_k)``; the variance parameters are refitted on the other blocks.
+errors, ``variance.py``), alternated until they settle (IRLS for outliers). A ``Fit``'s
+held-out predictions on blocks are ``heldout.py``'s.
 """
 
 from __future__ import annotations
@@ -17,12 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core.diagnosis import effects as fx
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData
-from coreg_ros.core.models import Parameters, linearize
+from coreg_ros.core.diagnosis.heldout import Heldout, Pass, predict, solve_psd
+from coreg_ros.core.models import linearize, Parameters
+import numpy as np
 
 CHUNK = 8192
 #: Largest number of Jacobian entries kept in memory for held-out predictions.
@@ -297,7 +293,7 @@ class Model:
         refused = 0
         for _ in range(max_iter):
             A = ps.H + lam * np.diag(np.diag(ps.H))
-            delta = -_solve(A, ps.g)
+            delta = -solve_psd(A, ps.g)
             predicted = -float(2.0 * ps.g @ delta + delta @ ps.H @ delta)
             if predicted < OBJ_TOL or _small_step(delta, ps.H):
                 break
@@ -367,20 +363,6 @@ class Model:
 
 
 @dataclass
-class Pass:
-    """One pass over the pairs: normal equations, -2 log L, stats (and optional per-block)."""
-
-    H: np.ndarray
-    g: np.ndarray
-    obj: float
-    stats: vm.PairStats
-    folds: Optional[np.ndarray]
-    Hk: Optional[np.ndarray]
-    gk: Optional[np.ndarray]
-    kept: Optional[list]
-
-
-@dataclass
 class Fit:
     """
     A fitted model.
@@ -440,97 +422,7 @@ class Fit:
         Heldout
 
         """
-        model, state, idx = self.model, self.state, self.idx
-        last = self.last
-        if last is None or last.folds is not folds or last.Hk is None:
-            last = model.normal(state, idx, folds, n_folds)
-        H, g, stats, Hk, gk = last.H, last.g, last.stats, last.Hk, last.gk
-        deltas = np.zeros((n_folds, model.n_mean))
-        var_k = []
-        for k in range(n_folds):
-            train = folds != k
-            deltas[k] = -_solve(H - Hk[k], g - gk[k])
-            if model.var_names and train.any():
-                var_k.append(vm.fit_variance(stats.take(train), state.var, model.var_names,
-                                             step=0.03))
-            else:
-                var_k.append(state.var)
-        n = len(idx)
-        m = model.data.m
-        ll = np.zeros(n)
-        quad0 = np.zeros(n)
-        quad = np.zeros(n)
-        p_in = np.ones(n)
-        e_out = np.zeros((n, m))
-        pos = 0
-        evals = last.kept if last.kept is not None else (
-            model.evaluate(state, ch) for ch in model.chunks(idx))
-        for ev in evals:
-            st, Jz, e, T = ev.st, ev.Jz, ev.e, ev.T
-            c = len(e)
-            fo = folds[pos:pos + c]
-            dz = np.einsum('nij,nj->ni', Jz, deltas[fo])
-            zc = st.z + dz
-            # raw error correction e + J δ: z = T e, so δe = T⁻¹ δz
-            e_out[pos:pos + c] = e + np.linalg.solve(T, dz[:, :, None])[:, :, 0]
-            stc = vm.PairStats(zc, st.lam, st.u, st.log_g)
-            quad0[pos:pos + c] = np.sum(zc ** 2 / (1.0 + st.lam), axis=1)
-            for k in np.unique(fo):
-                sel = fo == k
-                sub = stc.take(sel)
-                lk, pk, qk = vm.loglik(var_k[k], sub, with_parts=True)
-                ll[pos:pos + c][sel] = lk
-                p_in[pos:pos + c][sel] = pk
-                quad[pos:pos + c][sel] = qk
-            pos += c
-        return Heldout(folds=folds, n_folds=n_folds, ll=ll, quad_stated=quad0, quad=quad,
-                       p_in=p_in, e=e_out, var_k=var_k)
-
-
-@dataclass
-class Heldout:
-    """
-    Held-out predictions of every pair (each by the fit without its block).
-
-    Attributes
-    ----------
-    ll : ndarray, shape (n,)
-        Log-likelihood of each pair under the model fitted without its block.
-    quad_stated : ndarray, shape (n,)
-        Squared normalized error under the stated noise (chi-square with m dof if it holds).
-    quad : ndarray, shape (n,)
-        The same under the fitted noise model (inlier part).
-    p_in : ndarray, shape (n,)
-        Probability of being an inlier (1 without the outlier effect).
-    e : ndarray, shape (n, m)
-        Raw held-out output errors.
-
-    """
-
-    folds: np.ndarray
-    n_folds: int
-    ll: np.ndarray
-    quad_stated: np.ndarray
-    quad: np.ndarray
-    p_in: np.ndarray
-    e: np.ndarray
-    var_k: list
-
-    def fold_sums(self, values: np.ndarray) -> np.ndarray:
-        """Sum of values per fold."""
-        return np.bincount(self.folds, weights=values, minlength=self.n_folds)
-
-
-def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve a symmetric PSD system, with a tiny ridge and pseudo-inverse fallback."""
-    d = np.diag(A)
-    ridge = 1e-10 * np.maximum(d, 1e-300) + 1e-300
-    try:
-        L = np.linalg.cholesky(A + np.diag(ridge))
-        y = np.linalg.solve(L, b)
-        return np.linalg.solve(L.T, y)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(A, b, rcond=1e-12)[0]
+        return predict(self, folds, n_folds)
 
 
 def _small_step(delta: np.ndarray, H: np.ndarray) -> bool:
@@ -548,4 +440,3 @@ def _var_close(a: vm.VarState, b: vm.VarState, names) -> bool:
 def start_state(params: Parameters) -> State:
     """Return the base model's state from calibrated parameters."""
     return State(params=params, theta={}, var=vm.VarState())
-

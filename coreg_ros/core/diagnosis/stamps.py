@@ -14,9 +14,8 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core.types import PoseStream
+import numpy as np
 
 #: Interval scatter (per-stamp σ, s) from which the stamps count as jittered: clean clocks
 #: scatter by well under a microsecond, host stamps of a busy computer by 0.1-1 ms and more.

@@ -8,10 +8,9 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.diagnosis import variance as vm
+import numpy as np
 
 
 def _inflation(fit) -> float:

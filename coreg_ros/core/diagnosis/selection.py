@@ -1,0 +1,387 @@
+"""
+Candidate selection: score each candidate effect on held-out blocks, pick one per round.
+
+Every candidate is fitted as an extension of the model (``fit.Model``) on the selection pairs
+and scored by its gain in held-out log-likelihood on contiguous time blocks (and on cells of
+the workspace for spatial effects), each block predicted by the fit on the others. A
+candidate passes only if it gains in (almost) every block and by a practical size; the
+simpler of nested candidates is preferred; a runner-up that explains the same thing is
+reported as not separable; up to ``Options.max_effects`` effects are accepted in turn, each
+on top of the previous ones. Candidates that cannot reach the practical size are screened
+out from a one-step prediction (``screen``) without a refit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Optional
+
+from coreg_ros.core.diagnosis import detect as dt
+from coreg_ros.core.diagnosis import effects as fx
+from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.diagnosis.data import DiagData, spatial_folds, time_folds
+from coreg_ros.core.diagnosis.drift import drift_check
+from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model
+from coreg_ros.core.diagnosis.options import Options, Progress
+import numpy as np
+
+
+@dataclass
+class Candidate:
+    """One candidate effect scored on top of the accepted ones."""
+
+    name: str
+    names: tuple
+    fit: Fit
+    heldout: Heldout
+    gain: float
+    fold_gains: np.ndarray
+    spatial_gain: Optional[float] = None
+    passes: bool = False
+    reason: str = ''
+    screened: bool = False
+    behind: bool = False
+
+    def row(self, n_res: int) -> dict:
+        """JSON row of the candidate ranking."""
+        row = {'name': self.name, 'held_out_gain': float(self.gain),
+               'held_out_gain_per_residual': float(self.gain / max(n_res, 1)),
+               'blocks_improved': int(np.sum(self.fold_gains > 0)),
+               'blocks': int(len(self.fold_gains)), 'accepted_test': bool(self.passes),
+               'reason': self.reason}
+        if self.spatial_gain is not None:
+            row['spatial_held_out_gain'] = float(self.spatial_gain)
+        if self.screened:
+            # not refitted: the gain is the predicted in-sample one, not a held-out one
+            row['screened'] = True
+            row['predicted_in_sample_gain'] = row.pop('held_out_gain')
+            row['held_out_gain'] = None
+            row['held_out_gain_per_residual'] = None
+        return row
+
+
+def has_motion(data: DiagData) -> bool:
+    """Whether the tool moves in more than a tenth of the pairs (motion effects can show)."""
+    moving = (data.speed > dt.STATIC_SPEED) | (data.angular_speed > dt.STATIC_ANGULAR_SPEED)
+    return bool(np.mean(moving) > 0.1)
+
+
+class Selector:
+    """Scoring of candidate models on the selection pairs."""
+
+    def __init__(self, data: DiagData, idx: np.ndarray, opts: Options, progress: Progress):
+        self.data = data
+        self.idx = idx
+        self.opts = opts
+        self.progress = progress
+        self.K = opts.n_folds
+        self.tf = time_folds(data.t[idx], self.K)
+        self.sf = spatial_folds(data.b_points[idx, 0, :], self.K, seed=opts.seed)
+        self.n_res = len(idx) * data.m
+        self.cache = {}
+
+    def score(self, names: tuple, start) -> tuple:
+        """Fit the model ``names`` on the selection pairs; its time and spatial held-out."""
+        key = tuple(sorted(names))
+        if key not in self.cache:
+            fit = Model(self.data, names).fit(start, self.idx, self.tf, self.K)
+            h = fit.heldout(self.tf, self.K)
+            hs = None
+            if any(n in fx.SPATIAL_EFFECTS for n in names):
+                hs = fit.heldout(self.sf, self.K)
+            self.cache[key] = (fit, h, hs)
+        return self.cache[key]
+
+    def spatial_heldout(self, ref: tuple):
+        """Held-out predictions of the reference model on the spatial blocks."""
+        key = tuple(sorted(ref[0].model.names))
+        fit, h, hs = self.cache.get(key, ref)
+        if hs is None:
+            hs = fit.heldout(self.sf, self.K)
+            self.cache[key] = (fit, h, hs)
+        return hs
+
+    def spatial_ll(self, ref: tuple) -> float:
+        """Held-out log-likelihood of the reference model on the spatial blocks."""
+        return float(self.spatial_heldout(ref).ll.sum())
+
+    def threshold(self, round_no: int) -> float:
+        """Smallest held-out gain that counts in this round, nats."""
+        per = self.opts.practical if round_no == 0 else self.opts.practical_next
+        return max(self.opts.min_gain, per * self.n_res)
+
+
+def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round_no: int
+                    ) -> Candidate:
+    """Fit ``accepted + (name,)``, score its held-out gain over ``ref`` and test it."""
+    names = accepted + (name,)
+    fit, h, hs = sel.score(names, ref[0].state)
+    ref_h = ref[1]
+    fold_gains = h.fold_sums(h.ll) - ref_h.fold_sums(ref_h.ll)
+    gain = float(fold_gains.sum())
+    kind = 'time'
+    if name in fx.SPATIAL_EFFECTS:
+        # a spatial effect is judged on unseen cells of the workspace (interpolation): a
+        # time block may cover a region the rest of the motion never visits, where any
+        # field model can only extrapolate
+        ref_s = sel.spatial_heldout(ref)
+        fold_gains = hs.fold_sums(hs.ll) - ref_s.fold_sums(ref_s.ll)
+        gain = float(fold_gains.sum())
+        kind = 'workspace'
+    cand = Candidate(name, names, fit, h, gain, fold_gains)
+    thr = sel.threshold(round_no)
+    if hs is not None:
+        cand.spatial_gain = float(hs.ll.sum()) - sel.spatial_ll(ref)
+    reasons = []
+    if gain < thr:
+        reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
+    labels = sel.sf if kind == 'workspace' else sel.tf
+    blocks = int(np.sum(np.bincount(labels, minlength=sel.K) > 0))
+    if np.sum(fold_gains > 0) < blocks - 1:
+        reasons.append(f'improves only {int(np.sum(fold_gains > 0))} of {blocks} {kind} '
+                       f'blocks')
+    cand.passes = not reasons
+    cand.reason = '; '.join(reasons) if reasons else 'passes'
+    return cand
+
+
+#: A candidate whose predicted in-sample gain is below this share of the practical threshold
+#: is not refitted (its held-out gain cannot reach the threshold; the share leaves room for
+#: the linearisation's error).
+SCREEN_SHARE = 0.3
+#: ... or below this share of the best held-out gain found in the round (it could be neither
+#: the pick nor a not-separable rival, which needs ``not_separable_ratio`` = 0.6 of it; the
+#: margin is for the prediction's error). Such a candidate is looked at again in the next
+#: round, on top of the pick.
+BEHIND_SHARE = 0.3
+
+
+def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> dict:
+    """
+    Predicted in-sample gain (nats) of each candidate from the reference fit, no refit.
+
+    Mean and time effects share one linearisation: a single pass of the reference model
+    extended by every compatible mean effect and a clock drift (whose first column is the
+    time offset's), all new θ at zero. At the reference optimum the gradient is the score,
+    and the one-step gain of adding a candidate's columns is ``½ gₛᵀ Hₛₛ⁻¹ gₛ`` over the
+    reference's parameters and the candidate's. Variance effects are fitted on the
+    reference's pair statistics (the mean held). A candidate missing from the result is
+    refitted whatever its score.
+    """
+    out: dict = {}
+    fit0 = ref[0]
+    state0 = fit0.state
+    time_new = [n for n in todo if n in fx.TIME_EFFECTS]
+    mean_new = [n for n in todo if n in fx.MEAN_EFFECTS]
+    if time_new or mean_new:
+        names = accepted + (('clock_drift',) if time_new else ()) + tuple(mean_new)
+        try:
+            model = Model(sel.data, names)
+            ps = model.normal(model.initial_state(state0), sel.idx)
+        except (ValueError, np.linalg.LinAlgError):
+            ps = None
+        if ps is not None:
+            base_cols = list(range(model.P))
+            for a in accepted:
+                if a in model.slices:
+                    base_cols += list(range(model.slices[a].start, model.slices[a].stop))
+            for name in time_new + mean_new:
+                sl = model.slices['clock_drift' if name in fx.TIME_EFFECTS else name]
+                cols = list(range(sl.start, sl.stop))
+                if name == 'time_offset':
+                    cols = cols[:1]
+                c = np.array(base_cols + cols)
+                H = ps.H[np.ix_(c, c)]
+                g = ps.g[c]
+                try:
+                    step = np.linalg.lstsq(H, g, rcond=1e-12)[0]
+                except np.linalg.LinAlgError:
+                    continue
+                # the reference's own gradient is ~0 at its optimum: what is left is the
+                # candidate's score; take the reference's share off all the same
+                hb = H[:len(base_cols), :len(base_cols)]
+                gb = g[:len(base_cols)]
+                own = float(gb @ np.linalg.lstsq(hb, gb, rcond=1e-12)[0])
+                out[name] = 0.5 * max(float(g @ step) - own, 0.0)
+    stats = fit0.stats
+    ll0 = float(np.sum(vm.loglik(state0.var, stats)))
+    for name in todo:
+        if name not in fx.VARIANCE_EFFECTS:
+            continue
+        model = Model(sel.data, accepted + (name,))
+        if any(n in fx.TIME_EFFECTS or n in fx.MEAN_EFFECTS for n in model.names
+               if n not in fit0.model.names):
+            continue
+        var0 = model.initial_state(state0).var
+        try:
+            var = vm.fit_variance(stats, var0, model.var_names)
+        except (ValueError, FloatingPointError):
+            continue
+        out[name] = max(float(np.sum(vm.loglik(var, stats))) - ll0, 0.0)
+    return out
+
+
+def compatible(accepted: tuple, name: str) -> bool:
+    """Whether ``name`` can be fitted on top of ``accepted`` (one time effect, one noise level)."""
+    if name in accepted:
+        return False
+    if name in fx.TIME_EFFECTS and any(a in fx.TIME_EFFECTS for a in accepted):
+        return False
+    if {name, *accepted} >= {'noise_scale', 'distance_noise'}:
+        return False
+    return True
+
+
+def nested(a: str, b: str) -> bool:
+    """Whether one of the two effects is a special case of the other (``NESTED``)."""
+    return (a, b) in fx.NESTED or (b, a) in fx.NESTED
+
+
+def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str],
+                 round_no: int, progress_span: tuple) -> tuple:
+    """One round: score the candidates, pick one, test separability. Returns (pick, ...)."""
+    cands = []
+    lo, hi = progress_span
+    todo = [n for n in names if compatible(accepted, n)]
+    thr = sel.threshold(round_no)
+    predicted = screen(sel, accepted, ref, todo)
+    # the most promising first: a candidate far behind the best one found so far can be
+    # neither the pick nor its not-separable rival, and is not refitted
+    todo = sorted(todo, key=lambda n: -predicted.get(n, np.inf))
+    best_gain = 0.0
+    for i, name in enumerate(todo):
+        sel.progress(lo + (hi - lo) * i / max(len(todo), 1), f'round {round_no + 1}: {name}')
+        pred = predicted.get(name)
+        reason = ''
+        if pred is not None and pred < SCREEN_SHARE * thr:
+            # the refit cannot gain the practical size: its in-sample gain bounds the
+            # held-out one, and the one-step prediction from the reference is that gain
+            reason = (f'screened: predicted in-sample gain {pred:.1f} nats, below '
+                      f'{SCREEN_SHARE:.2f} of the practical {thr:.1f}')
+        elif pred is not None and pred < BEHIND_SHARE * best_gain:
+            reason = (f'screened: predicted in-sample gain {pred:.1f} nats, below '
+                      f'{BEHIND_SHARE:.2f} of the best held-out gain {best_gain:.1f}')
+        if reason:
+            # looked at again behind the pick only if it could have passed on its own (the
+            # next round revisits only what passed alone)
+            cands.append(Candidate(name, accepted + (name,), None, None, pred,
+                                   np.zeros(sel.K), reason=reason, screened=True,
+                                   behind=pred >= thr))
+            continue
+        cand = score_candidate(sel, accepted, name, ref, round_no)
+        cands.append(cand)
+        if cand.passes:
+            best_gain = max(best_gain, cand.gain)
+    passing = sorted([c for c in cands if c.passes], key=lambda c: -c.gain)
+    if not passing:
+        return None, cands, []
+    best = passing[0]
+    # nested: prefer the simpler unless the richer gains clearly more (its few extra
+    # parameters are already paid for on the held-out blocks)
+    margin = max(sel.opts.min_gain, sel.opts.nested_share * thr)
+    for simple, rich in fx.NESTED:
+        if best.name == rich:
+            alt = next((c for c in passing if c.name == simple), None)
+            if alt is not None and best.gain - alt.gain < margin:
+                best = alt
+    not_sep = []
+    for other in passing:
+        if other is best or nested(other.name, best.name):
+            continue
+        if other.gain < sel.opts.not_separable_ratio * best.gain:
+            continue
+        if not compatible(accepted + (best.name,), other.name):
+            # two time effects, or two noise levels, cannot be fitted together: compare as is
+            if other.gain > best.gain - thr:
+                not_sep.append(other.name)
+            continue
+        both, h_both, _ = sel.score(accepted + (best.name, other.name), best.fit.state)
+        ll_both = float(h_both.ll.sum())
+        gain_best_over_other = ll_both - float(other.heldout.ll.sum())
+        gain_other_over_best = ll_both - float(best.heldout.ll.sum())
+        if gain_best_over_other < thr and gain_other_over_best < thr:
+            not_sep.append(other.name)
+    return best, cands, not_sep
+
+
+@dataclass
+class Selection:
+    """
+    What the selection rounds accepted.
+
+    Attributes
+    ----------
+    accepted : tuple of str
+        The accepted effects, in the order they were accepted.
+    chosen : list of (Candidate, list of str)
+        Each accepted candidate and the rivals it is not separable from.
+    not_separable : list of [str, str]
+        The accepted effect and each such rival.
+    rounds : list of list of Candidate
+        The candidates scored in each round.
+    drift_checks : list of dict
+        ``drift.drift_check`` of each round that picked a clock drift.
+    ref : tuple
+        ``Selector.score`` of the accepted model (fit, time held-out, spatial held-out).
+
+    """
+
+    accepted: tuple
+    chosen: list
+    not_separable: list
+    rounds: list
+    drift_checks: list
+    ref: tuple
+
+
+def select_effects(sel: Selector, start) -> Selection:
+    """
+    Accept up to ``Options.max_effects`` effects in turn, each on top of the previous ones.
+
+    Parameters
+    ----------
+    sel : Selector
+    start : fit.State
+        The base model's state.
+
+    Returns
+    -------
+    Selection
+
+    """
+    opts, data = sel.opts, sel.data
+    names = [c for c in opts.candidates if c in fx.EFFECT_NAMES]
+    if not has_motion(data):
+        names = [c for c in names if c not in fx.MOTION_EFFECTS]
+    ref = sel.score((), start)
+    accepted: tuple = ()
+    not_separable = []
+    rounds = []
+    chosen = []
+    drift_checks = []
+    for r in range(opts.max_effects):
+        span = (0.1 + 0.25 * r, 0.1 + 0.25 * (r + 1))
+        best, cands, not_sep = select_round(sel, accepted, ref, names, r, span)
+        rounds.append(cands)
+        if best is not None and best.name == 'clock_drift':
+            check = drift_check(data, sel, best, cands)
+            drift_checks.append(check)
+            if not check['accepted']:
+                best.passes = False
+                best.reason = check['reason']
+                alt = [c for c in cands if c.passes and c.name != 'clock_drift']
+                best = max(alt, key=lambda c: c.gain) if alt else None
+                not_sep = []
+        if best is None:
+            break
+        if r == 0:
+            # later rounds only revisit what improved on the base model on its own: an
+            # effect that helps nothing alone is not looked for behind another one
+            names = [c.name for c in cands if c.passes or c.behind]
+        accepted = accepted + (best.name,)
+        chosen.append((best, not_sep))
+        for other in not_sep:
+            not_separable.append([best.name, other])
+        ref = sel.score(accepted, best.fit.state)
+    return Selection(accepted, chosen, not_separable, rounds, drift_checks, ref)
