@@ -89,7 +89,7 @@ def make_pairs(n: int, noise: str, model: str = 'full_pose', seed: int = eb.SEED
 
 
 def _problem(pairs, noise: str, model: str = 'full_pose') -> Problem:
-    """The whitened problem ``calibrate`` builds (for the solver-only and scipy figures)."""
+    """Build the whitened problem ``calibrate`` builds (for the solver-only and scipy figures)."""
     sigma_a, sigma_b = NOISE[noise]
     spec = SPECS[model]
     qb = None if pairs.quat_b is None else np.asarray(pairs.quat_b, float)
@@ -100,7 +100,7 @@ def _problem(pairs, noise: str, model: str = 'full_pose') -> Problem:
 
 
 def before_worktree(commit: str) -> Path:
-    """A detached git worktree of ``commit`` under /tmp (made once, reused)."""
+    """Return a detached git worktree of ``commit`` under /tmp (made once, reused)."""
     path = Path(tempfile.gettempdir()) / f'coreg_before_{commit}'
     if not (path / 'coreg_ros').is_dir():
         subprocess.run(['git', '-C', str(ROOT), 'worktree', 'add', '--detach', str(path),

@@ -65,7 +65,7 @@ def make_pairs(n: int, seed: int = SEED):
 
 
 def make_problem(pairs) -> Problem:
-    """The Problem ``calibrate`` builds for these pairs (full pose, default noise)."""
+    """Build the Problem ``calibrate`` builds for these pairs (full pose, default noise)."""
     spec = SPECS['full_pose']
     return Problem(spec, np.asarray(pairs.pos_a, float), np.asarray(pairs.quat_a, float),
                    np.asarray(pairs.pos_b, float), np.asarray(pairs.quat_b, float),
@@ -74,7 +74,7 @@ def make_problem(pairs) -> Problem:
 
 
 def start_params(problem: Problem) -> Parameters:
-    """The closed-form start of ``calibrate``."""
+    """Return the closed-form start of ``calibrate``."""
     return initialize(problem.spec, problem.pos_a, problem.quat_a, problem.pos_b, problem.quat_b)
 
 
@@ -174,7 +174,7 @@ class ScipyTLS:
         return sparse.csr_matrix((data.ravel(), self.indices, self.indptr), shape=self.shape)
 
     def sparsity(self):
-        """The Jacobian's sparsity pattern (for ``jac_sparsity``)."""
+        """Return the Jacobian's sparsity pattern (for ``jac_sparsity``)."""
         ones = np.ones(len(self.indices))
         return sparse.csr_matrix((ones, self.indices, self.indptr), shape=self.shape)
 
@@ -318,7 +318,7 @@ def bench_size(n: int, methods=('ols', 'tls'), scipy_cap: float = 120.0,
 
 
 def profile_tls(n: int = 100_000, top: int = 12) -> str:
-    """CProfile of ``solve_tls`` at N pairs: the top entries by internal time."""
+    """Profile ``solve_tls`` at N pairs with cProfile: the top entries by internal time."""
     import cProfile
     import io
     import pstats

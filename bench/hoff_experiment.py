@@ -103,7 +103,7 @@ LABELS = {'a_through_calibration': 'A through calibration (T0·T_A·T1)', 'b_alo
 
 
 def markdown(res: dict) -> str:
-    """The result as a markdown table (RMS error per axis, predicted σ in brackets)."""
+    """Format the result as a markdown table (RMS error per axis, predicted σ in brackets)."""
     head = ('| stream | x mm | y mm | z mm | rx mrad | ry mrad | rz mrad | NEES (6) | in 95 % |\n'
             '|---|---|---|---|---|---|---|---|---|')
     rows = []
@@ -121,7 +121,7 @@ def markdown(res: dict) -> str:
 
 
 def plot(res: dict, path: str) -> None:
-    """Grouped bars of the per-axis RMS error of the three streams (predicted σ as ticks)."""
+    """Draw grouped bars of the per-axis RMS error of the three streams (predicted σ as ticks)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -128,7 +128,7 @@ SCENARIOS = (
 # ----------------------------------------------------------------------------------------------
 
 def setup(scenario: Scenario):
-    """Fixed truth, motion and noise-free pairs of a scenario; (truth, motion, clean)."""
+    """Return the fixed truth, motion and noise-free pairs of a scenario (truth, motion, clean)."""
     rng = np.random.default_rng(scenario.seed)
     truth = random_truth(rng, scenario.model)
     motion = make_motion(rng)
@@ -304,7 +304,7 @@ def chi2_calibration(p_values: np.ndarray) -> dict:
 
 def tolerances(K: int, d: int) -> dict:
     """
-    Acceptance half-widths for K trials: full-size target or 3.29 sampling standard errors.
+    Return acceptance half-widths for K trials: full-size target or 3.29 sampling standard errors.
 
     Mean NEES of a χ²_d variable has standard error √(2d/K); coverage of a 95 % region has
     √(0.95·0.05/K).

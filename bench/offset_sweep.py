@@ -1,7 +1,8 @@
 """
-The clock offset on random draws: model, duration, noise of both devices and offset (ms to
-minutes) drawn at random; prints each case and, at the end, how many were not recovered within
-4σ and the mean z² of the estimated offsets (1 when σ_τ is calibrated).
+The clock offset on random draws of model, duration, noise of both devices and offset.
+
+The offset ranges from ms to minutes. Prints each case and, at the end, how many were not
+recovered within 4σ and the mean z² of the estimated offsets (1 when σ_τ is calibrated).
 
     python bench/offset_sweep.py --seed 6 --cases 60 [--workers N] [--scheduler ADDRESS]
 

@@ -38,7 +38,7 @@ OVERHEAD_TASKS = 400
 
 
 def noop(case: int) -> int:
-    """A task that does nothing: what is left of its time is the engine's overhead."""
+    """Do nothing: what is left of the task's time is the engine's overhead."""
     return case
 
 
@@ -98,7 +98,7 @@ def estimate(per_case_s: float, per_task_s: float, cases: int = PAPER_CASES,
 
 
 def run(cases: int = 40, seed: int = 2024, short: bool = False, dask: bool = True) -> dict:
-    """The two local runs, the Dask overhead and the estimate; a JSON-friendly dict."""
+    """Return the two local runs, the Dask overhead and the estimate as a JSON-friendly dict."""
     duration = (15.0, 20.0) if short else None
     one = time_validation(cases, seed, 1, duration)
     two = time_validation(cases, seed, 2, duration)

@@ -1,6 +1,8 @@
 """
-All benchmarks in one command (``make bench``): estimators against scipy, pairing, bags, node,
-and the full-size Monte Carlo. Prints tables and writes bench/results/estimator.json.
+All benchmarks in one command (``make bench``).
+
+Estimators against scipy, pairing, bags, node, and the full-size Monte Carlo. Prints tables and
+writes bench/results/estimator.json.
 
 BLAS/OpenMP are pinned to one thread before numpy is imported, so that timings are stable on a
 shared machine; every timing is the best of a few repeats.

@@ -1,6 +1,8 @@
 """
-What estimating the clock offset costs: ``calibrate_streams`` at 100k pairs, τ estimated
-(``--time-offset auto``) against τ fixed at its true value, in the same run (issue 10: ≤ 1.5×).
+What estimating the clock offset costs: ``calibrate_streams`` at 100k pairs.
+
+τ estimated (``--time-offset auto``) against τ fixed at its true value, in the same run
+(issue 10: ≤ 1.5×).
 
 Times the whole function users call (pairing, validation, fit, robust pass), best of ``repeats``.
 """

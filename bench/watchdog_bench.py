@@ -84,7 +84,7 @@ def _calibration(seed: int):
 
 
 def _accepted(stream: PoseStream) -> PoseStream:
-    """The samples the node accepts: a stamp not after the latest one so far is rejected."""
+    """Keep the samples the node accepts: a stamp not after the latest one so far is rejected."""
     before = np.concatenate([[np.iinfo(np.int64).min], np.maximum.accumulate(stream.stamps)[:-1]])
     keep = stream.stamps > before
     return PoseStream(stream.stamps[keep], stream.position[keep], stream.quat_wxyz[keep],
@@ -92,7 +92,7 @@ def _accepted(stream: PoseStream) -> PoseStream:
 
 
 def _updates(rec, settings, result, seconds: float):
-    """PairBatch es of ``seconds`` each, as the node's 1 Hz updates would see them."""
+    """Yield PairBatches of ``seconds`` each, as the node's 1 Hz updates would see them."""
     # a clock stepping back makes B's stamps go backwards: the node rejects those samples
     streams_b = [_accepted(s) for s in rec.streams_b]
     pairs, _ = pair_for(rec.stream_a, streams_b, settings, result.time_offset)

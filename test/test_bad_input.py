@@ -150,7 +150,7 @@ def test_calibrate_single_quaternion_for_all_pairs(pairs):
 # ---------------------------------------------------------------------------------------------
 
 def _both(stream, b, *words, exc=InputError):
-    """The same error from validate_stream and from pair_streams."""
+    """Expect the same error from validate_stream and from pair_streams."""
     raises(exc, lambda: validate_stream(stream, 'stream_a'), 'stream_a', *words)
     raises(exc, lambda: pair_streams(stream, b, max_gap_ns=GAP), 'stream_a', *words)
 

@@ -1,6 +1,7 @@
 """
-Tests of calibrate() (closed-form start, OLS / TLS, priors, chi-square, covariance) and of the
-stream pipeline and the result's dict layout.
+Tests of calibrate(), of the stream pipeline and of the result's dict layout.
+
+calibrate(): closed-form start, OLS / TLS, priors, chi-square, covariance.
 
 Errors are measured as ``p_true - p_est`` and ``δθ = log(q_true ⊗ q_est*)``
 (``R_true = Exp(δθ) R_est``, the ROS layout of DESIGN.md §3). Accuracy is judged against the
@@ -110,7 +111,7 @@ def test_calibrate_tls_recovers_random_truths_within_covariance(model):
 
 
 def _tls_reference_covariance(result, noisy, settings):
-    """The undamped Schur complement at the solution, rebuilt from the result."""
+    """Rebuild the undamped Schur complement at the solution from the result."""
     spec = SPECS[result.model]
     qa = quat.validate_quaternions(noisy.quat_a)
     qb = None if noisy.quat_b is None else quat.validate_quaternions(noisy.quat_b)
@@ -235,7 +236,7 @@ def _with_prior(model, method, prior):
 
 
 def _shifted_pose(pose, z):
-    """The pose moved by the tangent vector z = (δp, δθ): p + δp, Exp(δθ) ⊗ q."""
+    """Move the pose by the tangent vector z = (δp, δθ): p + δp, Exp(δθ) ⊗ q."""
     return pose.position + z[:3], quat.canonical(quat.multiply(quat.exp(z[3:]), pose.quat_wxyz))
 
 

@@ -1,6 +1,8 @@
 """
-Faults of the offline commands found by trying them as a careless user (issue 12, items 8-11
-and 14): each test failed before its fix. The ROS tools' faults are in test_cli_ros_faults.py.
+Faults of the offline commands found by trying them as a careless user (issue 12).
+
+Items 8-11 and 14: each test failed before its fix. The ROS tools' faults are in
+test_cli_ros_faults.py.
 """
 
 from pathlib import Path

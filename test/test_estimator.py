@@ -132,7 +132,7 @@ def dense_tls_residual(problem, params, x_pos, x_quat, sigma_a, sigma_b, model):
 
 
 def reconstruct_inputs(problem, input_residuals, sigma_a):
-    """Adjusted inputs from the whitened input residuals: e = x - x̂, rotation metric e_q."""
+    """Adjust the inputs by the whitened input residuals: e = x - x̂, rotation metric e_q."""
     e_pos = input_residuals[:, 0:3] * sigma_a[0]
     e_rot = input_residuals[:, 3:6] * sigma_a[1] / 2.0
     w = np.sqrt(1.0 - np.sum(e_rot ** 2, axis=1))

@@ -1,7 +1,9 @@
 """
-Tests of coreg_ros.core.fusion_stream: the fused covariance against the spread of a seeded Monte
-Carlo (calibration error, A's and B's noise all drawn), the position-only branch, and
-incremental pairing against pair_streams on the whole streams.
+Tests of coreg_ros.core.fusion_stream.
+
+The fused covariance against the spread of a seeded Monte Carlo (calibration error, A's and B's
+noise all drawn), the position-only branch, and incremental pairing against pair_streams on the
+whole streams.
 
 Monte Carlo tolerance: with N = 20 000 trials the mean NEES of a 6-dimensional error has a
 standard deviation of sqrt(12 / N) = 0.024 (0.4 % of 6); NEES within 5 % of 6 and 95 %
@@ -151,7 +153,7 @@ def _arrivals(streams, latency_ns):
 
 
 def _window(stream, n, k):
-    """The newest k of the first n samples (a buffer tail), as a PoseStream."""
+    """Return the newest k of the first n samples (a buffer tail) as a PoseStream."""
     lo = max(0, n - k)
     return PoseStream(stamps=stream.stamps[lo:n], position=stream.position[lo:n],
                       quat_wxyz=stream.quat_wxyz[lo:n], frame_id=stream.frame_id)

@@ -1,6 +1,8 @@
 """
-The fuzz of issue 12 (bench/fuzz.py) at a reduced size: no input may give a traceback, a hang
-or a result the fuzzer knows is wrong. ``make bench`` runs it at full size.
+The fuzz of issue 12 (bench/fuzz.py) at a reduced size.
+
+No input may give a traceback, a hang or a result the fuzzer knows is wrong. ``make bench`` runs
+it at full size.
 
 The size is chosen to keep this module well under two minutes on a loaded 2-core machine.
 """

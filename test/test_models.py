@@ -1,6 +1,8 @@
 """
-Tests of coreg_ros.core.models: analytic Jacobians against central finite differences, and the
-model equation against an independent computation with 4×4 homogeneous matrices.
+Tests of coreg_ros.core.models.
+
+Analytic Jacobians against central finite differences, and the model equation against an
+independent computation with 4×4 homogeneous matrices.
 
 The paper's Jacobians (eqs. 48-49) have index typos, so every Jacobian is checked numerically:
 ``j_phi`` by stepping φ in its chart (``Parameters.stepped``), ``j_x`` by the input
@@ -65,7 +67,7 @@ def params_in_charts(spec, rng, chart0=None, chart1=None):
 
 
 def data_for(params, rng, n=7, noise=0.1):
-    """Inputs over all of SO(3) and outputs near the model's prediction (like real data)."""
+    """Draw inputs over all of SO(3) and outputs near the model's prediction (like real data)."""
     pos_a = rng.uniform(-0.5, 0.5, (n, 3))
     quat_a = random_quat(rng, n)
     pos_b, quat_b = predict(params, pos_a, quat_a)

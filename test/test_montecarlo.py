@@ -34,7 +34,7 @@ WORKERS = int(os.environ.get('COREG_MC_WORKERS', '1'))
 # ----------------------------------------------------------------------------------------------
 
 def _device_b(model, p0, R0, markers, R1, pos_a, Ra):
-    """Reference model written with rotation matrices: (positions (k*3,), R_B)."""
+    """Predict B with a reference model written with rotation matrices: (positions (k*3,), R_B)."""
     pos = [p0 + R0 @ (pos_a + Ra @ p) for p in markers]
     return np.concatenate(pos), R0 @ Ra @ R1
 
@@ -149,7 +149,7 @@ def _off_trials(report):
 
 
 def _only_damped_covariance(report):
-    """True if every failed check is a covariance check explained by the off-CRLB trials."""
+    """Tell whether every failed check is a covariance check explained by the off-CRLB trials."""
     for stat in report['methods'].values():
         bad = [c['check'] for c in stat['checks'] if not c['passed']]
         if any(not c.startswith(COV_CHECKS) for c in bad):

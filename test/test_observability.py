@@ -1,6 +1,8 @@
 """
-Tests of the observability checks: motion that cannot determine the calibration is refused with
-a message that names the unobservable parameter and the motion that would fix it.
+Tests of the observability checks.
+
+Motion that cannot determine the calibration is refused with a message that names the
+unobservable parameter and the motion that would fix it.
 """
 
 from coreg_ros.core import quaternion as quat

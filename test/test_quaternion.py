@@ -45,7 +45,7 @@ def axes(draw):
 
 @st.composite
 def quaternions(draw):
-    """Unit quaternions: generic, near the identity, near 180°, exactly 180°, with random sign."""
+    """Draw unit quaternions: generic, near the identity, near 180°, exactly 180°, random sign."""
     kind = draw(st.sampled_from(['generic', 'identity', 'near_pi', 'pi']))
     if kind == 'generic':
         v = draw(hnp.arrays(np.float64, 4, elements=st.floats(-1.0, 1.0)))
@@ -310,7 +310,7 @@ def test_validate_tolerance_is_one_percent():
 # ---------------------------------------------------------------------------------------------
 
 def quaternion_in_chart(rng, k, sign, margin=0.0):
-    """A random unit quaternion whose largest-magnitude component is index k with that sign."""
+    """Draw a random unit quaternion whose largest-magnitude component is index k, that sign."""
     while True:
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)

@@ -1,6 +1,8 @@
 """
-Spatiotemporal, robust calibration (issue 10): the clock offset estimated with the transforms,
-outliers rejected, priors, and the fit verdict. Statistical claims by Monte Carlo, fixed seeds.
+Spatiotemporal, robust calibration (issue 10).
+
+The clock offset estimated with the transforms, outliers rejected, priors, and the fit verdict.
+Statistical claims by Monte Carlo, fixed seeds.
 """
 
 from dataclasses import replace

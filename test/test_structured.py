@@ -50,7 +50,7 @@ def generic(monkeypatch):
 
 
 def _weighted(problem, seed=0):
-    """The problem with per-pair weights on A's noise as pairing makes them (0.5 to 1)."""
+    """Return the problem with per-pair weights on A's noise as pairing makes them (0.5 to 1)."""
     alpha = np.random.default_rng(seed).uniform(0.0, 1.0, problem.n)
     return dataclasses.replace(problem, a_scale=alpha ** 2 + (1.0 - alpha) ** 2)
 

@@ -1,6 +1,8 @@
 """
-Tests of coreg_ros.core.uncertainty: Jacobians against finite differences, exact identities,
-and every propagated or fused covariance against the spread of a Monte Carlo.
+Tests of coreg_ros.core.uncertainty.
+
+Jacobians against finite differences, exact identities, and every propagated or fused
+covariance against the spread of a Monte Carlo.
 
 Monte Carlo tolerances: with N = 20 000 trials of a d-dimensional error, the mean NEES has a
 standard deviation of sqrt(2d / N) (0.024 for d = 6, 1 % of 6 at three sigma) and the coverage

@@ -55,7 +55,7 @@ class CalibrationRun:
 
     @property
     def wrong_way(self) -> bool:
-        """A stream fits far better inverted: the fit is refused."""
+        """Tell whether a stream fits far better inverted (then the fit is refused)."""
         return self.check is not None and self.check.flagged
 
 

@@ -72,7 +72,7 @@ class DirectionFit:
 
     @property
     def flags(self) -> str:
-        """The ``coreg convert`` flags giving these directions, e.g. ``'--invert-b'``."""
+        """Return the ``coreg convert`` flags giving these directions, e.g. ``'--invert-b'``."""
         return ' '.join(f for f, inv in (('--invert-a', self.invert_a),
                                          ('--invert-b', self.invert_b)) if inv)
 
@@ -116,12 +116,12 @@ class DirectionReport:
 
     @property
     def as_given(self) -> DirectionFit:
-        """The fit of the data as given."""
+        """Return the fit of the data as given."""
         return self.fits[0]
 
     @property
     def best(self) -> DirectionFit:
-        """The fit with the smallest chi2/dof (the data as given on a tie)."""
+        """Return the fit with the smallest chi2/dof (the data as given on a tie)."""
         return min(self.fits, key=lambda f: (f.chi2_dof, f.invert_a or f.invert_b))
 
     @property

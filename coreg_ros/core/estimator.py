@@ -88,12 +88,12 @@ class Problem:
 
     @property
     def n(self) -> int:
-        """Number of pairs N."""
+        """Return the number of pairs N."""
         return len(self.pos_a)
 
     @property
     def n_fitted(self) -> int:
-        """Number of pairs the fit counts (N, or the number of non-zero weights)."""
+        """Return the number of pairs the fit counts (N, or the number of non-zero weights)."""
         return self.n if self.weights is None else int(np.count_nonzero(self.weights))
 
     def chunks(self):

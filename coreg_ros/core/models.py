@@ -61,7 +61,7 @@ class ModelSpec:
 
     @property
     def has_q1(self) -> bool:
-        """True if T1's orientation is estimated (full pose only)."""
+        """Tell whether T1's orientation is estimated (full pose only)."""
         return self.name == 'full_pose'
 
     def marker_slice(self, j: int) -> slice:
@@ -121,7 +121,7 @@ class Parameters:
 
     @property
     def valid(self) -> bool:
-        """False if a reduced quaternion left its chart (|s| > 1): a step to reject."""
+        """Check the step: False if a reduced quaternion left its chart (|s| > 1), to reject."""
         return bool(np.isfinite(self.q0).all() and np.isfinite(self.q1).all())
 
     def stepped(self, delta: np.ndarray) -> Parameters:

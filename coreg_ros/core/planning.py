@@ -128,7 +128,7 @@ class Plan:
 
     @property
     def best(self) -> PlannedAddition:
-        """The candidate with the largest gain."""
+        """Return the candidate with the largest gain."""
         return self.candidates[0]
 
 

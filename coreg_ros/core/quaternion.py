@@ -11,6 +11,7 @@ References
 Ikits, M. (2000). Coregistration of pose measurement devices using nonlinear least squares
 parameter estimation. UUCS-00-018. Section 3.1 (reduced quaternion, eqs. 7-10), section 3.2
 (error metric, eqs. 11-15), appendix A (rotation matrix, eq. 21).
+
 """
 
 from __future__ import annotations
@@ -106,7 +107,7 @@ def multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:
-    """Quaternion conjugate (the inverse of a unit quaternion), shape (..., 4)."""
+    """Return the quaternion conjugate, the inverse of a unit quaternion; shape (..., 4)."""
     q = np.asarray(q, dtype=float)
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 

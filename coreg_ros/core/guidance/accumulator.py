@@ -121,7 +121,7 @@ class Guidance:
 
     @property
     def suggestion(self) -> Optional[MotionOption]:
-        """The motion that would reduce the worst σ / target most (None when ready)."""
+        """Return the motion that would reduce the worst σ / target most (None when ready)."""
         return None if self.ready or not self.options else self.options[0]
 
     def diagnostic_values(self) -> list:

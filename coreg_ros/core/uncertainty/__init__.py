@@ -27,6 +27,7 @@ References
 ----------
 Hoff, W., Vincent, T. (2000). Analysis of head pose accuracy in augmented reality. IEEE TVCG
 6(4), 319-334.
+
 """
 
 from coreg_ros.core.covariance import UNKNOWN

@@ -101,7 +101,7 @@ class WatchState:
 
     @property
     def stale(self) -> bool:
-        """The calibration no longer describes the devices (ERROR)."""
+        """Tell whether the calibration no longer describes the devices (ERROR)."""
         return self.level == ERROR
 
     def diagnostic_values(self) -> list:

@@ -59,7 +59,7 @@ class Calibration:
 
     @property
     def model(self) -> str:
-        """The measurement model."""
+        """Return the measurement model."""
         return self.estimate.model
 
     @classmethod
