@@ -1,8 +1,5 @@
 """Physical models real rigs need and non-stationary gaps (issue 11, items 3-5)."""
 
-import numpy as np
-import pytest
-
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
@@ -10,9 +7,11 @@ from coreg_ros.sim.effect_library import (
     FieldDistortion,
     LinkFlex,
     NonStationary,
-    SharedClock,
     parse_effect,
+    SharedClock,
 )
+import numpy as np
+import pytest
 
 
 def _report(effects, seed=5, duration=40.0, model='full_pose'):
@@ -65,8 +64,8 @@ def test_non_stationary_distortion_says_when_and_that_nothing_stationary_explain
 
 
 def test_field_linear_terms_are_symmetric_trace_free_and_not_rigid():
-    from coreg_ros.core.diagnosis.effects import FieldDistortion as Field
-    from coreg_ros.core.diagnosis.effects import rigid_part
+    from coreg_ros.core.diagnosis.candidates import FieldDistortion as Field
+    from coreg_ros.core.diagnosis.candidates import rigid_part
 
     eff = Field()
     eff.centre, eff.spread = np.zeros(3), 1.0

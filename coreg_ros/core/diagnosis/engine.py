@@ -3,7 +3,7 @@ The sim-to-real gap diagnosis: detect, locate, explain, quantify (DESIGN.md §5)
 
 ``diagnose(pairs, settings)`` calibrates, fits the base model with the stated noise, measures
 the gap (chi-square, whiteness, tails) and where it lies (``residuals.py``), then explains it
-with the ten candidate effects of ``effects.py``:
+with the ten candidate effects of ``candidates.py``:
 
 1. every candidate is fitted as an extension of the model (joint Gauss-Newton with the
    calibration, or maximum likelihood for the noise effects, ``fit.py``) and scored by its
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.diagnosis import effects as fx
+from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.findings import (

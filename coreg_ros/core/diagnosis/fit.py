@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-from coreg_ros.core.diagnosis import effects as fx
+from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.diagnosis.heldout import Heldout, Pass, predict, solve_psd
@@ -79,7 +79,7 @@ class Model:
     ----------
     data : DiagData
     names : tuple of str
-        Effect names (``effects.EFFECT_NAMES``); at most one time effect.
+        Effect names (``candidates.EFFECT_NAMES``); at most one time effect.
 
     """
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from coreg_ros.core.diagnosis import effects as fx
+from coreg_ros.core.diagnosis import candidates as fx
 
 #: ``progress(fraction, text)``, called as the work advances.
 Progress = Callable[[float, str], None]

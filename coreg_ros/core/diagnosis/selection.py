@@ -17,8 +17,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import detect as dt
-from coreg_ros.core.diagnosis import effects as fx
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.drift import drift_check

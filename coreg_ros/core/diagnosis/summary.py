@@ -277,7 +277,7 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
 
 def _field_size(eff, pts: np.ndarray, theta: np.ndarray, rigid: bool = True) -> tuple:
     """Largest and RMS size (mm) of the field, without its rigid part unless ``rigid``."""
-    from coreg_ros.core.diagnosis.effects import rigid_part
+    from coreg_ros.core.diagnosis.candidates import rigid_part
 
     d = eff.field(pts, theta[:eff.n_pos])
     if rigid:
