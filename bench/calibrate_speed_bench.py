@@ -205,6 +205,7 @@ def run(sizes=(100_000, 1_000_000), noises=('realistic', 'bench'), repeats: int 
     Parameters
     ----------
     sizes : sequence of int
+        Numbers of pairs N.
     noises : sequence of str
         Keys of NOISE.
     repeats : int
@@ -214,6 +215,7 @@ def run(sizes=(100_000, 1_000_000), noises=('realistic', 'bench'), repeats: int 
     before_commit : str or None
         Commit whose calibrate() is timed on the same pairs (None: not measured).
     with_scipy : bool
+        Also time scipy on the same problem.
 
     """
     cases = []

@@ -325,6 +325,8 @@ def run(hours: float = 72.0, delay_trials: int = 20, attribution_trials: int = 8
         Trials per change kind and size for the detection delay.
     attribution_trials : int
         Trials per size class for the attribution accuracy.
+    log : callable
+        Where progress lines go (``print``).
 
     """
     started = time.perf_counter()

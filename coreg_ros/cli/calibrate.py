@@ -69,6 +69,7 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     bag : str or Path
         rosbag2 directory.
     settings : Settings
+        Topics, model, method, noise and the rest of the configuration.
     prior : optional
         A loaded prior (``load_prior``).
     frames : tuple, optional

@@ -68,6 +68,7 @@ def run_command(command: str, func: Callable, args) -> int:
     func : callable
         ``func(args) -> int or None``.
     args : argparse.Namespace
+        The parsed command line, passed to ``func``.
 
     """
     from coreg_ros.core.errors import CoregError

@@ -340,6 +340,7 @@ def render(state: DashboardState, now: Optional[float] = None):
     Parameters
     ----------
     state : DashboardState
+        The latest status received.
     now : float, optional
         ``time.monotonic()`` now, to show the age of the last message.
 

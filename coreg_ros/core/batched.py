@@ -18,6 +18,7 @@ def cholesky(U: np.ndarray) -> list:
     Parameters
     ----------
     U : ndarray, shape (c, n, n)
+        The c symmetric positive definite matrices.
 
     Returns
     -------

@@ -448,10 +448,12 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     Parameters
     ----------
     pairs : Pairs
+        Paired samples of A and B.
     settings : Settings
         Model, method, noise (``sigma_a``, ``sigma_b``), iteration limit, minimum pairs,
         robust.
     prior : Prior, optional
+        Prior knowledge of the parameters, added to the fit.
     cov_a, cov_b : ndarray, shape (6, 6), optional
         Full noise covariances (ROS layout) overriding ``sigma_a`` / ``sigma_b``.
     start : Parameters, optional

@@ -62,7 +62,9 @@ def joint_pose_covariance(params: Parameters, param_cov: np.ndarray) -> np.ndarr
     Parameters
     ----------
     params : Parameters
+        The estimated parameters φ.
     param_cov : ndarray, shape (P, P)
+        Covariance of φ in its reduced coordinates.
 
     """
     T, known = tangent_map(params)

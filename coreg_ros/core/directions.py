@@ -301,6 +301,7 @@ def check_directions(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence
     streams_b : PoseStream or sequence of PoseStream
         Device B, supposedly its marker pose(s) in its base frame.
     settings : Settings
+        The configuration of the fits (model, method, noise).
     max_pairs : int
         Largest number of pairs per fit (3000: about a second for the four fits).
     threshold : float

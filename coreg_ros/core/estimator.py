@@ -343,9 +343,11 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
     Parameters
     ----------
     problem : Problem
+        The whitened problem.
     params : Parameters
         Initial φ (e.g. from ``initialize``).
     max_iterations : int
+        Largest number of Gauss-Newton iterations.
     xtol : float, optional
         Stop when every |δφ_j| <= xtol · σ_j (default ``XTOL``).
     ftol : float
@@ -586,9 +588,11 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     Parameters
     ----------
     problem : Problem
+        The whitened problem.
     params : Parameters
         Initial φ, e.g. the OLS solution.
     max_iterations : int
+        Largest number of iterations.
     xtol, ftol : float
         As in ``solve_ols``.
     inputs : InputState, optional

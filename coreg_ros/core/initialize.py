@@ -36,6 +36,7 @@ def rotations_from_pairs(Ra: np.ndarray, Rb: np.ndarray) -> tuple[np.ndarray, np
     Parameters
     ----------
     Ra, Rb : ndarray, shape (N, 3, 3)
+        Rotation matrices of A's tool and B's marker poses.
 
     Returns
     -------
@@ -61,7 +62,14 @@ def _translations(R0: np.ndarray, Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.n
 
     Parameters
     ----------
+    R0 : ndarray, shape (3, 3)
+        The base-to-base rotation.
+    Ra : ndarray, shape (N, 3, 3)
+        A's tool orientations.
+    pos_a : ndarray, shape (N, 3)
+        A's tool positions, m.
     pos_b : ndarray, shape (N, k, 3)
+        B's positions of the k markers, m.
 
     """
     n, k = pos_b.shape[0], pos_b.shape[1]
@@ -99,10 +107,15 @@ def initialize(spec: ModelSpec, pos_a, quat_a, pos_b, quat_b=None) -> Parameters
     Parameters
     ----------
     spec : ModelSpec
+        The measurement model.
     pos_a : ndarray, shape (N, 3)
+        A's tool positions, m.
     quat_a : ndarray, shape (N, 4)
+        A's tool orientations.
     pos_b : ndarray, shape (N, 3) or (N, 3, 3)
+        B's marker position(s), m.
     quat_b : ndarray, shape (N, 4), optional (full pose)
+        B's marker orientations.
 
     Returns
     -------

@@ -123,6 +123,7 @@ def normalised_squares(params: Parameters, data: PairData) -> np.ndarray:
     params : Parameters
         The calibration to test the pairs against.
     data : PairData
+        The pairs.
 
     """
     out = np.empty(len(data))

@@ -152,6 +152,7 @@ def predict(params: Parameters, pos_a: np.ndarray, quat_a: np.ndarray):
     Parameters
     ----------
     params : Parameters
+        The calibration φ.
     pos_a : ndarray, shape (n, 3)
         Tool position in A's base frame, m.
     quat_a : ndarray, shape (n, 4)
@@ -232,6 +233,7 @@ def linearize(params: Parameters, pos_a, quat_a, pos_b, quat_b, with_input: bool
     Parameters
     ----------
     params : Parameters
+        The calibration φ the model is linearised at.
     pos_a, quat_a : ndarray, shapes (n, 3), (n, 4)
         Input A (measured for OLS, the current estimate for TLS).
     pos_b, quat_b : ndarray

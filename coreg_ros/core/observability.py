@@ -55,6 +55,7 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     quat_a : ndarray, shape (N, 4)
+        A's tool orientations.
 
     Returns
     -------
@@ -125,7 +126,9 @@ def check_motion(quat_a: np.ndarray, spec, sigma_rot_a: float) -> None:
     Parameters
     ----------
     quat_a : ndarray, shape (N, 4)
+        A's tool orientations.
     spec : ModelSpec
+        The measurement model.
     sigma_rot_a : float
         Device A's rotation noise, rad.
 

@@ -102,7 +102,9 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     streams_b : PoseStream or sequence of PoseStream
         Device B: marker pose(s) in B's base frame (three streams for ``three_marker``).
     settings : Settings
+        The configuration (model, method, noise, pairing, robust fit).
     prior : Prior, optional
+        Prior knowledge of the parameters, added to the fit.
     frames : (str, str), optional
         The configured base frames of A and B, to recognise swapped devices from the
         messages' frame ids when the fit is bad.

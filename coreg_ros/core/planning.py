@@ -270,6 +270,7 @@ def plan_recording(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b, rat
     Parameters
     ----------
     model : str
+        Measurement model name.
     p0, q0, markers :
         The calibration the bound is evaluated at (an estimate, or a random truth).
     pos_a, quat_a : ndarray, shapes (N, 3), (N, 4)

@@ -305,6 +305,7 @@ def rotation_error(q_model: np.ndarray, q_meas: np.ndarray) -> tuple[np.ndarray,
     Parameters
     ----------
     q_model, q_meas : ndarray, shape (..., 4)
+        Modelled and measured orientations.
 
     Returns
     -------
@@ -354,8 +355,11 @@ def expand(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> tuple[np.ndarr
     Parameters
     ----------
     s : ndarray, shape (..., 3)
+        The reduced quaternion's three free components.
     chart : ndarray of int, shape (...)
+        Index of the component computed from the unit constraint.
     sign : ndarray, shape (...)
+        Sign of that component.
 
     Returns
     -------

@@ -17,6 +17,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     v : array_like, shape (..., 3)
+        The vector(s) v.
 
     Returns
     -------

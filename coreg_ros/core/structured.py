@@ -384,6 +384,7 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
         count w_i times (0 leaves a pair out, -1 takes it back out of a sum) while every
         pair's residuals are still given: the robust fit tests the pairs it left out.
     params : Parameters
+        The calibration φ the sums are taken at.
     residuals : ndarray, shape (N, m), optional
         Filled with the whitened output residuals.
 
@@ -481,9 +482,11 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
     problem : estimator.Problem
         One for which ``applies(problem)`` is true.
     params : Parameters
+        The calibration φ the sums are taken at.
     x : estimator.InputState
         Current input estimates.
     lam : float
+        Damping λ.
     residuals : tuple of ndarray, optional
         (N, m) and (N, 6) arrays filled with the whitened output and input residuals.
 
@@ -637,6 +640,7 @@ def back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray) -> np.nd
     n : int
         Number of pairs N.
     factors : TlsFactors
+        The factors ``tls_schur`` returned.
     delta_phi : ndarray, shape (P,)
         The parameter step in reduced coordinates.
 

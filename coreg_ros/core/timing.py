@@ -152,6 +152,7 @@ def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
         Correlate angular speeds (B has an orientation, or three markers) rather than the
         speeds of the tool and marker origins (position-only B).
     max_candidates : int
+        Largest number of candidate offsets returned.
     trajectory_a : Trajectory, optional
         A's trajectory on its own clock, seconds from its first stamp, if already built.
 

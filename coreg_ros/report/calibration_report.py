@@ -69,10 +69,13 @@ def draw_pose_uncertainty(ax, pose: UncertainPose, title: str, n_sigma: float = 
     Parameters
     ----------
     ax : mpl_toolkits.mplot3d.Axes3D
+        The axes drawn into.
     pose : UncertainPose
         With a ROS-layout covariance.
     title : str
+        Title of the axes.
     n_sigma : float
+        Size of the ellipsoid and cones, in standard deviations.
 
     Returns
     -------
@@ -248,6 +251,7 @@ def point_errors(result: CalibrationResult, points, frame: str = 'a_base',
     Parameters
     ----------
     result : CalibrationResult
+        The calibration.
     points : array_like, shape (M, 3)
         Points, m: in A's base frame (``frame='a_base'``: mapped into B's base frame by T0, the
         registration of A's workspace in B's) or in A's tool frame (``'a_tool'``: located in
@@ -255,6 +259,7 @@ def point_errors(result: CalibrationResult, points, frame: str = 'a_base',
     frame : str
         ``a_base`` or ``a_tool``.
     n_sigma : float
+        Size of the ellipsoids, in standard deviations.
 
     Returns
     -------
@@ -400,7 +405,9 @@ def write_calibration_report(result: CalibrationResult, out_dir, *,
     Parameters
     ----------
     result : CalibrationResult
+        The calibration reported.
     out_dir : str or path-like
+        Directory the report is written to.
     report : PairingReport, optional
         Shown as one line.
     points : array_like, shape (M, 3), optional
@@ -409,6 +416,7 @@ def write_calibration_report(result: CalibrationResult, out_dir, *,
         ``a_base`` (A's base frame, mapped into B's by T0) or ``a_tool`` (A's tool frame,
         located in B's marker frame by T1⁻¹).
     title : str
+        Title of the report.
     n_sigma : float
         Size of ellipsoids and cones (3 as in Hoff).
 

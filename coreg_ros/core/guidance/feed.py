@@ -119,6 +119,7 @@ class PairFeed:
         Parameters
         ----------
         pairs : Pairs or None
+            New pairs (None: none, e.g. with ``final``).
         final : bool
             Release everything held (end of the data, or before a gap).
 

@@ -74,7 +74,9 @@ class Estimate:
         Parameters
         ----------
         model : str
+            Measurement model name.
         pairs : Pairs or PairBatch
+            Paired samples of A and B.
 
         """
         spec = SPECS[model]
@@ -102,6 +104,7 @@ def device_covariances(model: str, sigma_a, sigma_b) -> tuple[np.ndarray, np.nda
     Parameters
     ----------
     model : str
+        Measurement model name (sets B's measurement size m).
     sigma_a, sigma_b : (float, float)
         Noise standard deviations (position m, rotation rad).
 
@@ -122,6 +125,7 @@ def jacobians(estimate: Estimate, pos_a: np.ndarray, quat_a: np.ndarray,
     Parameters
     ----------
     estimate : Estimate
+        The calibration the Jacobians are evaluated at.
     pos_a, quat_a : ndarray, shapes (n, 3), (n, 4)
         A's tool poses.
     velocity : ndarray, shape (n, 6), optional
@@ -162,8 +166,11 @@ def information(estimate: Estimate, pos_a, quat_a, velocity, cov_a, cov_b,
     Parameters
     ----------
     estimate : Estimate
+        The calibration the information is evaluated at.
     pos_a, quat_a : ndarray, shapes (N, 3), (N, 4)
+        A's tool poses.
     velocity : ndarray, shape (N, 6) or None
+        A's velocity (None: τ is not estimated).
     cov_a, cov_b : ndarray
         ``device_covariances``.
     scale : ndarray, shape (N,), optional

@@ -237,6 +237,7 @@ def through_calibration(result: CalibrationResult, pose_a: UncertainPose) -> Unc
     Parameters
     ----------
     result : CalibrationResult
+        The calibration (T0, T1 and their covariance).
     pose_a : UncertainPose
         A's tool pose in A's base frame with A's noise covariance (None: exact).
 
@@ -264,7 +265,9 @@ def inverse_jacobian(p, q) -> np.ndarray:
     Parameters
     ----------
     p : array_like, shape (..., 3)
+        Position of T, m.
     q : array_like, shape (..., 4)
+        Orientation of T (w, x, y, z).
 
     Returns
     -------

@@ -36,6 +36,7 @@ def nees(errors: np.ndarray, cov: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     errors : array_like, shape (..., n)
+        Estimation errors.
     cov : array_like, shape (..., n, n)
         Positive definite.
 

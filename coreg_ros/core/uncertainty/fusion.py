@@ -54,6 +54,7 @@ def fuse_arrays(p1, q1, cov1, p2, q2, cov2, *, max_iterations: int = 20, tol: fl
     cov1, cov2 : array_like, shape (..., 6, 6)
         ROS-layout covariances; their information must add up to a positive definite matrix.
     max_iterations : int
+        Largest number of iterations of the mean.
     tol : float
         Step norm (m and rad together) below which the mean is settled.
 
@@ -114,6 +115,8 @@ def fuse(a: UncertainPose, b: UncertainPose, *, max_iterations: int = 20,
     ----------
     a, b : UncertainPose
         Estimates of the same pose in the same frame, both with covariance.
+    max_iterations, tol : int, float
+        As in ``fuse_arrays``.
 
     Returns
     -------

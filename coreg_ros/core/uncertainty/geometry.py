@@ -123,6 +123,7 @@ def axis_covariance(q, cov_rot) -> np.ndarray:
     Parameters
     ----------
     q : array_like, shape (..., 4)
+        Orientation of the frame (w, x, y, z).
     cov_rot : array_like, shape (..., 3, 3)
         Rotation block of the pose covariance, rad².
 
@@ -196,6 +197,7 @@ def cone_mesh(cone: AxisCone, length: float = 1.0, gain: float = 1.0, n: int = 2
     Parameters
     ----------
     cone : AxisCone
+        The cone to draw.
     length : float
         Drawn axis length, m.
     gain : float

@@ -114,6 +114,7 @@ def attribute(calibration: Calibration, lin: Linearised) -> Attribution:
     Parameters
     ----------
     calibration : Calibration
+        The calibration in use.
     lin : Linearised
         The pairs since the change point.
 
