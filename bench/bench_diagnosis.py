@@ -38,7 +38,7 @@ RESULTS = ROOT / 'bench' / 'results'
 
 def _recording(n_pairs: int, seed: int, effect: str):
     from coreg_ros.sim import simulate_recording
-    from coreg_ros.sim.effect_library import parse_effect
+    from coreg_ros.sim.injected import parse_effect
 
     return simulate_recording(seed, n_pairs / 50.0,
                               effects=[parse_effect(effect)] if effect else [])
@@ -82,7 +82,7 @@ def time_calibration(n_pairs: int = N_PAIRS, seed: int = 7,
 
 
 def _worktree(commit: str) -> Path:
-    """A git worktree of ``commit`` under /tmp (made once, reused)."""
+    """Return a git worktree of ``commit`` under /tmp (made once, reused)."""
     path = Path('/tmp') / f'coreg-bench-diag-{commit}'
     if not (path / 'coreg_ros').is_dir():
         subprocess.run(['git', '-C', str(ROOT), 'worktree', 'add', '--detach', str(path),
@@ -92,7 +92,7 @@ def _worktree(commit: str) -> Path:
 
 def time_baseline(commit: str, n_pairs: int = N_PAIRS, seed: int = 7,
                   effect: str = 'time_offset=0.012') -> dict:
-    """The same timing with the code of ``commit`` (a subprocess importing its worktree)."""
+    """Time the same with the code of ``commit`` (a subprocess importing its worktree)."""
     path = _worktree(commit)
     code = ('import json, sys; sys.path.insert(0, "bench"); import bench_diagnosis as b; '
             f'print(json.dumps(b.time_large({n_pairs}, {seed}, {effect!r}), default=str))')

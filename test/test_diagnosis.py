@@ -2,13 +2,10 @@
 
 import json
 
-import numpy as np
-import pytest
-
 from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.diagnosis import EFFECT_NAMES, diagnose_streams
+from coreg_ros.core.diagnosis import diagnose_streams, EFFECT_NAMES
 from coreg_ros.core.diagnosis import variance as vm
-from coreg_ros.core.diagnosis.data import Trajectory, prepare, spatial_folds, time_folds
+from coreg_ros.core.diagnosis.data import prepare, spatial_folds, time_folds, Trajectory
 from coreg_ros.core.diagnosis.detect import detect, ljung_box
 from coreg_ros.core.diagnosis.engine import _params_of
 from coreg_ros.core.diagnosis.fit import Model, start_state
@@ -16,9 +13,11 @@ from coreg_ros.core.diagnosis.summary import effect_estimate
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
-from coreg_ros.sim.effect_library import EFFECT_NAMES as SIM_EFFECT_NAMES
-from coreg_ros.sim.effect_library import parse_effect
+from coreg_ros.sim.injected import EFFECT_NAMES as SIM_EFFECT_NAMES
+from coreg_ros.sim.injected import parse_effect
 from coreg_ros.threads import one_blas_thread
+import numpy as np
+import pytest
 
 REPORT_KEYS = {'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after',
                'location', 'verdict'}

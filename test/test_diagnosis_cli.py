@@ -2,14 +2,13 @@
 
 import json
 
-import numpy as np
-import pytest
-
 from coreg_ros.cli.main import main
 from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording
-from coreg_ros.sim.effect_library import parse_effect
+from coreg_ros.sim.injected import parse_effect
 from coreg_ros.sim.validation import draw_case, summarize_validation, validate
+import numpy as np
+import pytest
 
 KEYS = {'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after', 'location',
         'verdict'}

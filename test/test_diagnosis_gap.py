@@ -1,15 +1,14 @@
 """Gap measures a noise model cannot game (issue 11, item 1), outliers versus structure (2)."""
 
-import numpy as np
-import pytest
-
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import prepare
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
-from coreg_ros.sim.effect_library import parse_effect
+from coreg_ros.sim.injected import parse_effect
+import numpy as np
+import pytest
 
 NEW_KEYS = {'chi2_per_dof_at_stated_noise', 'rms_position_mm', 'rms_rotation_deg',
             'stated_floor_position_mm', 'excluded_pairs'}

@@ -3,7 +3,7 @@
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
-from coreg_ros.sim.effect_library import (
+from coreg_ros.sim.injected import (
     FieldDistortion,
     LinkFlex,
     NonStationary,

@@ -1,32 +1,31 @@
-"""Tests of the unmodelled effects of coreg_ros.sim.effect_library and their CLI."""
+"""Tests of the unmodelled effects of coreg_ros.sim.injected and their CLI."""
 
 import json
-
-import numpy as np
-import pytest
 
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.rigid import rigid_part
 from coreg_ros.sim import simulate_recording
-from coreg_ros.sim.effect_library import (
+from coreg_ros.sim.injected import (
     ALL_EFFECT_NAMES as EFFECT_NAMES,
 )
-from coreg_ros.sim.effect_library import (
-    EFFECT_UNITS,
+from coreg_ros.sim.injected import (
     Backlash,
+    EFFECT_UNITS,
     FieldDistortion,
     LinkFlex,
+    make_effect,
     NonStationary,
+    parse_effect,
+    play_operator,
     Scale,
     SharedClock,
     TimeOffset,
     TimestampJitter,
-    make_effect,
-    parse_effect,
-    play_operator,
-    rigid_part,
 )
+import numpy as np
+import pytest
 
 SEED = 11
 DURATION = 60.0
@@ -47,7 +46,7 @@ def base():
 
 @pytest.fixture(scope='module')
 def clean():
-    """The same recording without any noise (noise draws are separate from the rest)."""
+    """Return the same recording without any noise (noise draws are separate from the rest)."""
     return simulate_recording(SEED, DURATION, sigma_a=(0.0, 0.0), sigma_b=(0.0, 0.0))
 
 
@@ -186,7 +185,7 @@ def test_dipole_field_is_steep_near_its_source(base, clean):
 def test_field_distortion_is_a_function_of_position():
     """Two samples at (nearly) the same place get (nearly) the same error."""
     rng = np.random.default_rng(0)
-    from coreg_ros.sim.effect_library import _harmonic_field
+    from coreg_ros.sim.injected.field import _harmonic_field
     g = _harmonic_field(rng)
     u = rng.uniform(-1, 1, (100, 3))
     assert np.allclose(g(u), g(u + 1e-9), atol=1e-8)

@@ -20,9 +20,9 @@ from bench import montecarlo as mc  # noqa: E402
 from coreg_ros import parallel  # noqa: E402
 from coreg_ros.cli.main import build_parser, main  # noqa: E402
 from coreg_ros.files.bag.posebag import write_pose_bag  # noqa: E402
-from coreg_ros.parallel import CaseFailure, SchedulerError, run_cases  # noqa: E402
+from coreg_ros.parallel import CaseFailure, run_cases, SchedulerError  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
-from coreg_ros.sim.effect_library import parse_effect  # noqa: E402
+from coreg_ros.sim.injected import parse_effect  # noqa: E402
 from coreg_ros.sim.validation import validate  # noqa: E402
 
 SHORT = (15.0, 20.0)
@@ -31,7 +31,7 @@ NO_SCHEDULER = 'tcp://127.0.0.1:9'
 
 
 def unlucky_square(case: dict) -> int:
-    """A case function that fails for seed 13 (module level: the workers import it)."""
+    """Square a case's seed, failing for seed 13 (module level: the workers import it)."""
     if case['seed'] == 13:
         raise RuntimeError('seed 13 is unlucky\nsecond line of the message')
     return case['seed'] ** 2

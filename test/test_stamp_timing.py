@@ -1,14 +1,13 @@
 """Timing read from the stamps (issue 11, item 3): rate, scatter, drops, gaps, latency."""
 
-import numpy as np
-import pytest
-
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.diagnosis.stamps import stamp_timing, stamps_report
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim import simulate_recording
-from coreg_ros.sim.effect_library import TimestampJitter, parse_effect
+from coreg_ros.sim.injected import parse_effect, TimestampJitter
+import numpy as np
+import pytest
 
 
 def _stream(stamps, receive=None):

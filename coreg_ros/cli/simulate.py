@@ -21,7 +21,7 @@ def cmd_simulate(args) -> int:
     if args.sigma_b:
         kwargs['sigma_b'] = tuple(args.sigma_b)
     from coreg_ros.sim.changes import apply_changes, parse_change
-    from coreg_ros.sim.effect_library import parse_effect
+    from coreg_ros.sim.injected import parse_effect
     effects = [parse_effect(text) for text in args.effect or ()]
     changes = [parse_change(text) for text in args.change or ()]
     rec = simulate_recording(args.seed, args.duration, args.model, rate_a=args.rate_a,

@@ -34,11 +34,10 @@ from dataclasses import dataclass, replace
 import re
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
-from coreg_ros.core.types import PoseStream
+from coreg_ros.sim.motion import random_unit
+import numpy as np
 
 #: Names of the changes.
 CHANGE_NAMES = ('t0_step', 't1_step', 'clock_step', 'noise_step')
@@ -150,25 +149,13 @@ def parse_change(text: str) -> Change:
                   rotation_rad=values['rotation'], axis=axis)
 
 
-def _unit(rng: np.random.Generator) -> np.ndarray:
-    g = rng.standard_normal(3)
-    return g / np.linalg.norm(g)
-
-
-def _stream(s: PoseStream, stamps=None, position=None, quat_wxyz=None) -> PoseStream:
-    return PoseStream(s.stamps if stamps is None else stamps,
-                      s.position if position is None else position,
-                      s.quat_wxyz if quat_wxyz is None else quat_wxyz, s.frame_id,
-                      s.receive_stamps)
-
-
 def _resolved(change: Change, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(δp, δθ) of a step: the sizes along the given axis, or along independent random ones."""
     if change.axis is not None:
         axis = np.asarray(change.axis, dtype=float)
         axis = axis / np.linalg.norm(axis)
         return change.translation_m * axis, change.rotation_rad * axis
-    return change.translation_m * _unit(rng), change.rotation_rad * _unit(rng)
+    return change.translation_m * random_unit(rng), change.rotation_rad * random_unit(rng)
 
 
 def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None):
@@ -210,7 +197,7 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
             if truth.model == 'full_pose':
                 q[after] = quat.canonical(quat.multiply(
                     quat.exp(sigma_rot * rng.standard_normal((n, 3))), q[after]))
-            streams[topic] = _stream(s, position=pos, quat_wxyz=q)
+            streams[topic] = replace(s, position=pos, quat_wxyz=q)
         desc['noise_factor'] = float(change.noise_factor)
     elif change.name == 'clock_step':
         shift = np.int64(int(round(change.clock_s * 1e9)))
@@ -218,7 +205,7 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
             s = streams[topic]
             stamps = s.stamps.copy()
             stamps[stamps >= at] += shift
-            streams[topic] = _stream(s, stamps=stamps)
+            streams[topic] = replace(s, stamps=stamps)
         desc['clock_s'] = float(change.clock_s)
     else:
         dp, dtheta = _resolved(change, rng)
@@ -251,7 +238,7 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
                     right = quat.multiply(quat.conjugate(truth.q1),
                                           quat.multiply(quat.exp(dtheta), truth.q1))
                     q[after] = quat.canonical(quat.multiply(q[after], right))
-            streams[topic] = _stream(s, position=pos, quat_wxyz=q)
+            streams[topic] = replace(s, position=pos, quat_wxyz=q)
     truth = replace(truth, effects=tuple(truth.effects) + (desc,))
     return replace(rec, streams=streams, truth=truth)
 

@@ -21,15 +21,14 @@ from dataclasses import dataclass, replace
 import os
 from typing import Optional, Union
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
 from coreg_ros.core.types import MODELS, Pairs, PoseStream
-from coreg_ros.sim.effects import STAGES, EffectContext, apply_effects, effect_stage
-from coreg_ros.sim.motion import Motion, make_motion
-from coreg_ros.sim.truth import Truth, random_truth, validate_sigma
+from coreg_ros.sim.injection import apply_effects, effect_stage, EffectContext, STAGES
+from coreg_ros.sim.motion import make_motion, Motion
+from coreg_ros.sim.truth import random_truth, Truth, validate_sigma
+import numpy as np
 
 #: Default origin of simulated time: 2023-11-14T22:13:20Z, in nanoseconds.
 DEFAULT_START_NS = 1_700_000_000_000_000_000
@@ -270,8 +269,8 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
     start_ns : int
         Origin of the motion's time and of the recording on the common clock, ns.
     effects : sequence of Effect
-        Unmodelled effects (``coreg_ros.sim.effect_library``), applied stage by stage
-        (``coreg_ros.sim.effects.STAGES``: before the noise, on the noise, after the noise),
+        Unmodelled effects (``coreg_ros.sim.injected``), applied stage by stage
+        (``coreg_ros.sim.injection.STAGES``: before the noise, on the noise, after the noise),
         in the given order within a stage; ``Truth.effects`` lists them in the order applied.
         Empty by default: the recording follows the model exactly.
     max_bytes : int, optional

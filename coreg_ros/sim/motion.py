@@ -15,10 +15,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
+import numpy as np
 
 #: Names of the motion presets of ``make_motion``.
 MOTION_PRESETS = ('diverse', 'single_axis', 'no_rotation', 'static')
@@ -160,7 +159,8 @@ def random_rotation(rng: np.random.Generator, size=None) -> np.ndarray:
     return quat.canonical(g / np.linalg.norm(g, axis=-1, keepdims=True))
 
 
-def _random_unit(rng: np.random.Generator) -> np.ndarray:
+def random_unit(rng: np.random.Generator) -> np.ndarray:
+    """Return a direction drawn uniformly on the unit sphere, shape (3,)."""
     g = rng.standard_normal(3)
     return g / np.linalg.norm(g)
 
@@ -211,7 +211,7 @@ def make_motion(rng: np.random.Generator, preset: str = 'diverse') -> Motion:
     n_pos, n_rot = (int(k) for k in rng.integers(2, 4, size=2))
     pos = _split_sines(rng, rng.uniform(*POSITION_AMPLITUDE, size=3), n_pos, POSITION_FREQUENCY)
     rot = _split_sines(rng, rng.uniform(*ROTATION_AMPLITUDE, size=3), n_rot, ROTATION_FREQUENCY)
-    axis = _random_unit(rng)
+    axis = random_unit(rng)
     single_total = rng.uniform(*ROTATION_AMPLITUDE) * np.sqrt(3.0)
     pos_amp, pos_freq, pos_phase = pos
     rot_amp, rot_freq, rot_phase = rot

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import MODELS
-from coreg_ros.sim.motion import random_rotation
+from coreg_ros.sim.motion import random_rotation, random_unit
+import numpy as np
 
 #: Range of the length of the tool-to-marker offset p1, m.
 MARKER_OFFSET = (0.05, 0.20)
@@ -168,11 +167,6 @@ class Truth:
         return position_b, quat_b
 
 
-def _random_unit(rng: np.random.Generator) -> np.ndarray:
-    g = rng.standard_normal(3)
-    return g / np.linalg.norm(g)
-
-
 def _min_angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
     """Smallest interior angle (rad) of the triangle abc."""
     angles = []
@@ -212,12 +206,12 @@ def random_truth(rng: np.random.Generator, model: str = 'full_pose', *,
     q0 = random_rotation(rng)
     q1 = random_rotation(rng)
     p0 = rng.uniform(-BASE_BOX, BASE_BOX, size=3)
-    p1 = rng.uniform(*MARKER_OFFSET) * _random_unit(rng)
+    p1 = rng.uniform(*MARKER_OFFSET) * random_unit(rng)
     markers = p1[None, :]
     if model == 'three_marker':
         while True:
-            p2 = p1 + rng.uniform(*MARKER_SPACING) * _random_unit(rng)
-            p3 = p1 + rng.uniform(*MARKER_SPACING) * _random_unit(rng)
+            p2 = p1 + rng.uniform(*MARKER_SPACING) * random_unit(rng)
+            p3 = p1 + rng.uniform(*MARKER_SPACING) * random_unit(rng)
             d23 = np.linalg.norm(p3 - p2)
             if (MARKER_SPACING[0] <= d23 <= MARKER_SPACING[1]
                     and _min_angle(p1, p2, p3) >= MIN_MARKER_ANGLE):

@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 
 #: Realistic sizes per effect (DESIGN.md §5) split into small / medium / large ranges, in the
-#: unit of the simulator's ``NAME=VALUE`` (coreg_ros.sim.effect_library).
+#: unit of the simulator's ``NAME=VALUE`` (coreg_ros.sim.injected).
 SIZE_RANGES = {
     'time_offset': ((0.001, 0.003), (0.003, 0.015), (0.015, 0.050)),
     'clock_drift': ((1.0, 10.0), (10.0, 100.0), (100.0, 500.0)),
@@ -92,7 +92,7 @@ def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE,
         ``duration``, ``sigma_a``, ``sigma_b``, ``seed``.
 
     """
-    from coreg_ros.sim.effect_library import ALL_EFFECT_NAMES
+    from coreg_ros.sim.injected import ALL_EFFECT_NAMES
 
     case = {'seed': int(rng.integers(0, 2 ** 31 - 1)),
             'model': 'full_pose' if rng.random() < 0.75 else 'position_only',
@@ -147,7 +147,7 @@ def draw_effect_cases(rng: np.random.Generator, name: str, n: int,
 
 
 def _make_effects(case: dict) -> list:
-    from coreg_ros.sim.effect_library import make_effect
+    from coreg_ros.sim.injected import make_effect
 
     out = []
     for e in (case, case.get('second')):
@@ -256,11 +256,11 @@ def _logistic_sizes(sizes: np.ndarray, hits: np.ndarray) -> dict:
 def summarize_validation(results: list) -> dict:
     """Confusion matrix, rates, size accuracy and detection sizes from the case outcomes."""
     from coreg_ros.core.diagnosis import EFFECT_NAMES
-    from coreg_ros.sim.effect_library import ALL_EFFECT_NAMES
+    from coreg_ros.sim.injected import ALL_EFFECT_NAMES
 
     rows = ['none', *ALL_EFFECT_NAMES]
     cols = ['none', *EFFECT_NAMES, 'non_stationary', 'not_separable']
-    matrix = {r: {c: 0 for c in cols} for r in rows}
+    matrix = {r: dict.fromkeys(cols, 0) for r in rows}
     for res in results:
         truth = res['effect'] or 'none'
         outcome = res['outcome'] if res['outcome'] in cols else 'none'

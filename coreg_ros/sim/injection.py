@@ -17,7 +17,7 @@ every stamp; ``'noise'`` effects change the device noise itself (see
 ``EffectContext.clean_streams``) and must keep every stamp too; ``'measured'`` effects (the
 default, e.g. a time offset, jitter, outliers) act on the noisy streams as recorded.
 ``simulate_recording`` applies the effects stage by stage in that order, keeping the given
-order within a stage. The implemented effects are in ``coreg_ros.sim.effect_library``.
+order within a stage. The implemented effects are in ``coreg_ros.sim.injected``.
 """
 
 from __future__ import annotations
@@ -25,12 +25,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional, Protocol, runtime_checkable
 
-import numpy as np
-
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim.motion import Motion
 from coreg_ros.sim.truth import Truth
+import numpy as np
 
 
 @dataclass(frozen=True, eq=False)
