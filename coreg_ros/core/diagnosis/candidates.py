@@ -20,9 +20,11 @@ from dataclasses import dataclass
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.diagnosis.data import DiagData
+from coreg_ros.core.rigid import rigid_columns
+from coreg_ros.core.so3 import skew
 import numpy as np
 
-#: The ten effects, in the order of DESIGN.md §5 (same names as the simulator's library).
+#: The ten effects, in the order of DESIGN.md §5 (the names of ``coreg_ros.sim.injected``).
 EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distortion',
                 'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
 
@@ -117,23 +119,6 @@ def _cubic(u: np.ndarray) -> np.ndarray:
     x, y, z = u[:, 0], u[:, 1], u[:, 2]
     return np.stack([x ** 3, y ** 3, z ** 3, x * x * y, x * x * z, y * y * x, y * y * z,
                      z * z * x, z * z * y, x * y * z], axis=1)
-
-
-def rigid_part(points: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """
-    Return the part of a displacement field a rigid registration absorbs, ``t + ω × p``.
-
-    Least squares over the points, first order in ω. Shapes (N, 3).
-    """
-    q = points - points.mean(axis=0)
-    n = len(points)
-    A = np.zeros((n, 3, 6))
-    A[:, :, 0:3] = np.eye(3)
-    A[:, 0, 4], A[:, 0, 5] = q[:, 2], -q[:, 1]
-    A[:, 1, 3], A[:, 1, 5] = -q[:, 2], q[:, 0]
-    A[:, 2, 3], A[:, 2, 4] = q[:, 1], -q[:, 0]
-    x, *_ = np.linalg.lstsq(A.reshape(3 * n, 6), d.reshape(-1), rcond=None)
-    return (A.reshape(3 * n, 6) @ x).reshape(n, 3)
 
 
 class FieldDistortion(MeanEffect):
@@ -248,10 +233,7 @@ def _dipole_source(data, centre: np.ndarray, spread: float) -> np.ndarray:
     q = (p - centre) / spread
     n = len(p)
     base = np.zeros((n, 3, 9))
-    base[:, :, 0:3] = np.eye(3)
-    base[:, 0, 4], base[:, 0, 5] = q[:, 2], -q[:, 1]
-    base[:, 1, 3], base[:, 1, 5] = -q[:, 2], q[:, 0]
-    base[:, 2, 3], base[:, 2, 4] = q[:, 1], -q[:, 0]
+    base[:, :, 0:6] = rigid_columns(q)
     base[:, 0, 6], base[:, 1, 7], base[:, 2, 8] = q[:, 0], q[:, 1], q[:, 2]
     grid = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
                      if (i, j, k) != (0, 0, 0)], dtype=float)
@@ -327,11 +309,7 @@ class LinkFlex(MeanEffect):
         for j in range(p.spec.n_markers):
             J[:, 3 * j:3 * j + 3, 0:3] = sag
         if self.rot:
-            skew = np.zeros((n, 3, 3))
-            skew[:, 0, 1], skew[:, 0, 2] = -ell[:, 2], ell[:, 1]
-            skew[:, 1, 0], skew[:, 1, 2] = ell[:, 2], -ell[:, 0]
-            skew[:, 2, 0], skew[:, 2, 1] = -ell[:, 1], ell[:, 0]
-            J[:, 3:6, 3:6] = 0.5 * np.einsum('ij,njk->nik', p.R0, skew)
+            J[:, 3:6, 3:6] = 0.5 * np.einsum('ij,njk->nik', p.R0, skew(ell))
         return J @ theta, J
 
 

@@ -174,15 +174,37 @@ def spatial_folds(points: np.ndarray, k: int, cells: int = 4, seed: int = 0) -> 
     Parameters
     ----------
     points : ndarray, shape (N, 3)
+        Where each pair is (B's first marker), m.
     k : int
+        Number of folds.
     cells : int
         Cells per axis.
     seed : int
+        Seed of the cells' random deal.
+
+    """
+    assign = np.random.default_rng(seed).permutation(cells ** 3) % k
+    return assign[grid_cells(points, cells)]
+
+
+def grid_cells(points: np.ndarray, cells: int) -> np.ndarray:
+    """
+    Cell index per point of a ``cells``³ grid over the points (1st to 99th percentile).
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        The points, m.
+    cells : int
+        Cells per axis; points beyond the percentiles fall in the edge cells.
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        In 0 .. cells³ - 1.
 
     """
     lo = np.percentile(points, 1, axis=0)
     hi = np.percentile(points, 99, axis=0)
     idx = np.clip(((points - lo) / np.maximum(hi - lo, 1e-9) * cells).astype(int), 0, cells - 1)
-    flat = idx[:, 0] * cells * cells + idx[:, 1] * cells + idx[:, 2]
-    assign = np.random.default_rng(seed).permutation(cells ** 3) % k
-    return assign[flat]
+    return idx[:, 0] * cells * cells + idx[:, 1] * cells + idx[:, 2]

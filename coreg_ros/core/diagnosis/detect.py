@@ -32,7 +32,9 @@ def ljung_box(x: np.ndarray, lags: int = LJUNG_BOX_LAGS):
     Parameters
     ----------
     x : ndarray, shape (n,)
+        The series, in time order.
     lags : int
+        Largest lag h.
 
     Returns
     -------
@@ -165,6 +167,7 @@ def locate(*, t: np.ndarray, quad: np.ndarray, e_std: np.ndarray, m: int, has_ro
     e_std : ndarray, shape (n, m)
         Raw errors each divided by its standard deviation.
     m : int
+        Residuals per pair.
     has_rotation : bool
         Rows 3:6 are rotation (full pose).
     points : ndarray, shape (n, 3)
@@ -176,6 +179,7 @@ def locate(*, t: np.ndarray, quad: np.ndarray, e_std: np.ndarray, m: int, has_ro
     dt : float
         Median time between pairs, s (for the lags).
     n_time_blocks : int
+        Blocks of equal duration for ``by_time``.
 
     Returns
     -------

@@ -25,6 +25,7 @@ def drift_check(data: DiagData, sel, best, cands: list) -> dict:
     Parameters
     ----------
     data : DiagData
+        All pairs.
     sel : selection.Selector
         The selection pairs, their time blocks and the practical threshold.
     best : selection.Candidate

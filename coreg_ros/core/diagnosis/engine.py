@@ -100,6 +100,7 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
     stream_a : PoseStream, optional
         Device A's whole stream (better velocities and time shifts than the pairs alone).
     options : Options, optional
+        Tuning; the defaults when None.
     progress : callable, optional
         ``progress(fraction, text)`` called as the work advances.
     cov_a, cov_b : ndarray, shape (6, 6), optional

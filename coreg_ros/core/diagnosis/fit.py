@@ -326,9 +326,11 @@ class Model:
         start : State
             A state of this model or of a sub-model (new θ start at zero).
         idx : ndarray of int, optional
+            Pairs to fit on (all by default).
         folds : ndarray of int, optional
             Blocks for ``Fit.heldout`` to reuse the last pass with.
         n_folds : int
+            Number of blocks.
         max_outer : int
             Alternations of the mean and the variance fits.
 
@@ -416,6 +418,7 @@ class Fit:
         folds : ndarray of int, shape (len(idx),)
             Block of each pair of ``idx``.
         n_folds : int
+            Number of blocks.
 
         Returns
         -------

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from typing import Optional
 
+from coreg_ros.core.diagnosis.data import grid_cells, time_folds
 import numpy as np
 from scipy import stats
 
@@ -48,6 +49,7 @@ def stated_measures(data, quad_stated: np.ndarray, e: np.ndarray, sd: np.ndarray
     Parameters
     ----------
     data : DiagData
+        The pairs.
     quad_stated : ndarray, shape (N,)
         Held-out squared normalised error per pair at the stated noise.
     e : ndarray, shape (N, m)
@@ -121,13 +123,6 @@ def rms_moved(before: dict, after: dict) -> bool:
     return False
 
 
-def _cells(points: np.ndarray, cells: int = CELLS) -> np.ndarray:
-    lo = np.percentile(points, 1, axis=0)
-    hi = np.percentile(points, 99, axis=0)
-    idx = np.clip(((points - lo) / np.maximum(hi - lo, 1e-9) * cells).astype(int), 0, cells - 1)
-    return idx[:, 0] * cells * cells + idx[:, 1] * cells + idx[:, 2]
-
-
 def _concentration(excess: np.ndarray, labels: np.ndarray, quad: np.ndarray, m: int) -> dict:
     """Mean excess per label, and which labels stand out (practically and significantly)."""
     out = []
@@ -155,10 +150,13 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
     Parameters
     ----------
     data : DiagData
+        The pairs.
     quad_stated : ndarray, shape (N,)
+        Held-out squared normalised error per pair at the stated noise.
     counted : ndarray of bool, shape (N,)
         Pairs not set aside (the excluded ones are shown apart, not hidden).
     n_blocks : int
+        Time blocks of equal duration.
 
     Returns
     -------
@@ -172,9 +170,9 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
     excess = quad_stated / m - 1.0
     t = data.t
     span = max(float(t[-1] - t[0]), 1e-12)
-    tb = np.minimum(((t - t[0]) / span * n_blocks).astype(int), n_blocks - 1)
+    tb = time_folds(t, n_blocks)
     pts = data.b_points[:, 0, :]
-    cl = _cells(pts)
+    cl = grid_cells(pts, CELLS)
     sel = counted if counted.sum() >= 20 else np.ones_like(counted)
     ct = _concentration(excess[sel], tb[sel], quad_stated[sel], m)
     cc = _concentration(excess[sel], cl[sel], quad_stated[sel], m)
@@ -256,8 +254,11 @@ def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -
     Parameters
     ----------
     data : DiagData
+        The pairs.
     flagged : ndarray of bool, shape (N,)
+        Pairs the outlier model set aside.
     n_blocks : int
+        Time blocks of equal duration.
 
     Returns
     -------
@@ -273,10 +274,10 @@ def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -
         return out
     t = data.t
     span = max(float(t[-1] - t[0]), 1e-12)
-    tb = np.minimum(((t - t[0]) / span * n_blocks).astype(int), n_blocks - 1)
+    tb = time_folds(t, n_blocks)
     # A's tool positions: a flagged pair's own B position may be the glitch itself
     pts = data.pos_a
-    cl = _cells(pts)
+    cl = grid_cells(pts, CELLS)
     share = k / n
     where = []
     for key, labels in (('time', tb), ('workspace', cl)):

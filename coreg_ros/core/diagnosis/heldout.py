@@ -72,9 +72,11 @@ def predict(fit, folds: np.ndarray, n_folds: int) -> Heldout:
     Parameters
     ----------
     fit : fit.Fit
+        The fitted model (its last pass is reused when it has these blocks).
     folds : ndarray of int, shape (len(fit.idx),)
         Block of each pair of ``fit.idx``.
     n_folds : int
+        Number of blocks.
 
     Returns
     -------

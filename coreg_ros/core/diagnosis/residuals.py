@@ -45,6 +45,7 @@ def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple:
     Parameters
     ----------
     data : DiagData
+        All pairs.
     base : Fit
         The model with the stated noise and no effect, on all pairs.
     errors : tuple

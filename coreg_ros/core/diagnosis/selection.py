@@ -342,6 +342,7 @@ def select_effects(sel: Selector, start) -> Selection:
     Parameters
     ----------
     sel : Selector
+        The selection pairs, their blocks, the options and the cache of fits.
     start : fit.State
         The base model's state.
 

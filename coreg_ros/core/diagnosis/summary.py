@@ -10,6 +10,7 @@ from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.rigid import rigid_part
 import numpy as np
 
 
@@ -121,6 +122,7 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
     Parameters
     ----------
     name : str
+        The effect (``candidates.EFFECT_NAMES``).
     fit : Fit
         The final fit (all accepted effects).
     cov : ndarray or None
@@ -277,8 +279,6 @@ def effect_estimate(name: str, fit, cov: Optional[np.ndarray],
 
 def _field_size(eff, pts: np.ndarray, theta: np.ndarray, rigid: bool = True) -> tuple:
     """Largest and RMS size (mm) of the field, without its rigid part unless ``rigid``."""
-    from coreg_ros.core.diagnosis.candidates import rigid_part
-
     d = eff.field(pts, theta[:eff.n_pos])
     if rigid:
         d = d - rigid_part(pts, d)

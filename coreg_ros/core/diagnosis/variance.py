@@ -201,6 +201,7 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
     Parameters
     ----------
     st : PairStats
+        The pairs' decorrelated errors at the current mean.
     var : VarState
         Start and fixed values of the other parameters.
     names : tuple of str
