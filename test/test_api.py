@@ -3,12 +3,11 @@
 from pathlib import Path
 import re
 
-import numpy as np
-import pytest
-
 import coreg_ros as cr
 from coreg_ros.core import quaternion as quat
 from coreg_ros.sim import simulate_pairs
+import numpy as np
+import pytest
 
 README = Path(__file__).resolve().parents[1] / 'README.md'
 SIGMA_A, SIGMA_B = (2e-4, 5e-4), (5e-4, 2e-3)

@@ -1,6 +1,8 @@
 """
-Tests of coreg_ros.report.calibration_report: the page and figures are written and say what
-the uncertainty module computes; point errors follow Hoff's ΔP = d Δθ.
+Tests of coreg_ros.report.calibration_report.
+
+The page and figures are written and say what the uncertainty module computes; point errors
+follow Hoff's ΔP = d Δθ.
 """
 
 from pathlib import Path

@@ -10,10 +10,9 @@ position error while it acts). The tolerance is honest for the rate: with 95 % o
 within 20 %, at most one miss in eight happens with probability 0.94.
 """
 
+from coreg_ros.sim.validation import draw_effect_cases, run_case
 import numpy as np
 import pytest
-
-from coreg_ros.sim.validation import draw_effect_cases, run_case
 
 N_CASES = 8
 

@@ -3,22 +3,21 @@
 from dataclasses import replace
 import json
 
-import numpy as np
-import pytest
-from scipy import stats
-
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim import (
-    MOTION_PRESETS,
-    Truth,
     make_motion,
+    MOTION_PRESETS,
     random_rotation,
     random_truth,
     simulate_pairs,
     simulate_recording,
+    Truth,
 )
+import numpy as np
+import pytest
+from scipy import stats
 
 MODELS = ('full_pose', 'position_only', 'three_marker')
 ZERO = (0.0, 0.0)

@@ -206,8 +206,11 @@ def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
     Parameters
     ----------
     diag : coreg_ros.core.diagnosis.Diagnosis
+        The diagnosis to draw.
     out_dir : str or Path
+        Directory of the report.
     title : str
+        Title of the page.
 
     Returns
     -------

@@ -167,6 +167,7 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
     rec : SimRecording
         From ``coreg_ros.sim.simulate_recording`` (its ``motion`` is needed for T1 steps).
     change : Change
+        The change (``parse_change`` builds one from its text).
     rng : numpy.random.Generator, optional
         Draws a random step direction (default: a generator seeded with 0).
 
@@ -250,7 +251,9 @@ def apply_changes(rec, changes, seed: Optional[int] = None):
     Parameters
     ----------
     rec : SimRecording
+        From ``coreg_ros.sim.simulate_recording``.
     changes : sequence of Change or str
+        Applied in this order.
     seed : int, optional
         Seed of the random step directions (default: the recording's seed).
 

@@ -179,6 +179,7 @@ def add_pose_noise(rng: np.random.Generator, position: np.ndarray, quat_wxyz: Op
     Parameters
     ----------
     rng : numpy.random.Generator
+        Draws the noise.
     position : ndarray, shape (N, 3) or (N, k, 3)
         True positions, m; every marker gets its own noise.
     quat_wxyz : ndarray, shape (N, 4), optional
@@ -374,6 +375,7 @@ def simulate_pairs(rng: np.random.Generator, n: int, model: str = 'full_pose', *
     Parameters
     ----------
     rng : numpy.random.Generator
+        Draws everything, in the order above.
     n : int
         Number of pairs (>= 1).
     model : str

@@ -145,6 +145,7 @@ def random_rotation(rng: np.random.Generator, size=None) -> np.ndarray:
     Parameters
     ----------
     rng : numpy.random.Generator
+        Draws the rotations.
     size : int, optional
         Number of rotations; None for a single one.
 
