@@ -144,7 +144,7 @@ def _exception_name(output: str) -> str:
 
 def fault_key(kind: str, verdict: str, why: str, output: str) -> str:
     """
-    A short stable name of the fault behind a failure, to group failures and to tell known ones.
+    Return a short stable name of the fault behind a failure (groups them; tells known ones).
 
     E.g. ``signal-during-imports``, ``swapped-topics-unwarned``,
     ``node-traceback:InvalidParameterTypeException``, ``refusal-not-one-line:RuntimeWarning``.
@@ -374,7 +374,7 @@ def _material(root: Path, seed: int) -> Material:
 
 
 def _check_truth(outcome: Outcome, json_path: Path, truth, command: str, output: str) -> None:
-    """A success whose T0 or T1 lies beyond TRUTH_SIGMA posterior sigma of the truth is wrong."""
+    """Mark wrong a success whose T0 or T1 is beyond TRUTH_SIGMA posterior σ of the truth."""
     from coreg_ros.core import quaternion as quat
 
     try:
@@ -494,7 +494,7 @@ def _render(entries: list, node: str = 'coreg_node') -> str:
 
 
 def make_params(rng, material: Material, workdir: Path) -> tuple:
-    """A random parameter file: (text or bytes, one-line description, flags)."""
+    """Return a random parameter file: (text or bytes, one-line description, flags)."""
     store = workdir / 'store'
     entries = _base_entries(material, store)
     desc, flags = [], {}
@@ -1153,8 +1153,9 @@ def _collect_signals(jobs: list, log: Callable) -> list:
         output = res.get('output', '')
         if res.get('partner_output'):
             output += '\n--- partner ---\n' + res['partner_output']
-        cmd = _cmdline(case['argv']) + (f'  (partner: {_cmdline(case["partner_argv"])})'
-                                         if case['partner_argv'] else '')
+        partner = (f'  (partner: {_cmdline(case["partner_argv"])})' if case['partner_argv']
+                   else '')
+        cmd = _cmdline(case['argv']) + partner
         for why in res['traceback']:
             outcome.fail('traceback', why, cmd, output)
         for why in res['hang']:
@@ -1300,7 +1301,7 @@ def _public(o: Outcome) -> dict:
 
 
 def table(results: dict) -> str:
-    """The fuzz table (markdown) and the failing inputs, for a person."""
+    """Return the markdown fuzz table and the failing inputs, for a person."""
     lines = ['| kind | tried | tracebacks | hangs | known-wrong | notes | time |',
              '|---|---|---|---|---|---|---|']
     for kind, r in results['kinds'].items():

@@ -8,14 +8,11 @@ The size is chosen to keep this module well under two minutes on a loaded 2-core
 """
 
 from pathlib import Path
-import sys
+
+from bench import fuzz
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from bench import fuzz  # noqa: E402
-import pytest  # noqa: E402
 
 #: Inputs per kind, and the seed (fixed: a failure here is reproducible from the table).
 N_PER_KIND = 8

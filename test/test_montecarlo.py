@@ -10,19 +10,15 @@ COREG_MC_WORKERS (default 1) runs the trials in that many processes.
 """
 
 import os
-from pathlib import Path
-import sys
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import montecarlo as mc  # noqa: E402
-from coreg_ros.core import quaternion as quat  # noqa: E402
-from coreg_ros.core.calibrate import calibrate, noise_covariance  # noqa: E402
-from coreg_ros.core.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians  # noqa: E402
-from coreg_ros.core.settings import Settings  # noqa: E402
-from coreg_ros.sim import make_motion, random_truth, simulate_pairs  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
+from bench import montecarlo as mc
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibrate import calibrate, noise_covariance
+from coreg_ros.core.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
+from coreg_ros.core.settings import Settings
+from coreg_ros.sim import make_motion, random_truth, simulate_pairs
+import numpy as np
+import pytest
 
 TEST_FRACTION = 0.2
 SCALE = float(os.environ.get('COREG_MC_SCALE', '1'))

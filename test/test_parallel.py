@@ -11,19 +11,16 @@ import json
 from pathlib import Path
 import sys
 
+from bench import montecarlo as mc
+from coreg_ros import parallel
+from coreg_ros.cli.main import build_parser, main
+from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.parallel import CaseFailure, run_cases, SchedulerError
+from coreg_ros.sim import simulate_recording
+from coreg_ros.sim.injected import parse_effect
+from coreg_ros.sim.validation import validate
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import montecarlo as mc  # noqa: E402
-from coreg_ros import parallel  # noqa: E402
-from coreg_ros.cli.main import build_parser, main  # noqa: E402
-from coreg_ros.files.bag.posebag import write_pose_bag  # noqa: E402
-from coreg_ros.parallel import CaseFailure, run_cases, SchedulerError  # noqa: E402
-from coreg_ros.sim import simulate_recording  # noqa: E402
-from coreg_ros.sim.injected import parse_effect  # noqa: E402
-from coreg_ros.sim.validation import validate  # noqa: E402
 
 SHORT = (15.0, 20.0)
 #: Nothing listens on the discard port of this machine: the connection is refused.

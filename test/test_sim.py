@@ -229,8 +229,8 @@ def test_recording_noise_matches_sigma():
     np.testing.assert_allclose((a.position - a0.position).std(axis=0), 2e-4, rtol=0.03)
     np.testing.assert_allclose(_rotation_noise(a.quat_wxyz, a0.quat_wxyz).std(axis=0), 5e-4,
                                rtol=0.03)
-    errs = [b.position - b0.position for b, b0 in zip(rec.streams_b, clean.streams_b,
-                                                       strict=True)]
+    pairs = zip(rec.streams_b, clean.streams_b, strict=True)
+    errs = [b.position - b0.position for b, b0 in pairs]
     for e in errs:
         np.testing.assert_allclose(e.std(axis=0), 1e-3, rtol=0.04)
     assert abs(np.corrcoef(errs[0][:, 0], errs[1][:, 0])[0, 1]) < 0.05

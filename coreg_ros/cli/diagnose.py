@@ -55,6 +55,7 @@ def diagnose_bag(bag, settings, progress=None):
     bag : str or Path
         rosbag2 directory.
     settings : Settings
+        Topics, model and stated noise (``coreg diagnose``'s options).
     progress : callable, optional
         ``progress(fraction, text)`` of the diagnosis.
 

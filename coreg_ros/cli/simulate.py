@@ -46,8 +46,6 @@ def truth_path_for(bag) -> Path:
     return bag.with_name(bag.name + '.truth.json')
 
 
-
-
 def register(sub) -> None:
     """Add ``simulate`` to the ``coreg`` subparsers."""
     p = sub.add_parser('simulate', help='write a simulated two-device recording')

@@ -1,3 +1,4 @@
+# noqa: A005 (coreg_ros.report.html: imported as a package module, never as `html`)
 """
 HTML report of a gap diagnosis: ``index.html`` and one PNG per plot (matplotlib, Agg).
 

@@ -42,6 +42,7 @@ MOTION_EFFECTS = ('time_offset', 'clock_drift', 'timestamp_jitter', 'backlash')
 NESTED = (('time_offset', 'clock_drift'), ('noise_scale', 'distance_noise'),
           ('scale', 'field_distortion'))
 
+
 @dataclass
 class Context:
     """

@@ -75,7 +75,7 @@ class DiagData:
 
     @property
     def n(self) -> int:
-        """Number of pairs."""
+        """Return the number of pairs."""
         return int(self.t.shape[0])
 
     @property

@@ -113,7 +113,7 @@ class Model:
 
     @property
     def n_params(self) -> int:
-        """Number of fitted parameters beyond φ."""
+        """Return the number of fitted parameters beyond φ."""
         return self.n_mean - self.P + len(self.var_names)
 
     def initial_state(self, base: State) -> State:

@@ -140,4 +140,3 @@ def solve_psd(A: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.linalg.solve(L.T, y)
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(A, b, rcond=1e-12)[0]
-

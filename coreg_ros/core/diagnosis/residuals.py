@@ -78,4 +78,3 @@ def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple:
                          speed=data.speed, angular_speed=data.angular_speed, fdot_v=fv,
                          fdot_w=fw, dt=step)
     return detection, location
-

@@ -51,8 +51,8 @@ def make_effect(name: str, value: Union[float, tuple]):
     values = np.atleast_1d(np.asarray(value, dtype=float))
     ok = np.isfinite(values).all() and (values <= high).all() and (
         (values >= low).all() if inclusive else (values > low).all())
-    if not ok or (name != 'scale' and values.size != 1) or (name == 'scale'
-                                                             and values.size not in (1, 3)):
+    sizes_ok = values.size in (1, 3) if name == 'scale' else values.size == 1
+    if not ok or not sizes_ok:
         bracket = '[' if inclusive else '('
         raise ConfigError(f'effect {name}: value {value!r} is out of range; give one number'
                           f'{" or three comma-separated" if name == "scale" else ""} in '

@@ -165,8 +165,7 @@ class SharedClock:
             # the recorder receives each message a little after the driver stamped it
             receive = stamps + np.round(rng.exponential(3e-4, len(stamps)) * 1e9).astype(
                 np.int64)
-            out[topic] = select(replace(s, stamps=stamps, receive_stamps=receive),
-                                 idx)
+            out[topic] = select(replace(s, stamps=stamps, receive_stamps=receive), idx)
         self._found.update(latency_a_s=float(lat_a))
         return out
 
