@@ -7,13 +7,13 @@ and encoded in bulk with numpy (``cdr_pose``, ``bulk_read``, ``bulk_write``); an
 goes message by message through rosbags (``per_message``), with identical results.
 """
 
-from coreg_ros.files.bag.cdr_pose import PoseArrays, decode_pose_stamped, encode_pose_stamped
+from coreg_ros.files.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped, PoseArrays
 from coreg_ros.files.bag.posebag import (
     BULK_ENV,
-    POSE_STAMPED,
-    STORAGES,
     list_topics,
+    POSE_STAMPED,
     read_pose_bag,
+    STORAGES,
     write_pose_bag,
 )
 

@@ -235,9 +235,9 @@ def _index_walked(db: Any, query: str, args: Sequence[int]) -> str:
     return found.group(1)
 
 
-def _sqlite_page(db: Any, ids: list[int], lo: Optional[int], hi: Optional[int],
-                 index: str) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                      np.ndarray]]:
+def _sqlite_page(
+    db: Any, ids: list[int], lo: Optional[int], hi: Optional[int], index: str,
+) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """
     One page of the wanted rows in rosbags' order, fetched in one SQLite statement.
 
@@ -256,7 +256,7 @@ def _sqlite_page(db: Any, ids: list[int], lo: Optional[int], hi: Optional[int],
     # one numpy call): cheaper for SQLite than per-topic size aggregates. A value that is not
     # a blob (rosbags would hand it on as text or a number) gets size -1.
     tag = f"iif(typeof(data) = 'blob', length(data), -1) * {_TOPIC_ID_LIMIT} + topic_id"
-    rows = (f"SELECT data, timestamp, {tag} AS tag "
+    rows = (f'SELECT data, timestamp, {tag} AS tag '
             f"FROM messages WHERE {' AND '.join(cond)} ORDER BY timestamp, id")
     # rosbags reads with ORDER BY timestamp, which SQLite answers by walking the timestamp
     # index: (timestamp, row id) order. The same plan here (no sorting step) gives the same
@@ -264,7 +264,7 @@ def _sqlite_page(db: Any, ids: list[int], lo: Optional[int], hi: Optional[int],
     if _index_walked(db, rows, args) != index:
         raise Unsupported('the page query walks another index than rosbags')
     query = (f"SELECT CAST(group_concat(data, x'') AS BLOB), group_concat(timestamp), "
-             f"group_concat(tag), count(*) FROM ({rows})")
+             f'group_concat(tag), count(*) FROM ({rows})')
     (blob, ts_text, tag_text, count), = db.execute(query, args).fetchall()
     if not count:
         return None

@@ -12,11 +12,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
-
 from coreg_ros.core.errors import BagError, ConfigError
 from coreg_ros.core.types import PoseStream
-from coreg_ros.files.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag, write_pose_bag
+from coreg_ros.files.bag.posebag import list_topics, POSE_STAMPED, read_pose_bag, write_pose_bag
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -157,8 +156,8 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
                 cuts.append(int(s.receive_stamps[i]))
     cuts = sorted(set(cuts))
     dst = Path(dst)
-    parts = [dst] if not cuts else [dst.with_name(f'{dst.name}_{k + 1}')
-                                     for k in range(len(cuts) + 1)]
+    parts = [dst] if not cuts else [
+        dst.with_name(f'{dst.name}_{k + 1}') for k in range(len(cuts) + 1)]
     for part in parts:
         if part.exists():
             raise BagError(f'{str(part)!r} exists already; choose a new output name')

@@ -14,12 +14,11 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from rosbags.rosbag2 import Reader, Writer
-from rosbags.typesys import Stores, get_typestore
-
 from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
+import numpy as np
+from rosbags.rosbag2 import Reader, Writer
+from rosbags.typesys import get_typestore, Stores
 
 #: The one message type read and written.
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
@@ -33,7 +32,7 @@ SALVAGE = '`coreg fix-bag BAG NEW_BAG --salvage`'
 
 @lru_cache(maxsize=1)
 def typestore() -> Any:
-    """Return the Jazzy message type store (built once: it takes ~0.1 s)."""
+    """Return the Jazzy message type store, built once (it takes ~0.1 s)."""
     return get_typestore(Stores.ROS2_JAZZY)
 
 

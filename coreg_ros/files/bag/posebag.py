@@ -24,18 +24,17 @@ import shutil
 import tempfile
 from typing import Any, Optional, Union
 
-import numpy as np
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-from ruamel.yaml import YAML
-
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag import bulk_read, bulk_write
 from coreg_ros.files.bag.cdr_pose import decode_records, encode_records
 from coreg_ros.files.bag.light_open import open_light
-from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
 from coreg_ros.files.bag.per_message import describe as _describe
+from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
 from coreg_ros.files.bag.per_message import typestore as _typestore
+import numpy as np
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from ruamel.yaml import YAML
 
 #: Storage names accepted by ``write_pose_bag`` (the rosbag2 storage identifiers).
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}

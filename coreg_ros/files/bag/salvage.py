@@ -21,10 +21,9 @@ from pathlib import Path
 import sqlite3
 from typing import Union
 
-import numpy as np
-
 from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
+import numpy as np
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 _MCAP_MAGIC = b'\x89MCAP0\r\n'
@@ -65,7 +64,7 @@ def _storage_files(path: Path) -> list[Path]:
 
 
 def _varint(buf: bytes, i: int) -> tuple[int, int]:
-    """SQLite varint at ``buf[i:]``: (value, next index)."""
+    """Decode the SQLite varint at ``buf[i:]``: (value, next index)."""
     value = 0
     for k in range(9):
         byte = buf[i + k]
