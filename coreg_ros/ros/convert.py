@@ -10,10 +10,9 @@ from __future__ import annotations
 from typing import Optional
 
 from builtin_interfaces.msg import Time
+from coreg_ros.core.types import UncertainPose
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import numpy as np
-
-from coreg_ros.core.types import UncertainPose
 
 _NS = 1_000_000_000
 

@@ -19,14 +19,14 @@ import time
 from typing import Optional
 
 from coreg_ros.core.errors import CoregError
-from coreg_ros.files.bag.posebag import POSE_STAMPED, list_topics, read_pose_bag
+from coreg_ros.files.bag.posebag import list_topics, POSE_STAMPED, read_pose_bag
 from coreg_ros.ros.domain import reserve_domain_id
 from coreg_ros.ros.tools import (
-    RosSession,
     call_trigger,
     diagnostics_values,
     format_pose_msg,
     play_streams,
+    RosSession,
     service_name,
     wait_for_diagnostics,
     wait_for_result,
@@ -141,8 +141,8 @@ def _drive(node, domain_id, streams, rate, timeout, out, log_path) -> int:
             status = wait_for_diagnostics(session, timeout=3.0)
             if status is not None:
                 values = diagnostics_values(status)
-                shown = [f'{t} {k}' for t in n for k in ('received', 'accepted', 'rejected',
-                                                        'dropped oldest')] + list(_SHOWN)
+                counters = ('received', 'accepted', 'rejected', 'dropped oldest')
+                shown = [f'{t} {k}' for t in n for k in counters] + list(_SHOWN)
                 out('/diagnostics:')
                 out('\n'.join(f'  {k}: {values[k]}' for k in shown if k in values))
             out(f'demo: done in {time.monotonic() - t0:.1f} s')

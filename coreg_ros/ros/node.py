@@ -126,7 +126,7 @@ def shutdown_quietly(context=None) -> None:
 
 
 def stream_qos(reliable: bool) -> QoSProfile:
-    """QoS of the pose subscriptions: sensor-data (best effort) or reliable, deep history."""
+    """Return the pose subscriptions' QoS: sensor-data (best effort) or reliable, deep history."""
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=SUB_DEPTH,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
@@ -233,7 +233,7 @@ class CoregNode(Node):
                 self.get_logger().error(f'~/{name} failed: {traceback.format_exc()}')
                 response.success = False
                 response.message = (f'~/{name} failed: {type(e).__name__}: {_os_reason(e)}; '
-                                     f'the node keeps its samples and runs on (see its log)')
+                                    f'the node keeps its samples and runs on (see its log)')
                 self._internal_error = response.message
                 return response
         return call
@@ -744,7 +744,7 @@ class CoregNode(Node):
                                    f'PoseStamped (convert it) or point the topic parameter at '
                                    f'a PoseStamped topic')
                 self._warn_throttled(('type', topic), problems[topic],
-                                    period=SETUP_WARN_PERIOD)
+                                     period=SETUP_WARN_PERIOD)
         self._type_problems = problems
         return problems
 

@@ -31,13 +31,12 @@ import shutil
 import tempfile
 from typing import Optional
 
-import numpy as np
-import yaml
-
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import PoseStream, UncertainPose
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.files.results import pose_from_dict
+import numpy as np
+import yaml
 
 RESULT_FILE = 'result.yaml'
 #: Keys of the settings a stored result depends on (besides the frames).

@@ -14,6 +14,10 @@ import math
 import time
 from typing import Optional
 
+from coreg_ros.core.errors import CoregError
+from coreg_ros.core.types import PoseStream
+from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose, pose_stamped_values
+from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME, RCLError, shutdown_quietly
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import numpy as np
@@ -26,11 +30,6 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
-
-from coreg_ros.core.errors import CoregError
-from coreg_ros.core.types import PoseStream
-from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose, pose_stamped_values
-from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME, RCLError, shutdown_quietly
 
 #: Publisher QoS of ``play``: reliable with a deep history, so a reliable subscriber loses
 #: nothing, and it still matches best-effort (sensor-data) subscribers.
@@ -142,6 +141,7 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
     Parameters
     ----------
     session : RosSession
+        The ROS context and node that publish.
     streams : mapping of str to PoseStream
         Topic -> stream; messages are sent in the order of their record time
         (``receive_stamps``, else header stamps), the gaps scaled by ``1 / rate``. Header stamps
@@ -296,7 +296,7 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
             for t in topics]
     log(f'recording {", ".join(topics)}'
         + (f' for {duration:g} s' if duration else ' until Ctrl-C'))
-    flushed = {t: 0 for t in topics}
+    flushed = dict.fromkeys(topics, 0)
 
     def flush() -> None:
         new = {t: _rows_stream(rows[t][flushed[t]:], frames.get(t, '')) for t in topics}
@@ -325,7 +325,7 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
 
 
 def _rows_stream(rows: list, frame_id: str) -> PoseStream:
-    """PoseStream of received rows (stamp, x y z, w x y z, receive time)."""
+    """Build the PoseStream of received rows (stamp, x y z, w x y z, receive time)."""
     table = np.array(rows, dtype=float).reshape(-1, 9)
     return PoseStream(stamps=np.array([r[0] for r in rows], dtype=np.int64),
                       position=table[:, 1:4].copy(), quat_wxyz=table[:, 4:8].copy(),
@@ -451,8 +451,8 @@ def format_diagnostics(msg: DiagnosticArray, topic: str = '/diagnostics') -> str
 
 
 _MARKER_TYPES = {v: k.lower() for k, v in vars(Marker).items()
-                 if k.isupper() and isinstance(v, int) and k not in ('ADD', 'MODIFY', 'DELETE',
-                                                                      'DELETEALL')}
+                 if k.isupper() and isinstance(v, int)
+                 and k not in ('ADD', 'MODIFY', 'DELETE', 'DELETEALL')}
 _MARKER_ACTIONS = {Marker.ADD: 'add', Marker.DELETE: 'delete', Marker.DELETEALL: 'delete all'}
 
 
@@ -529,6 +529,7 @@ def echo_topic(session: RosSession, topic: str, *, timeout: Optional[float] = No
     Parameters
     ----------
     session : RosSession
+        The ROS context and node that subscribe.
     topic : str
         Full topic name.
     timeout : float, optional

@@ -42,19 +42,18 @@ import time
 import traceback
 from typing import Optional
 
+from coreg_ros.core import uncertainty as unc
+from coreg_ros.core.errors import CoregError
+from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration, pending_pairs
+from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
+from coreg_ros.files.results import result_to_dict
+from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
-
-from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.errors import CoregError
-from coreg_ros.core.fusion_stream import FusionCalibration, fused_stream, pending_pairs
-from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
-from coreg_ros.files.results import result_to_dict
-from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
 
 #: Samples of A and of each B topic looked at per tick (the newest ones).
 A_WINDOW = 2048
@@ -110,6 +109,7 @@ def pose_markers(pose: UncertainPose, frame_id: str, stamp, ns: str, *,
     frame_id : str
         Frame the pose is expressed in (``header.frame_id`` of the markers).
     stamp : builtin_interfaces.msg.Time
+        ``header.stamp`` of the markers.
     ns : str
         Marker namespace (ids 0 ellipsoid, 1-3 the x, y, z cones).
     magnification : float
