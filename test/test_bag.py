@@ -1,15 +1,14 @@
 """Tests of coreg_ros.files.bag: real rosbag2 recordings written and read back in tmp_path."""
 
 
-import numpy as np
-import pytest
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
-
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.types import PoseStream
-from coreg_ros.files.bag import POSE_STAMPED, list_topics, read_pose_bag, write_pose_bag
+from coreg_ros.files.bag import list_topics, POSE_STAMPED, read_pose_bag, write_pose_bag
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
 
 STORAGES = ['sqlite3', 'mcap']
 STORAGE_FILE = {'sqlite3': '.db3', 'mcap': '.mcap'}
@@ -35,7 +34,7 @@ def raw_messages(path):
 
 
 def write_foreign_bag(path, topic, msgtype, msg, storage=StoragePlugin.SQLITE3):
-    """A bag with one message of another type, written by rosbags' own Writer."""
+    """Write a bag with one message of another type with rosbags' own Writer."""
     with Writer(path, version=9, storage_plugin=storage) as writer:
         conn = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
         writer.write(conn, T0, TYPESTORE.serialize_cdr(msg, msgtype))

@@ -11,17 +11,16 @@ import re
 import shutil
 import sqlite3
 
-import numpy as np
-import pytest
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
-
 from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
-from coreg_ros.files.bag import POSE_STAMPED, bulk_read, read_pose_bag, write_pose_bag
+from coreg_ros.files.bag import bulk_read, POSE_STAMPED, read_pose_bag, write_pose_bag
 from coreg_ros.files.bag.bulk_read import fetch
 from coreg_ros.files.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
 from coreg_ros.files.bag.posebag import read_fast
+import numpy as np
+import pytest
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
 
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 SUFFIX = {'sqlite3': '.db3', 'mcap': '.mcap'}

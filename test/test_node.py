@@ -178,7 +178,7 @@ def test_sigint_during_accumulation_leaves_a_bag(ros_session, start_node):
 
 @pytest.mark.parametrize('handler_wins', [True, False])
 def test_shutdown_after_a_signal_tolerates_the_handler_race(handler_wins, ros_domain,
-                                                           monkeypatch):
+                                                            monkeypatch):
     # On SIGINT rclpy's handler shuts the context down from its own thread; when it does so
     # between try_shutdown's ok() check and its shutdown(), rcl raises "already called" (seen
     # once in CI: the node then exited 1). That must pass quietly; any other error must not.
@@ -319,8 +319,6 @@ def test_invalid_parameters_exit_with_one_line(start_node, bad):
     assert node.proc.returncode == 1
     assert 'Traceback' not in node.log()
     assert 'coreg_node:' in node.log()
-
-
 
 
 def test_live_demo_runs_end_to_end(tmp_path):

@@ -171,7 +171,7 @@ def _offline_result(seed=3):
 
 
 def test_stored_result_is_republished_only_for_its_configuration(ros_session, start_node,
-                                                                tmp_path):
+                                                                 tmp_path):
     storage = tmp_path / 'shared'
     # As an older version stored it (result.yaml), for a rig of other topics and frames.
     other = dict(Settings().as_dict(), topic_a='/robot/pose')
@@ -376,7 +376,7 @@ def test_flooded_node_shows_what_it_lost(ros_session, start_node):
 # ------------------------------------------------------------------ 5. SIGKILL and resume
 
 def test_sigkill_loses_at_most_a_second_and_the_node_resumes(ros_domain, ros_session,
-                                                            start_node, tmp_path):
+                                                             start_node, tmp_path):
     rate = 1000.0
     rec = simulate_recording(8, 8.0, rate_a=rate, rate_b=rate)
     bag = tmp_path / 'rec'

@@ -132,7 +132,7 @@ def _stream_messages(rate_hz: float, seconds: float) -> list:
         quat = np.stack([np.cos(angle / 2), np.sin(angle / 2), 0 * t, 0 * t], axis=1)
         pos = np.stack([np.sin(t), np.cos(t), t], axis=1)
         out += [(d, topic, b) for d, b in zip(t.tolist(), _blobs(stamps, frame, pos, quat),
-                                               strict=True)]
+                                              strict=True)]
     out.sort(key=lambda m: m[0])
     return out
 

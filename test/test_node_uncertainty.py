@@ -180,7 +180,7 @@ def test_fused_pose_and_markers_after_calibration(ros_session, start_node):
 
 
 def test_parameters_switch_outputs_and_restart_fuses_from_the_stored_result(ros_session,
-                                                                           start_node):
+                                                                            start_node):
     node = start_node({'qos_reliable': True, 'fused_rate_limit': 0.0})
     rec = _calibrate(ros_session, node, seed=5)
     fused = Collector(ros_session, PoseWithCovarianceStamped, FUSED)
@@ -216,7 +216,7 @@ def test_parameters_switch_outputs_and_restart_fuses_from_the_stored_result(ros_
     print(f'10 Hz limit: {rate_count} fused poses in 2 s of 100 Hz pairs')
     assert 14 <= rate_count <= 22
     assert {m.ns for m in markers.msgs[-1].markers} == {'base_to_base', 'tool_to_marker',
-                                                         'fused'}
+                                                        'fused'}
 
     # restart on the stored result: markers latched at start-up, fusion with the stored
     # joint covariance (cross terms included) equal to the offline computation
