@@ -28,14 +28,13 @@ import sys
 import tempfile
 import time
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from coreg_ros.core.types import PoseStream  # noqa: E402
 from coreg_ros.files.bag.posebag import BULK_ENV, read_pose_bag, write_pose_bag  # noqa: E402
+import numpy as np  # noqa: E402
 
 #: Goals of issue 15 (read path).
 GOAL_READ_MSG_PER_S = 1_000_000
@@ -171,6 +170,12 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
     calibrate : bool
         Also time ``coreg calibrate`` on a simulated recording of ``seconds`` s with A and B
         at ``rate`` Hz, before (``COREG_BAG_BULK=0``) and after, per ``calibrate_storages``.
+    seconds : float
+        Duration of the simulated recording of the calibrate benchmark, s.
+    rate : float
+        Rate of A and of B in that recording, Hz.
+    calibrate_storages : sequence of str
+        Storages the calibrate benchmark writes the recording in (one row each).
 
     Returns
     -------

@@ -31,8 +31,6 @@ import sys
 import tempfile
 import time
 
-import yaml
-
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -48,6 +46,7 @@ from coreg_ros.ros.tools import (  # noqa: E402
     wait_for_diagnostics,
 )
 from coreg_ros.sim import simulate_recording  # noqa: E402
+import yaml  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / 'results' / 'node.json'
 TICKS = os.sysconf('SC_CLK_TCK')
@@ -95,6 +94,8 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
     profile : bool
         Also sample the node with py-spy (if installed) while it streams; the split is then
         in ``profile`` and the CPU figure includes py-spy's disturbance (run separately).
+    seed : int
+        Seed of the simulated recording that is streamed.
 
     Returns
     -------
@@ -174,7 +175,7 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
 def run(duration: float = 10.0, rates=(2000.0, 5000.0, 10000.0), paths=('raw', 'plain'),
         profile: bool = True) -> dict:
     """
-    Measure the node's throughput: every rate with every path, in one run (same load).
+    Measure the node's throughput: every rate with every path, all under the same load.
 
     Parameters
     ----------
