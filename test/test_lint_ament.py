@@ -1,16 +1,16 @@
-"""The ament linters, for colcon users (`colcon test`); `make test` runs ruff with one config."""
+"""The ament linters of `colcon test`, run by `make test` too (`make venv` installs them)."""
 
+from ament_flake8.main import main_with_errors
+from ament_pep257.main import main as pep257_main
 import pytest
 
 
 @pytest.mark.linter
 def test_flake8():
-    main = pytest.importorskip('ament_flake8.main').main_with_errors
-    rc, errors = main(argv=[])
+    rc, errors = main_with_errors(argv=[])
     assert rc == 0, f'{len(errors)} flake8 errors'
 
 
 @pytest.mark.linter
 def test_pep257():
-    main = pytest.importorskip('ament_pep257.main').main
-    assert main(argv=['.', 'test']) == 0
+    assert pep257_main(argv=['.', 'test']) == 0
