@@ -9,6 +9,7 @@ found, estimate / truth of each named effect's size).
 
 from __future__ import annotations
 
+from dataclasses import replace
 import time
 from typing import Optional
 
@@ -396,13 +397,19 @@ def validate(cases: int, seed: int, progress=None, options=None, workers: int = 
 
     rng = np.random.default_rng(seed)
     drawn = [draw_case(rng, duration=duration or DURATION) for _ in range(cases)]
-    results = run_cases(run_case, drawn, args=(options,), workers=workers, scheduler=scheduler,
-                        progress=progress)
+    # the longest recordings first, so that no worker is left with a long case at the end; the
+    # results go back to the order drawn (each case has its own seed: nothing else changes)
+    order = sorted(range(len(drawn)), key=lambda i: -drawn[i]['duration'])
+    done = run_cases(run_case, [drawn[i] for i in order], args=(options,), workers=workers,
+                     scheduler=scheduler, progress=progress)
+    results = [None] * len(drawn)
+    for k, i in enumerate(order):
+        results[i] = replace(done[k], index=i) if isinstance(done[k], CaseFailure) else done[k]
     # a case that raised is reported with its seed (``failed``) and left out of the scores
-    done = [r for r in results if not isinstance(r, CaseFailure)]
+    scored = [r for r in results if not isinstance(r, CaseFailure)]
     return {'seed': seed, 'results': results,
             'failed': [r.as_dict() for r in results if isinstance(r, CaseFailure)],
-            'summary': summarize_validation(done)}
+            'summary': summarize_validation(scored)}
 
 
 def _jsonable(o):
