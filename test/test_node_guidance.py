@@ -204,10 +204,12 @@ def test_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_se
     states = watch.statuses[wd.STATUS_NAME][n0:]
     levels = [level for _, level, _, _ in states]
     assert wd.ERROR in levels, (states[-1], node.log())
-    # OK while the calibration holds, then WARN (alarm), then ERROR (attributed), latched
+    # OK while the calibration holds, then WARN (alarm) until ERROR (attributed), latched; the
+    # status goes out once a second, so an attribution decided within that second shows no WARN
     first_bad = next(i for i, lv in enumerate(levels) if lv != wd.OK)
     first_error = levels.index(wd.ERROR)
-    assert first_bad >= 2 and levels[first_bad] == wd.WARN, levels
+    assert first_bad >= 2, levels
+    assert all(lv == wd.WARN for lv in levels[first_bad:first_error]), levels
     assert all(lv == wd.ERROR for lv in levels[first_error:]), levels
     t_error, _, message, values = states[first_error]
     final = states[-1][3]
