@@ -83,18 +83,6 @@ def default_workers() -> int:
     return max(1, os.cpu_count() or 1)
 
 
-def _worker_count(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
-    return value
-
-
 def add_arguments(parser) -> None:
     """
     Add ``--workers N`` and ``--scheduler ADDRESS`` to an argparse parser.
@@ -103,7 +91,9 @@ def add_arguments(parser) -> None:
     meaning: ``args.workers`` (int, default the machine's cores) and ``args.scheduler``
     (str or None), passed on to :func:`run_cases`.
     """
-    parser.add_argument('--workers', type=_worker_count, default=default_workers(),
+    from coreg_ros.cli.argtypes import positive_int
+
+    parser.add_argument('--workers', type=positive_int, default=default_workers(),
                         metavar='N', help='local processes to run the cases in (default: '
                                           f'every core, {default_workers()} here)')
     parser.add_argument('--scheduler', metavar='ADDRESS',

@@ -29,6 +29,17 @@ def positive_or_inf(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """Parse an integer >= 1 (a count: cases, workers)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
+    return value
+
+
 def finite(text: str) -> float:
     """Parse a finite number."""
     value = _float(text)

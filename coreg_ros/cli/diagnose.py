@@ -19,6 +19,7 @@ import json
 import sys
 from typing import Optional
 
+from coreg_ros.cli.argtypes import positive_int
 from coreg_ros.cli.policy import PROG
 
 
@@ -160,16 +161,6 @@ def cmd_validate(args) -> int:
     return 1 if failed else 0
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
-    return value
-
-
 def register(sub) -> None:
     """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
     from coreg_ros.cli.options import add_calibration_options
@@ -185,10 +176,10 @@ def register(sub) -> None:
 
     p = sub.add_parser('validate-diagnosis',
                        help='score the diagnosis on simulated recordings with hidden effects')
-    p.add_argument('--cases', type=_positive_int, default=40, help='recordings (default 40)')
+    p.add_argument('--cases', type=positive_int, default=40, help='recordings (default 40)')
     p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
     add_arguments(p)
-    p.add_argument('--jobs', type=_positive_int, dest='workers', default=argparse.SUPPRESS,
+    p.add_argument('--jobs', type=positive_int, dest='workers', default=argparse.SUPPRESS,
                    help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument('--json', metavar='OUT', help='also write every case and the summary')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
