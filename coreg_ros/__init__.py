@@ -12,7 +12,7 @@ Names are imported on first use (PEP 562), so ``coreg --help`` and the ROS entry
 pay for numpy and scipy before they need them.
 """
 
-from importlib import import_module
+from coreg_ros.lazy import lazy_exports
 
 __version__ = '0.1.0'
 
@@ -61,15 +61,4 @@ _HOMES = {
 __all__ = sorted(_HOMES)
 
 
-def __getattr__(name: str):
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
-    module, attr = home if isinstance(home, tuple) else (home, name)
-    value = getattr(import_module(module), attr)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES, globals())

@@ -34,7 +34,7 @@ Modules: ``keys`` (the /diagnostics vocabulary), ``feed`` (pairs and velocity), 
 its incremental accumulator).
 """
 
-from importlib import import_module
+from coreg_ros.lazy import lazy_exports
 
 #: Public name -> the submodule that defines it (imported on first use, PEP 562, so that light
 #: readers such as ``coreg watch`` can import a submodule without the numerical machinery).
@@ -85,13 +85,4 @@ _HOMES = {
 __all__ = sorted(_HOMES)
 
 
-def __getattr__(name: str):
-    if name not in _HOMES:
-        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
-    value = getattr(import_module(f'{__name__}.{_HOMES[name]}'), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES, globals())
