@@ -17,6 +17,7 @@ from coreg_ros.core.uncertainty import pose_error
 from coreg_ros.sim import parse_effect, simulate_recording
 import numpy as np
 import pytest
+from strategies import with_outliers
 
 
 def _streams(rec):
@@ -124,26 +125,6 @@ def test_constant_velocity_offset_not_invented():
     assert not result.time_offset.estimated
 
 
-def _with_outliers(stream: PoseStream, share: float, rng, burst: bool = False) -> PoseStream:
-    n = len(stream)
-    k = int(round(share * n))
-    if burst:
-        starts = rng.choice(n - 20, size=max(1, k // 20), replace=False)
-        idx = np.unique(np.concatenate([np.arange(s, s + 20) for s in starts]))[:k]
-    else:
-        idx = rng.choice(n, size=k, replace=False)
-    pos = stream.position.copy()
-    q = stream.quat_wxyz.copy()
-    direction = rng.normal(size=(idx.size, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    pos[idx] += direction * rng.uniform(0.005, 0.05, size=(idx.size, 1))
-    axis = rng.normal(size=(idx.size, 3))
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    q[idx] = quat.multiply(quat.exp(axis * np.radians(rng.uniform(2, 20, size=(idx.size, 1)))),
-                           q[idx])
-    return replace(stream, position=pos, quat_wxyz=q)
-
-
 @pytest.mark.slow
 def test_outliers_keep_the_error_and_clean_data_keep_their_pairs():
     rng = np.random.default_rng(5)
@@ -157,8 +138,8 @@ def test_outliers_keep_the_error_and_clean_data_keep_their_pairs():
         total += clean.n_pairs
         clean_err[0.0].append(_pose_errors(clean, rec.truth)[:3])
         for share in (0.01, 0.2, 'burst'):
-            b = _with_outliers(bs[0], 0.1 if share == 'burst' else share, rng,
-                               burst=share == 'burst')
+            b = with_outliers(bs[0], 0.1 if share == 'burst' else share, rng,
+                              burst=share == 'burst')
             dirty, _ = calibrate_streams(a, [b], Settings())
             clean_err[share].append(_pose_errors(dirty, rec.truth)[:3])
     assert rejected / total < 1e-3
@@ -173,7 +154,7 @@ def test_outliers_keep_the_error_and_clean_data_keep_their_pairs():
 def test_too_many_outliers_are_refused():
     rec = simulate_recording(7, 20.0, 'full_pose')
     a, bs = _streams(rec)
-    b = _with_outliers(bs[0], 0.45, np.random.default_rng(1))
+    b = with_outliers(bs[0], 0.45, np.random.default_rng(1))
     with pytest.raises(InconsistentDataError, match='not the model plus a few outliers'):
         calibrate_streams(a, [b], Settings())
 

@@ -77,7 +77,7 @@ def test_report_position_only_ols_has_no_cones_for_t1(tmp_path):
     assert '<title>po</title>' in page
 
 
-SAMPLE_BAG = Path(__file__).resolve().parents[1] / 'bags' / 'sample_full_pose'
+SAMPLE_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'sample_full_pose'
 
 
 @pytest.mark.skipif(not SAMPLE_BAG.exists(), reason='sample bag not shipped')

@@ -19,8 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import pytest
 from rclpy.qos import qos_profile_sensor_data
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import PY, run_cli
+from rosproc import PY, run_cli
 from visualization_msgs.msg import Marker, MarkerArray
 
 pytestmark = pytest.mark.ros

@@ -19,9 +19,9 @@ from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
-from test_convert import write_csv
+from strategies import write_csv
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 A, B = '/device_a/pose', '/device_b/pose'
 REAL = Path('/work/shared/data/real/eth_hand_eye')
 

@@ -13,9 +13,8 @@ from coreg_ros.ros.tools import wait_for_diagnostics, wait_for_result
 from coreg_ros.sim import parse_effect, simulate_recording
 import numpy as np
 import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import run_cli, wait_counts
-from test_spatiotemporal import _with_outliers
+from rosproc import run_cli, wait_counts
+from strategies import with_outliers
 
 pytestmark = pytest.mark.ros
 
@@ -26,7 +25,7 @@ def _recording(tmp_path, seed, outliers=0.0, effects=()):
     rec = simulate_recording(seed, 6.0, effects=[parse_effect(e) for e in effects])
     streams = dict(rec.streams)
     if outliers:
-        streams[B] = _with_outliers(streams[B], outliers, np.random.default_rng(seed))
+        streams[B] = with_outliers(streams[B], outliers, np.random.default_rng(seed))
     bag = tmp_path / f'rec{seed}'
     write_pose_bag(bag, streams)
     return bag, {t: len(s) for t, s in streams.items()}

@@ -45,8 +45,7 @@ from geometry_msgs.msg import (
 )
 import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import wait_counts
+from rosproc import wait_counts
 
 A, B = '/device_a/pose', '/device_b/pose'
 NODE = '/coreg_node'

@@ -26,14 +26,10 @@ import hypothesis.strategies as st
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from strategies import random_quat
 
 MODELS = tuple(SPECS)
 CHARTS = [(k, s) for k in range(4) for s in (1.0, -1.0)]
-
-
-def random_quat(rng, n=None):
-    q = rng.normal(size=(4,) if n is None else (n, 4))
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def quaternion_in_chart(rng, k, sign, margin=0.05):

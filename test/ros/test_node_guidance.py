@@ -21,8 +21,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import PY, run_cli
+from rosproc import PY, run_cli
 from std_msgs.msg import Bool
 
 pytestmark = pytest.mark.ros

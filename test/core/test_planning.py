@@ -27,7 +27,7 @@ import pytest
 
 SIGMA_A, SIGMA_B = (2e-4, 5e-4), (5e-4, 2e-3)
 COV_A, COV_B = noise_covariance(SIGMA_A), noise_covariance(SIGMA_B)
-SAMPLE_BAG = Path(__file__).resolve().parents[1] / 'bags' / 'sample_full_pose'
+SAMPLE_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'sample_full_pose'
 
 
 def motion_samples(preset, n=1500, rate=50.0, seed=1):

@@ -5,32 +5,16 @@ from pathlib import Path
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
-from coreg_ros.core.so3 import invert_poses
 from coreg_ros.files.bag.posebag import read_pose_bag
 from coreg_ros.files.csv_poses import read_pose_csv
 from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
+from strategies import write_csv
 
 A = '/device_a/pose'
 B = '/device_b/pose'
 REAL = Path('/work/shared/data/real/eth_hand_eye')
-
-
-def seconds(ns: int) -> str:
-    return f'{ns // 10 ** 9}.{ns % 10 ** 9:09d}'
-
-
-def write_csv(path, stream, *, order='xyzw', scale=1.0, header=None, sep=', ', invert=False):
-    p, q = stream.position, stream.quat_wxyz
-    if invert:
-        p, q = invert_poses(p, q)
-    cols = q[:, [1, 2, 3, 0]] if order == 'xyzw' else q
-    lines = [header] if header else []
-    for t, pos, qq in zip(stream.stamps, p * scale, cols, strict=True):
-        lines.append(sep.join([seconds(int(t))] + [repr(float(v)) for v in (*pos, *qq)]))
-    Path(path).write_text('\n'.join(lines) + '\n')
-    return str(path)
 
 
 @pytest.fixture(scope='module')

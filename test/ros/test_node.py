@@ -29,8 +29,7 @@ from coreg_ros.sim import simulate_recording
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import run_cli, wait_counts
+from rosproc import run_cli, wait_counts
 import yaml
 
 A, B = '/device_a/pose', '/device_b/pose'

@@ -9,8 +9,7 @@ from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import run_cli
+from rosproc import run_cli
 
 pytestmark = pytest.mark.ros
 

@@ -22,7 +22,6 @@ from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.core.watchdog import Watchdog  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
 from coreg_ros.sim.changes import apply_changes  # noqa: E402
-from ros_fixtures import *  # noqa: E402,F401,F403 (ros_domain, ros_session)
 
 SIGMA_A = (2e-4, 5e-4)
 SIGMA_B = (5e-4, 2e-3)

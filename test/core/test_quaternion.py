@@ -9,11 +9,10 @@ near 180° (jaxlie style), where conversions are most fragile.
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import CoregError, InputError
 from hypothesis import given, settings
-import hypothesis.extra.numpy as hnp
-import hypothesis.strategies as st
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
+from strategies import quaternions, rotvecs, unit
 
 PROPERTY = settings(max_examples=60, deadline=None)
 
@@ -28,53 +27,6 @@ def assert_same_rotation(q, r, atol=1e-12):
     q, r = np.asarray(q), np.asarray(r)
     d = np.minimum(np.abs(q - r).max(axis=-1), np.abs(q + r).max(axis=-1))
     assert np.max(d) <= atol, f'quaternions differ by {np.max(d):.3g} (up to sign)'
-
-
-def _unit(v):
-    v = np.asarray(v, dtype=float)
-    return v / np.linalg.norm(v)
-
-
-@st.composite
-def axes(draw):
-    v = draw(hnp.arrays(np.float64, 3, elements=st.floats(-1.0, 1.0)))
-    if np.linalg.norm(v) < 1e-3:
-        v = np.array([0.3, -0.5, 0.8])
-    return _unit(v)
-
-
-@st.composite
-def quaternions(draw):
-    """Draw unit quaternions: generic, near the identity, near 180°, exactly 180°, random sign."""
-    kind = draw(st.sampled_from(['generic', 'identity', 'near_pi', 'pi']))
-    if kind == 'generic':
-        v = draw(hnp.arrays(np.float64, 4, elements=st.floats(-1.0, 1.0)))
-        if np.linalg.norm(v) < 1e-3:
-            v = np.array([0.1, 0.7, -0.2, 0.4])
-        q = _unit(v)
-    else:
-        axis = draw(axes())
-        if kind == 'identity':
-            angle = draw(st.floats(0.0, 1e-3))
-        elif kind == 'near_pi':
-            angle = np.pi - draw(st.floats(0.0, 1e-3))
-        else:
-            angle = np.pi
-        q = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-    return q if draw(st.booleans()) else -q
-
-
-@st.composite
-def rotvecs(draw, max_angle=np.pi):
-    axis = draw(axes())
-    kind = draw(st.sampled_from(['tiny', 'small', 'generic', 'near_pi']))
-    angle = {
-        'tiny': lambda: draw(st.floats(0.0, 1e-7)),
-        'small': lambda: draw(st.floats(1e-7, 1e-2)),
-        'generic': lambda: draw(st.floats(1e-2, max_angle - 1e-2)),
-        'near_pi': lambda: max_angle - draw(st.floats(1e-9, 1e-4)),
-    }[kind]()
-    return angle * axis
 
 
 # ---------------------------------------------------------------------------------------------
@@ -176,7 +128,7 @@ def test_log_exp_round_trip(v):
 
 @pytest.mark.parametrize('angle', [0.0, 1e-15, 1e-10, 1e-7, 1e-6, 1.0000001e-6, 1e-3])
 def test_exp_log_accurate_at_tiny_angles(angle):
-    v = angle * _unit([1.0, -2.0, 0.5])
+    v = angle * unit([1.0, -2.0, 0.5])
     q = quat.exp(v)
     # Exact: (cos θ/2, sin(θ/2) v/θ); for tiny θ the vector part is v/2 to relative O(θ²).
     np.testing.assert_allclose(q[1:], 0.5 * v * (1 - angle ** 2 / 24), rtol=1e-14, atol=0)

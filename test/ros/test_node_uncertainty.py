@@ -22,8 +22,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import wait_counts
+from rosproc import wait_counts
 from scipy import stats
 from visualization_msgs.msg import Marker, MarkerArray
 import yaml

@@ -1,9 +1,7 @@
 """
-Fixtures of the node tests: a private ROS domain per test, coreg_node in a subprocess.
+Node processes and ROS command-line runs for the node tests (the fixtures are in conftest.py).
 
-Import into a test module with ``from ros_fixtures import *  # noqa: F401,F403``.
-Every test gets its own ROS_DOMAIN_ID (reserved with a file lock, so concurrent test runs
-never share one) and discovery on localhost only.
+Each runs on a reserved ROS domain (``ros_domain`` fixture) with discovery on localhost only.
 """
 
 import os
@@ -15,17 +13,8 @@ import time
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
-from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
-from coreg_ros.ros.tools import (  # noqa: E402
-    diagnostics_values,
-    RosSession,
-    wait_for_diagnostics,
-)
-import pytest  # noqa: E402
+from coreg_ros.ros.tools import diagnostics_values, wait_for_diagnostics  # noqa: E402
 import yaml  # noqa: E402
-
-__all__ = ['ros_domain', 'ros_session', 'start_node', 'NodeProcess', 'run_cli', 'wait_counts',
-           'diag_int']
 
 PY = sys.executable
 
@@ -62,35 +51,6 @@ class NodeProcess:
 
     def log(self) -> str:
         return self.log_path.read_text()
-
-
-@pytest.fixture
-def ros_domain():
-    reservation = reserve_domain_id()
-    yield reservation
-    reservation.release()
-
-
-@pytest.fixture
-def ros_session(ros_domain):
-    session = RosSession('coreg_test', domain_id=ros_domain.domain_id, signals=False)
-    yield session
-    session.close()
-
-
-@pytest.fixture
-def start_node(ros_domain, tmp_path):
-    """Start coreg_node subprocesses (params dict) in the test's domain; stopped at teardown."""
-    nodes = []
-
-    def start(params=None, name='node') -> NodeProcess:
-        node = NodeProcess(ros_domain, tmp_path, dict(params or {}), name=f'{name}{len(nodes)}')
-        nodes.append(node)
-        return node
-
-    yield start
-    for node in nodes:
-        node.stop(signal.SIGKILL if node.alive() else signal.SIGINT, timeout=5)
 
 
 def run_cli(domain, *args, timeout=60.0) -> subprocess.CompletedProcess:

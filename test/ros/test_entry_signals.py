@@ -11,7 +11,7 @@ from coreg_ros.ros.domain import reserve_domain_id
 import pytest
 
 BIN = Path(sys.executable).parent
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize('command', [

@@ -25,11 +25,10 @@ from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import PY, run_cli
+from rosproc import PY, run_cli
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # --- building blocks (no subprocess) --------------------------------------------------------

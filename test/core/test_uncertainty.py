@@ -18,23 +18,9 @@ from coreg_ros.core.types import CalibrationResult, UncertainPose
 import numpy as np
 import pytest
 from scipy import stats
+from strategies import random_cov, random_rotation
 
 N_MC = 20_000
-
-
-def random_quat(rng, n=None):
-    q = rng.normal(size=(4,) if n is None else (n, 4))
-    return quat.canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
-
-
-def random_cov(rng, sig_pos, sig_rot, corr=0.5):
-    """Random SPD 6×6: per-block scales sig_pos (m), sig_rot (rad), random correlations."""
-    A = rng.normal(size=(6, 6))
-    C = A @ A.T + corr * 6 * np.eye(6)
-    d = np.sqrt(np.diag(C))
-    C = C / np.outer(d, d)
-    s = np.array([sig_pos] * 3 + [sig_rot] * 3) * rng.uniform(0.5, 1.5, 6)
-    return C * np.outer(s, s)
 
 
 def perturb(rng, p, q, cov, n):
@@ -73,7 +59,8 @@ def boxplus(p, q, d):
 
 def test_compose_jacobians_match_finite_differences():
     rng = np.random.default_rng(1)
-    pa, qa, pb, qb = rng.normal(size=3), random_quat(rng), rng.normal(size=3), random_quat(rng)
+    pa, qa = rng.normal(size=3), random_rotation(rng)
+    pb, qb = rng.normal(size=3), random_rotation(rng)
     p0, q0, _ = unc.compose_arrays(pa, qa, np.zeros((6, 6)), pb, qb, np.zeros((6, 6)))
 
     def f_a(d):
@@ -93,7 +80,7 @@ def test_compose_jacobians_match_finite_differences():
 
 def test_inverse_jacobian_matches_finite_differences():
     rng = np.random.default_rng(2)
-    p, q = rng.normal(size=3), random_quat(rng)
+    p, q = rng.normal(size=3), random_rotation(rng)
     pi, qi, _ = unc.invert_arrays(p, q, np.zeros((6, 6)))
 
     def f(d):
@@ -118,7 +105,7 @@ def test_left_jacobian_definition():
 
 def test_compose_with_inverse_is_identity_and_inverse_is_involution():
     rng = np.random.default_rng(4)
-    a = UncertainPose(rng.normal(size=3), random_quat(rng), random_cov(rng, 1e-3, 1e-2))
+    a = UncertainPose(rng.normal(size=3), random_rotation(rng), random_cov(rng, 1e-3, 1e-2))
     inv = unc.invert(a)
     back = unc.invert(inv)
     np.testing.assert_allclose(back.position, a.position, atol=1e-12)
@@ -133,7 +120,7 @@ def test_compose_with_inverse_is_identity_and_inverse_is_involution():
 
 def test_chain_equals_pairwise_compose():
     rng = np.random.default_rng(5)
-    poses = [UncertainPose(rng.normal(size=3), random_quat(rng), random_cov(rng, 1e-3, 1e-2))
+    poses = [UncertainPose(rng.normal(size=3), random_rotation(rng), random_cov(rng, 1e-3, 1e-2))
              for _ in range(3)]
     pairwise = unc.compose(unc.compose(poses[0], poses[1]), poses[2])
     chained = unc.chain(poses)
@@ -143,7 +130,7 @@ def test_chain_equals_pairwise_compose():
 
 def test_fuse_identical_estimates_halves_covariance_and_is_symmetric():
     rng = np.random.default_rng(6)
-    a = UncertainPose(rng.normal(size=3), random_quat(rng), random_cov(rng, 1e-3, 1e-2))
+    a = UncertainPose(rng.normal(size=3), random_rotation(rng), random_cov(rng, 1e-3, 1e-2))
     f = unc.fuse(a, a)
     np.testing.assert_allclose(f.covariance, a.covariance / 2, rtol=1e-9)
     np.testing.assert_allclose(f.position, a.position, atol=1e-12)
@@ -160,7 +147,7 @@ def test_fuse_identical_estimates_halves_covariance_and_is_symmetric():
 def test_fuse_mean_settles_at_stationary_point():
     """At the fused mean, the weighted tangent residuals of both inputs cancel."""
     rng = np.random.default_rng(7)
-    p, q = rng.normal(size=3), random_quat(rng)
+    p, q = rng.normal(size=3), random_rotation(rng)
     c1, c2 = random_cov(rng, 1e-3, 0.2), random_cov(rng, 5e-2, 1e-3)
     q2 = quat.multiply(quat.exp([0.4, -0.3, 0.2]), q)  # far apart: several re-centrings
     pf, qf, cf, it = unc.fuse_arrays(p, q, c1, p + 0.05, q2, c2)
@@ -180,7 +167,7 @@ def test_unknown_components_propagate_and_carry_no_information():
     c[3:6, :] = 0.0
     c[:, 3:6] = 0.0
     c[3, 3] = c[4, 4] = c[5, 5] = unc.UNKNOWN
-    a = UncertainPose(rng.normal(size=3), random_quat(rng), c)
+    a = UncertainPose(rng.normal(size=3), random_rotation(rng), c)
     # the position of a point at the frame's origin does not depend on the rotation
     _, cp = unc.propagate_point(a, np.zeros(3))
     np.testing.assert_allclose(cp, c[0:3, 0:3])
@@ -228,8 +215,8 @@ def mc_rng():
 
 def test_compose_matches_monte_carlo(mc_rng):
     rng = mc_rng
-    a = UncertainPose(rng.normal(size=3) * 0.5, random_quat(rng), random_cov(rng, 1e-3, 0.02))
-    b = UncertainPose(rng.normal(size=3) * 0.3, random_quat(rng), random_cov(rng, 2e-3, 0.01))
+    a = UncertainPose(rng.normal(size=3) * 0.5, random_rotation(rng), random_cov(rng, 1e-3, 0.02))
+    b = UncertainPose(rng.normal(size=3) * 0.3, random_rotation(rng), random_cov(rng, 2e-3, 0.01))
     c = unc.compose(a, b)
     pa, qa = perturb(rng, a.position, a.quat_wxyz, a.covariance, N_MC)
     pb, qb = perturb(rng, b.position, b.quat_wxyz, b.covariance, N_MC)
@@ -247,10 +234,10 @@ def test_correlated_chain_matches_monte_carlo(mc_rng):
     d = np.sqrt(np.diag(joint))
     s = np.array([1e-3] * 3 + [0.01] * 3 + [1e-3] * 3 + [0.02] * 3)
     joint = joint / np.outer(d, d) * np.outer(s, s)
-    t0 = UncertainPose(rng.normal(size=3) * 0.5, random_quat(rng), joint[0:6, 0:6])
-    t1 = UncertainPose(rng.normal(size=3) * 0.1, random_quat(rng), joint[6:12, 6:12])
+    t0 = UncertainPose(rng.normal(size=3) * 0.5, random_rotation(rng), joint[0:6, 0:6])
+    t1 = UncertainPose(rng.normal(size=3) * 0.1, random_rotation(rng), joint[6:12, 6:12])
     cov_a = random_cov(rng, 5e-4, 0.01)
-    ta = UncertainPose(rng.normal(size=3) * 0.3, random_quat(rng), cov_a)
+    ta = UncertainPose(rng.normal(size=3) * 0.3, random_rotation(rng), cov_a)
     result = CalibrationResult(
         success=True, status=1, message='', model='full_pose', method='tls', n_pairs=0,
         base_to_base=t0, tool_to_marker=t1, markers=t1.position[None], params=np.zeros(12),
@@ -276,7 +263,7 @@ def test_correlated_chain_matches_monte_carlo(mc_rng):
 def test_invert_matches_monte_carlo(mc_rng):
     rng = mc_rng
     # second-order terms |p| δθ² / 2 must stay well below the position noise
-    a = UncertainPose(0.3 * rng.normal(size=3), random_quat(rng), random_cov(rng, 1e-3, 0.01))
+    a = UncertainPose(0.3 * rng.normal(size=3), random_rotation(rng), random_cov(rng, 1e-3, 0.01))
     inv = unc.invert(a)
     p, q = perturb(rng, a.position, a.quat_wxyz, a.covariance, N_MC)
     Rt = np.swapaxes(quat.to_matrix(q), -1, -2)
@@ -288,7 +275,7 @@ def test_invert_matches_monte_carlo(mc_rng):
 def test_point_ellipsoid_matches_monte_carlo(mc_rng):
     """A stylus tip 15 cm from the tracked frame: 3-D ellipsoid, 95 % and 3σ coverage."""
     rng = mc_rng
-    a = UncertainPose(rng.normal(size=3), random_quat(rng), random_cov(rng, 2e-4, 0.01))
+    a = UncertainPose(rng.normal(size=3), random_rotation(rng), random_cov(rng, 2e-4, 0.01))
     tip = np.array([0.0, 0.0, 0.15])
     y, cy = unc.propagate_point(a, tip)
     p, q = perturb(rng, a.position, a.quat_wxyz, a.covariance, N_MC)
@@ -305,7 +292,7 @@ def test_point_ellipsoid_matches_monte_carlo(mc_rng):
 
 def test_axis_cones_match_monte_carlo(mc_rng):
     rng = mc_rng
-    a = UncertainPose(np.zeros(3), random_quat(rng), random_cov(rng, 1e-3, 0.02))
+    a = UncertainPose(np.zeros(3), random_rotation(rng), random_cov(rng, 1e-3, 0.02))
     cones = unc.axis_cones(a, n_sigma=2.0)
     _, q = perturb(rng, a.position, a.quat_wxyz, a.covariance, N_MC)
     R = quat.to_matrix(q)
@@ -323,7 +310,7 @@ def test_axis_cones_match_monte_carlo(mc_rng):
 @pytest.mark.parametrize('case', ['hoff_complementary', 'generic'])
 def test_fusion_matches_monte_carlo(mc_rng, case):
     rng = mc_rng
-    p, q = rng.normal(size=3), random_quat(rng)
+    p, q = rng.normal(size=3), random_rotation(rng)
     if case == 'hoff_complementary':
         # one estimate with good position and weak orientation, the other the opposite, and
         # a lever-arm correlation as a pose carried through a transform has
@@ -353,7 +340,7 @@ def test_display_geometry():
     R = quat.to_matrix(unc.ellipsoid_orientation(e))
     np.testing.assert_allclose(R, e.axes, atol=1e-12)
     np.testing.assert_allclose(R @ np.diag(e.semi_axes ** 2) @ R.T, 9 * C, rtol=1e-9)
-    pose = UncertainPose(np.zeros(3), random_quat(rng), random_cov(rng, 1e-3, 1e-2))
+    pose = UncertainPose(np.zeros(3), random_rotation(rng), random_cov(rng, 1e-3, 1e-2))
     cone = unc.axis_cones(pose)[0]
     tri = unc.cone_mesh(cone, length=0.2, gain=5.0, n=16, origin=[1.0, 0, 0])
     assert tri.shape == (16, 3, 3)

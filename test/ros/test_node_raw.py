@@ -19,8 +19,7 @@ from coreg_ros.ros.tools import call_trigger, PLAY_QOS
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-from ros_fixtures import *  # noqa: F401,F403
-from ros_fixtures import wait_counts
+from rosproc import wait_counts
 
 A, B = '/device_a/pose', '/device_b/pose'
 SAVE = '/coreg_node/save_samples'

@@ -1,0 +1,45 @@
+"""
+Fixtures of the node tests: a private ROS domain per test, coreg_node in a subprocess.
+
+Every test gets its own ROS_DOMAIN_ID (reserved with a file lock, so concurrent test runs
+never share one) and discovery on localhost only.
+"""
+
+import os
+import signal
+
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
+from coreg_ros.ros.tools import RosSession  # noqa: E402
+import pytest  # noqa: E402
+from rosproc import NodeProcess  # noqa: E402
+
+
+@pytest.fixture
+def ros_domain():
+    reservation = reserve_domain_id()
+    yield reservation
+    reservation.release()
+
+
+@pytest.fixture
+def ros_session(ros_domain):
+    session = RosSession('coreg_test', domain_id=ros_domain.domain_id, signals=False)
+    yield session
+    session.close()
+
+
+@pytest.fixture
+def start_node(ros_domain, tmp_path):
+    """Start coreg_node subprocesses (params dict) in the test's domain; stopped at teardown."""
+    nodes = []
+
+    def start(params=None, name='node') -> NodeProcess:
+        node = NodeProcess(ros_domain, tmp_path, dict(params or {}), name=f'{name}{len(nodes)}')
+        nodes.append(node)
+        return node
+
+    yield start
+    for node in nodes:
+        node.stop(signal.SIGKILL if node.alive() else signal.SIGINT, timeout=5)
