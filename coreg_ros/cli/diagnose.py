@@ -8,7 +8,7 @@ an HTML report.
 
 ``coreg validate-diagnosis`` checks the diagnosis the way a user would trust it: it simulates
 recordings with one random effect (or none) of a random size drawn from the realistic ranges
-of DESIGN.md §5, hides the truth, diagnoses them and scores the answers (confusion matrix,
+of docs/design.md §5, hides the truth, diagnoses them and scores the answers (confusion matrix,
 false alarms on clean recordings, the size from which each effect is found).
 """
 

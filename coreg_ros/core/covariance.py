@@ -3,7 +3,7 @@ Covariance of φ in the ``geometry_msgs/PoseWithCovariance`` convention, and pri
 
 The estimator's covariance is over φ's coordinates (positions and reduced quaternions s).
 Published covariances are 6×6 over (x, y, z, δθx, δθy, δθz) with ``R_true = Exp(δθ) R_est``
-about the fixed axes of the header frame (DESIGN.md §3). A chart step δs moves q to
+about the fixed axes of the header frame (docs/design.md §3). A chart step δs moves q to
 ``Exp(G δs) ⊗ q`` with ``G = 2 vec(R(q*)) dq/ds`` (``models.tangent_of_chart``), so the
 conversion is the linear map T: ``C_ros = T C_φ Tᵀ`` (Hoff & Vincent eq. 6).
 """

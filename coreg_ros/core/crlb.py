@@ -19,7 +19,7 @@ of the errors-in-variables maximum-likelihood estimator (Ikits 2000, appendix B.
 This module is written independently of ``estimator`` (closed-form Jacobians in the ROS tangent
 coordinates instead of reduced quaternions) so that it can check the estimator.
 
-Coordinates of ψ (the ROS layout of DESIGN.md §3, each rotation a left perturbation
+Coordinates of ψ (the ROS layout of docs/design.md §3, each rotation a left perturbation
 ``R_true = Exp(δθ) R``):
 
 ============== =====================================================

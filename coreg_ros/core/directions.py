@@ -3,7 +3,7 @@ Which way round are the streams? Detect a device that reports the inverse transf
 
 Exported pose streams rarely say whether a row is the tracked frame in the base frame
 (``T_base_tool``) or the base in the tracked frame (``T_tool_base``). The model
-``T_B = T0 · T_A · T1`` (DESIGN.md §1) only fits one way: a stream given the other way round
+``T_B = T0 · T_A · T1`` (docs/design.md §1) only fits one way: a stream given the other way round
 must be inverted (``T → T⁻¹``) first. ``check_directions`` fits every combination with OLS on
 a subsample and says which fits best, and by how much.
 """

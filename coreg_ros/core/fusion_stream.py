@@ -20,7 +20,7 @@ the newest samples, so a node can fuse a live stream at a fixed rate without re-
 whole buffer; every B sample is fused at most once and, with long enough windows, exactly the
 pairs ``pair_streams`` finds on the whole streams come out.
 
-Covariances follow DESIGN.md §3: 6×6 over (x, y, z, δθx, δθy, δθz) about B's base axes, with
+Covariances follow docs/design.md §3: 6×6 over (x, y, z, δθx, δθy, δθz) about B's base axes, with
 ``p_true = p + δp`` and ``R_true = Exp(δθ) · R``.
 """
 

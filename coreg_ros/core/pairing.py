@@ -6,7 +6,7 @@ rotation, and only between two A samples that are each close enough to the B sta
 function is pure and deterministic, vectorised with ``np.searchsorted``, and shared by the
 offline bag tools and the live node (which calls it on its whole buffer every time).
 
-Stamps are int64 nanoseconds (DESIGN.md §3); no float seconds are used to decide what pairs
+Stamps are int64 nanoseconds (docs/design.md §3); no float seconds are used to decide what pairs
 with what. Quaternions are (w, x, y, z).
 """
 

@@ -7,7 +7,7 @@ poses as nuisance parameters, Ikits 2000 appendix B.2), evaluated at device A's 
 a calibration (an estimate, or a random truth before any data exist). It is the covariance an
 efficient estimator (TLS) reaches; it needs only the motion, not B's data.
 
-Besides the σ of T0 = T_bbase_abase and T1 = T_atool_bmarker (ROS layout of DESIGN.md §3), the
+Besides the σ of T0 = T_bbase_abase and T1 = T_atool_bmarker (ROS layout of docs/design.md §3), the
 plan reports what the calibration is for: the RMS error, over the recorded workspace (the
 poses of the given motion, for every candidate), of B's marker pose predicted from A through
 the calibration (calibration error only; Hoff & Vincent eq. 6 with the CRLB as the parameter

@@ -300,7 +300,7 @@ def rotation_error(q_model: np.ndarray, q_meas: np.ndarray) -> tuple[np.ndarray,
     The error is the vector part of ``q_model ⊗ q_meas*`` with the sign chosen so that its scalar
     part is >= 0 (q and -q are one rotation). For a measurement ``q_meas = Exp(δθ) ⊗ q_model``,
     the error is ``-sin(|δθ|/2) δθ/|δθ| ≈ -δθ/2``: half the rotation angle, so a rotation noise
-    covariance Σθ (rad²) enters the metric as Σθ/4 (DESIGN.md §1).
+    covariance Σθ (rad²) enters the metric as Σθ/4 (docs/design.md §1).
 
     Parameters
     ----------

@@ -1,7 +1,7 @@
 """
 Small SO(3) and rigid-transform algebra shared by the estimator, uncertainty and diagnosis.
 
-Rotation vectors φ (rad) with ``Exp(φ)`` about the fixed axes, as in DESIGN.md §3.
+Rotation vectors φ (rad) with ``Exp(φ)`` about the fixed axes, as in docs/design.md §3.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 """
 Plain data containers shared by the core, the simulator, the bag layer and the node.
 
-Conventions (DESIGN.md §3): stamps are int64 nanoseconds of the device's clock (header stamp);
+Conventions (docs/design.md §3): stamps are int64 nanoseconds of the device's clock (header stamp);
 positions in metres; quaternions (w, x, y, z); covariances 6×6 over (x, y, z, δθx, δθy, δθz)
 with the rotation part the small rotation vector δθ of ``R_true = Exp(δθ) · R_estimate`` about
 the fixed axes of the frame the pose is expressed in (``geometry_msgs/PoseWithCovariance``).

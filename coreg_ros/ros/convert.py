@@ -2,7 +2,7 @@
 Conversion between ROS messages and coreg_ros data, the one place where quaternion order flips.
 
 ROS messages carry quaternions as (x, y, z, w); everything inside coreg_ros uses (w, x, y, z)
-(DESIGN.md §3). Stamps are int64 nanoseconds, ``sec * 10**9 + nanosec``.
+(docs/design.md §3). Stamps are int64 nanoseconds, ``sec * 10**9 + nanosec``.
 """
 
 from __future__ import annotations

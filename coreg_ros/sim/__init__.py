@@ -1,5 +1,5 @@
 """
-Seeded synthetic devices, with a place for unmodelled effects (DESIGN.md §2, §5).
+Seeded synthetic devices, with a place for unmodelled effects (docs/design.md §2, §5).
 
 ``simulate_recording`` makes unsynchronised streams of two devices as a bag would hold them;
 ``simulate_pairs`` makes synchronised pairs for Monte Carlo checks of the estimator;

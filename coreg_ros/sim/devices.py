@@ -7,7 +7,7 @@ stamp on one common clock at their own rates and random phases; each device's tr
 motion evaluated at its own stamps (exact continuous time, no interpolation). Noise is Gaussian,
 independent per device and sample: position ``p + N(0, σ_pos² I)`` in the base frame, rotation
 ``q_meas = Exp(δθ) ⊗ q_true`` with ``δθ ~ N(0, σ_rot² I)`` about the fixed base-frame axes (the
-``PoseWithCovariance`` convention of DESIGN.md §3).
+``PoseWithCovariance`` convention of docs/design.md §3).
 
 The same seed gives bit-identical output. The randomness of the truth, the motion, the stamp
 phases, each device's noise and the effects comes from separate streams spawned from the seed,

@@ -1,5 +1,5 @@
 """
-Extension point for unmodelled effects applied to simulated recordings (DESIGN.md §5).
+Extension point for unmodelled effects applied to simulated recordings (docs/design.md §5).
 
 An effect is any callable ``effect(streams, context, rng) -> streams`` that returns new
 ``PoseStream`` objects (never modifies its input) for some of the topics: a time offset or

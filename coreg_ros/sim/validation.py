@@ -2,7 +2,7 @@
 The blind validation of the gap diagnosis (``coreg validate-diagnosis``).
 
 It simulates recordings with one random effect (or none, or two at once) of a random size drawn
-from the realistic ranges of DESIGN.md §5, hides the truth, diagnoses them and scores the
+from the realistic ranges of docs/design.md §5, hides the truth, diagnoses them and scores the
 answers (confusion matrix, false alarms on clean recordings, the size from which each effect is
 found, estimate / truth of each named effect's size).
 """
@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-#: Realistic sizes per effect (DESIGN.md §5) split into small / medium / large ranges, in the
+#: Realistic sizes per effect (docs/design.md §5) split into small / medium / large ranges, in the
 #: unit of the simulator's ``NAME=VALUE`` (coreg_ros.sim.injected).
 SIZE_RANGES = {
     'time_offset': ((0.001, 0.003), (0.003, 0.015), (0.015, 0.050)),

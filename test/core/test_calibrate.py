@@ -4,7 +4,7 @@ Tests of calibrate(), of the stream pipeline and of the result's dict layout.
 calibrate(): closed-form start, OLS / TLS, priors, chi-square, covariance.
 
 Errors are measured as ``p_true - p_est`` and ``δθ = log(q_true ⊗ q_est*)``
-(``R_true = Exp(δθ) R_est``, the ROS layout of DESIGN.md §3). Accuracy is judged against the
+(``R_true = Exp(δθ) R_est``, the ROS layout of docs/design.md §3). Accuracy is judged against the
 reported covariance with a Mahalanobis (NEES) bound from the chi-square distribution, with a
 Bonferroni correction over the seeds of a test, never per axis.
 """

@@ -1,5 +1,5 @@
 """
-The numerical core imports nothing from ROS, rosbags or YAML (DESIGN.md §2).
+The numerical core imports nothing from ROS, rosbags or YAML (docs/design.md §2).
 
 A fresh interpreter installs a ``sys.meta_path`` finder that refuses rclpy, rosbags, message and
 service packages and yaml, imports every module under ``coreg_ros.core`` and runs a tiny

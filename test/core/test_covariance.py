@@ -1,5 +1,5 @@
 """
-Tests of the covariance in the ``geometry_msgs/PoseWithCovariance`` layout (DESIGN.md §3).
+Tests of the covariance in the ``geometry_msgs/PoseWithCovariance`` layout (docs/design.md §3).
 
 Layout: 6×6 over (x, y, z, δθx, δθy, δθz) with ``R_true = Exp(δθ) R_est`` about the fixed axes
 of the header frame. Checked deterministically against a finite-difference conversion from the

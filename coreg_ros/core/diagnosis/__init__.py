@@ -1,5 +1,5 @@
 """
-Sim-to-real gap diagnosis (DESIGN.md §5): detect, locate, explain with ten effects, quantify.
+Sim-to-real gap diagnosis (docs/design.md §5): detect, locate, explain with ten effects, quantify.
 
 Pure: numpy and scipy only. ``diagnose(pairs, settings)`` returns a ``Diagnosis`` whose
 ``report`` is the JSON document of ``coreg diagnose``.

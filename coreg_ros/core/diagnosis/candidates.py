@@ -1,5 +1,5 @@
 """
-The ten candidate effects as extensions of the measurement model (DESIGN.md §5).
+The ten candidate effects as extensions of the measurement model (docs/design.md §5).
 
 Each effect adds parameters to the model of Ikits eq. 16/18/19 in one of three ways:
 
@@ -24,7 +24,7 @@ from coreg_ros.core.rigid import rigid_columns
 from coreg_ros.core.so3 import skew
 import numpy as np
 
-#: The ten effects, in the order of DESIGN.md §5 (the names of ``coreg_ros.sim.injected``).
+#: The ten effects, in the order of docs/design.md §5 (the names of ``coreg_ros.sim.injected``).
 EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distortion',
                 'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
 

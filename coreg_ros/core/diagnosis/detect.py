@@ -1,5 +1,5 @@
 """
-Detect and locate a gap between a recording and the fitted model (DESIGN.md §5 steps 1-2).
+Detect and locate a gap between a recording and the fitted model (docs/design.md §5 steps 1-2).
 
 Inputs are the base fit's output errors of every pair: the raw error e (n, m), its standard
 deviation under the stated noise (n, m), the squared normalized error per pair (chi-square

@@ -1,5 +1,5 @@
 """
-The sim-to-real gap diagnosis: detect, locate, explain, quantify (DESIGN.md §5).
+The sim-to-real gap diagnosis: detect, locate, explain, quantify (docs/design.md §5).
 
 ``diagnose(pairs, settings)`` calibrates, fits the base model with the stated noise, measures
 the gap (chi-square, whiteness, tails) and where it lies (``residuals.py``), then explains it

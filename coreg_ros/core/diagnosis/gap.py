@@ -1,7 +1,7 @@
 """
 Gap measures that a noise model cannot game, and where the excess that is left lies.
 
-Every number here is taken at the **stated** noise (DESIGN.md §5): an effect that only
+Every number here is taken at the **stated** noise (docs/design.md §5): an effect that only
 widens the noise model (noise scale, distance noise, jitter as a variance) changes none of
 them, so it can never look as if it closed the gap. Pairs an outlier model sets aside are
 counted, shown and taken as unexplained.

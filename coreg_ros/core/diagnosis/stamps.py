@@ -1,5 +1,5 @@
 """
-Timing read from the stamps themselves, per device (DESIGN.md §5: jitter, drops, gaps).
+Timing read from the stamps themselves, per device (docs/design.md §5: jitter, drops, gaps).
 
 A device's header stamps tell a lot before any residual is computed: the nominal rate (the
 median interval), the scatter of the intervals about whole multiples of it (stamp jitter:

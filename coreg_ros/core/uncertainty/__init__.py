@@ -5,7 +5,7 @@ Modules: ``composition`` (compose, chain, through a calibration, invert, points)
 ``consistency`` (pose errors, NEES, coverage), ``geometry`` (ellipsoids, axis cones, display
 geometry); the small SO(3) algebra is ``coreg_ros.core.so3``. Everything is re-exported here.
 
-Every covariance follows DESIGN.md §3 (``geometry_msgs/PoseWithCovariance``): 6×6 over
+Every covariance follows docs/design.md §3 (``geometry_msgs/PoseWithCovariance``): 6×6 over
 (x, y, z, δθx, δθy, δθz), the truth being ``p_true = p + δp`` and
 ``R_true = Exp(δθ) · R`` about the fixed axes of the frame the pose is expressed in. A negative
 diagonal entry marks a component that is not known (``covariance.UNKNOWN``); it is carried as

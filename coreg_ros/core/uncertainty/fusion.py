@@ -43,7 +43,7 @@ def fuse_arrays(p1, q1, cov1, p2, q2, cov2, *, max_iterations: int = 20, tol: fl
 
     the mean moves to ``(p̄ + ξ_p, Exp(ξ_θ) R̄)`` and the chart is re-centred there until the step
     is below ``tol``. At convergence the chart is centred on the fused pose, so C is in the ROS
-    layout of DESIGN.md §3. Unknown components (negative diagonal) carry no information.
+    layout of docs/design.md §3. Unknown components (negative diagonal) carry no information.
 
     Parameters
     ----------

@@ -24,7 +24,7 @@ A structurally corrupt message is therefore never decoded into wrong numbers; a 
 inside a float is not detectable (CDR has no checksum), by either path.
 
 Conventions: stamps are int64 nanoseconds ``sec * 10**9 + nanosec``; quaternions are
-(w, x, y, z) in the arrays and (x, y, z, w) in the messages (DESIGN.md §3).
+(w, x, y, z) in the arrays and (x, y, z, w) in the messages (docs/design.md §3).
 """
 
 from __future__ import annotations

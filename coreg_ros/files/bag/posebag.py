@@ -5,7 +5,7 @@ The only module that touches bag files, through ``rosbags`` (no rclpy, so it als
 without a ROS installation). Both rosbag2 storage formats are supported: ``sqlite3`` (``.db3``)
 and ``mcap``; the reader detects the format from ``metadata.yaml``.
 
-Conventions (DESIGN.md §3): ROS messages carry quaternions as (x, y, z, w); the arrays this
+Conventions (docs/design.md §3): ROS messages carry quaternions as (x, y, z, w); the arrays this
 module returns and accepts are (w, x, y, z). Stamps are int64 nanoseconds,
 ``sec * 10**9 + nanosec``; the header stamp (the device's clock) goes to
 ``PoseStream.stamps`` and the bag's log (record) time to ``PoseStream.receive_stamps``.

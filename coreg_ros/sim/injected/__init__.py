@@ -1,5 +1,5 @@
 """
-Unmodelled effects to inject into simulated recordings (DESIGN.md §5, issue 4).
+Unmodelled effects to inject into simulated recordings (docs/design.md §5, issue 4).
 
 Each effect is a small frozen dataclass implementing the ``Effect`` protocol of
 ``coreg_ros.sim.injection`` (``__call__(streams, context, rng) -> streams``, ``as_dict()``) and

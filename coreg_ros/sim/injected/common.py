@@ -10,7 +10,7 @@ from coreg_ros.core.types import PoseStream
 from coreg_ros.sim.injection import EffectContext
 import numpy as np
 
-#: The ten effects of DESIGN.md §5 that the diagnosis models one by one, in its order.
+#: The ten effects of docs/design.md §5 that the diagnosis models one by one, in its order.
 EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distortion',
                 'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
 #: Further cases real rigs show (issue 11): a distortion that comes and goes, and both
