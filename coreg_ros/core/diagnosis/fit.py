@@ -16,7 +16,7 @@ from typing import Optional
 from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData
-from coreg_ros.core.diagnosis.heldout import Heldout, Pass, predict, solve_psd
+from coreg_ros.core.diagnosis.heldout import Heldout, Pass, predict_blocks, solve_psd
 from coreg_ros.core.models import linearize, Parameters
 import numpy as np
 
@@ -425,7 +425,7 @@ class Fit:
         Heldout
 
         """
-        return predict(self, folds, n_folds)
+        return predict_blocks(self, folds, n_folds)
 
 
 def _small_step(delta: np.ndarray, H: np.ndarray) -> bool:

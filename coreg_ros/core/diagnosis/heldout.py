@@ -65,7 +65,7 @@ class Heldout:
         return np.bincount(self.folds, weights=values, minlength=self.n_folds)
 
 
-def predict(fit, folds: np.ndarray, n_folds: int) -> Heldout:
+def predict_blocks(fit, folds: np.ndarray, n_folds: int) -> Heldout:
     """
     Held-out evaluation on blocks: each block predicted by the fit on the others.
 
