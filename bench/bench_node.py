@@ -58,6 +58,13 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICKS
 
 
+def _wait_received(session, counts: dict, timeout: float):
+    """Wait for a status whose ``<topic> received`` reaches ``counts[topic]`` (None on timeout)."""
+    want = {f'{t} received': n for t, n in counts.items()}
+    return wait_for_diagnostics(session, timeout=timeout, accept=lambda st: all(
+        int(diagnostics_values(st)[k]) >= v for k, v in want.items()))
+
+
 def _span(stream, lo_ns: int, hi_ns: int):
     from coreg_ros.core.types import PoseStream
     keep = (stream.stamps >= lo_ns) & (stream.stamps < hi_ns)
@@ -136,10 +143,7 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
                     split = profile_split(node.pid, max(1.0, duration - 2.0))
                 publisher.wait(duration + 120)
                 publisher_stats = json.loads(pub_out.read_text())
-                want = {f'{t} received': n for t, n in sent.items()}
-                status = wait_for_diagnostics(
-                    s, timeout=10.0, accept=lambda st: all(
-                        int(diagnostics_values(st)[k]) >= v for k, v in want.items()))
+                status = _wait_received(s, sent, timeout=10.0)
                 wall = time.monotonic() - t0
                 cpu = _cpu_seconds(node.pid) - cpu0
                 # the last diagnostics tick may lag the last message by up to 1 s
@@ -297,9 +301,7 @@ def run_calibrate(duration: float = 60.0, rate_hz: float = 1000.0, reliable: boo
                 cpu0, t0 = None, None
                 if calibrated_first > 0:
                     play_streams(s, first, rate=1.0, wait_subscribers=30.0, log=lambda m: None)
-                    want = {f'{t} received': len(v) for t, v in first.items()}
-                    wait_for_diagnostics(s, timeout=10.0, accept=lambda st: all(
-                        int(diagnostics_values(st)[k]) >= v for k, v in want.items()))
+                    _wait_received(s, {t: len(v) for t, v in first.items()}, timeout=10.0)
                     first_calibration = call_trigger(s, service_name('calibrate'),
                                                      timeout=120.0)
                     time.sleep(2.0)  # the watchdog starts on the next diagnostics tick
@@ -309,10 +311,7 @@ def run_calibrate(duration: float = 60.0, rate_hz: float = 1000.0, reliable: boo
                     if t0 is None:
                         cpu0, t0 = _cpu_seconds(node.pid), time.monotonic()
                 play_streams(s, measured, rate=1.0, wait_subscribers=30.0, log=started)
-                want = {f'{t} received': n for t, n in sent.items()}
-                status = wait_for_diagnostics(
-                    s, timeout=5.0, accept=lambda st: all(
-                        int(diagnostics_values(st)[k]) >= v for k, v in want.items()))
+                status = _wait_received(s, sent, timeout=5.0)
                 wall = time.monotonic() - t0
                 cpu = _cpu_seconds(node.pid) - cpu0
                 status = status or wait_for_diagnostics(s, timeout=3.0)
