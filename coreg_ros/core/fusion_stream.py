@@ -288,23 +288,18 @@ def pending_pairs(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[Po
     if stop <= start:
         return empty, after_ns
     # marker 1 restricted to the pending samples; markers 2, 3 are interpolated at its stamps
-    window = [_slice(b, start, stop), *markers[1:]]
+    window = [b.take(slice(start, stop)), *markers[1:]]
     # A samples older than max_gap before the first pending stamp can bracket no pair (the
     # pair would be refused for its gap either way): leave them out, pairing costs O(window)
     first_a = int(np.searchsorted(np.asarray(stream_a.stamps, dtype=np.int64),
                                   int(stamps_b[start]) - int(offset_ns) - int(max_gap_ns),
                                   side='left'))
-    stream_a = _slice(stream_a, first_a, len(stream_a))
+    stream_a = stream_a.take(slice(first_a, None))
     pairs, _ = pair_streams(stream_a, window if len(window) == 3 else window[0],
                             max_gap_ns=int(max_gap_ns), offset_ns=int(offset_ns),
                             with_orientation_b=with_orientation_b)
     return pairs, int(stamps_b[stop - 1])
 
-
-def _slice(s: PoseStream, i: int, j: int) -> PoseStream:
-    return PoseStream(stamps=s.stamps[i:j], position=s.position[i:j], quat_wxyz=s.quat_wxyz[i:j],
-                      frame_id=s.frame_id,
-                      receive_stamps=None if s.receive_stamps is None else s.receive_stamps[i:j])
 
 
 def _empty_pairs(three: bool, with_orientation_b: bool) -> Pairs:

@@ -50,6 +50,21 @@ class PoseStream:
     def __len__(self) -> int:
         return int(self.stamps.shape[0])
 
+    def take(self, keep) -> PoseStream:
+        """
+        Return the samples ``keep`` of the stream, receive stamps included.
+
+        Parameters
+        ----------
+        keep : ndarray of int or bool, or slice
+            Indices, a mask of shape (N,), or a slice of the samples to keep, in that order.
+
+        """
+        return PoseStream(stamps=self.stamps[keep], position=self.position[keep],
+                          quat_wxyz=self.quat_wxyz[keep], frame_id=self.frame_id,
+                          receive_stamps=(None if self.receive_stamps is None
+                                          else self.receive_stamps[keep]))
+
 
 @dataclass(frozen=True)
 class Pairs:

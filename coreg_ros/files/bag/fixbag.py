@@ -48,14 +48,6 @@ class FixReport:
     salvage_stopped: list = field(default_factory=list)
 
 
-def _take(stream: PoseStream, index: np.ndarray,
-          receive: Optional[np.ndarray] = None) -> PoseStream:
-    return replace(stream, stamps=stream.stamps[index], position=stream.position[index],
-                   quat_wxyz=stream.quat_wxyz[index],
-                   receive_stamps=(stream.receive_stamps[index] if receive is None
-                                   else receive))
-
-
 def sort_stream(stream: PoseStream) -> tuple[PoseStream, int]:
     """
     Sort a stream by header stamp (stable); return it and how many messages moved.
@@ -66,14 +58,14 @@ def sort_stream(stream: PoseStream) -> tuple[PoseStream, int]:
     order = np.argsort(stream.stamps, kind='stable')
     moved = int(np.count_nonzero(order != np.arange(order.size)))
     receive = None if stream.receive_stamps is None else np.sort(stream.receive_stamps)
-    return _take(stream, order, receive), moved
+    return replace(stream.take(order), receive_stamps=receive), moved
 
 
 def drop_duplicate_stamps(stream: PoseStream) -> tuple[PoseStream, int]:
     """Drop messages whose header stamp repeats an earlier one's (keep the first)."""
     _, first = np.unique(stream.stamps, return_index=True)
     keep = np.sort(first)
-    return _take(stream, keep), len(stream) - keep.size
+    return stream.take(keep), len(stream) - keep.size
 
 
 def find_jumps(stream: PoseStream, jump_ns: int) -> np.ndarray:
@@ -169,7 +161,7 @@ def fix_bag(src, dst, *, sort: bool = False, drop_duplicates: bool = False,
             s = streams[t]
             index = np.flatnonzero((s.receive_stamps >= bounds[k])
                                    & (s.receive_stamps < bounds[k + 1]))
-            chunk[t] = _take(s, index)
+            chunk[t] = s.take(index)
         write_pose_bag(part, chunk, storage=storage)
         outputs.append((part, {t: len(s) for t, s in chunk.items()}))
     return FixReport(outputs=outputs, reordered=reordered, dropped=dropped, jumps=jumps,

@@ -29,12 +29,6 @@ EFFECT_UNITS = {
 }
 
 
-def select(s: PoseStream, keep: np.ndarray) -> PoseStream:
-    """Return the samples ``keep`` (an index or mask) of a stream, receive stamps included."""
-    return PoseStream(stamps=s.stamps[keep], position=s.position[keep],
-                      quat_wxyz=s.quat_wxyz[keep], frame_id=s.frame_id,
-                      receive_stamps=None if s.receive_stamps is None else s.receive_stamps[keep])
-
 
 def full_pose(context: EffectContext) -> bool:
     """Whether B measures orientation too (the ``full_pose`` model)."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from coreg_ros.sim.injected.common import EFFECT_UNITS, select
+from coreg_ros.sim.injected.common import EFFECT_UNITS
 from coreg_ros.sim.injection import EffectContext
 import numpy as np
 
@@ -117,7 +117,7 @@ class TimestampJitter:
         out = dict(streams)
         for t in context.topics_b:
             s = streams[t]
-            out[t] = select(replace(s, stamps=s.stamps + error), idx)
+            out[t] = replace(s, stamps=s.stamps + error).take(idx)
         self._found.update(n_dropped=int(n - idx.size), gaps_s=gap_list,
                            empirical_sigma_s=float(np.std(error[idx]) * 1e-9) if idx.size else 0.0)
         return out
@@ -165,7 +165,7 @@ class SharedClock:
             # the recorder receives each message a little after the driver stamped it
             receive = stamps + np.round(rng.exponential(3e-4, len(stamps)) * 1e9).astype(
                 np.int64)
-            out[topic] = select(replace(s, stamps=stamps, receive_stamps=receive), idx)
+            out[topic] = replace(s, stamps=stamps, receive_stamps=receive).take(idx)
         self._found.update(latency_a_s=float(lat_a))
         return out
 
