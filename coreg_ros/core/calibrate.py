@@ -11,7 +11,7 @@ from dataclasses import replace
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core import screening, structured
+from coreg_ros.core import screening
 from coreg_ros.core.covariance import Prior, result_poses
 from coreg_ros.core.errors import (
     ConvergenceError,
@@ -28,6 +28,7 @@ from coreg_ros.core.estimator import (
     tls_linearization,
     TlsSums,
 )
+from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.linearized import normalised_squares, PairData
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS

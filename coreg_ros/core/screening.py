@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-from coreg_ros.core import structured as st
+from coreg_ros.core.estimator import normal_equations as st
 from coreg_ros.core.models import output_error, Parameters
 import numpy as np
 

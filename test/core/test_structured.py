@@ -13,8 +13,8 @@ import dataclasses
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core import structured
 from coreg_ros.core.calibrate import whitening
+from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
 from coreg_ros.sim import simulate_pairs, Truth

@@ -22,7 +22,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Optional
 
-from coreg_ros.core import batched, structured
+from coreg_ros.core import batched
+from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.models import (
     error_rotation_jacobian,
     linearize,
