@@ -37,12 +37,12 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
+from coreg_ros.ros.interface import service_name  # noqa: E402
+from coreg_ros.ros.session import RosSession  # noqa: E402
 from coreg_ros.ros.tools import (  # noqa: E402
     call_trigger,
     diagnostics_values,
     play_streams,
-    RosSession,
-    service_name,
     wait_for_diagnostics,
 )
 from coreg_ros.sim import simulate_recording  # noqa: E402

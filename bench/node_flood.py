@@ -66,7 +66,8 @@ def _serialised(spec) -> tuple[list, list, list]:
 
 def publish_main(spec_path: str, out_path: str) -> int:
     """Publish a spec (see the module docstring); write what was achieved to ``out_path``."""
-    from coreg_ros.ros.tools import PLAY_QOS, RosSession
+    from coreg_ros.ros.interface import PLAY_QOS
+    from coreg_ros.ros.session import RosSession
     from geometry_msgs.msg import PoseStamped
     spec = np.load(spec_path)
     topics, which, data, due = _serialised(spec)

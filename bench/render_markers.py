@@ -79,7 +79,8 @@ def offline_markers(gain=None) -> tuple[list, dict]:
 
 def live_markers(timeout: float) -> list:
     """Receive the latched MarkerArray of a running coreg_node."""
-    from coreg_ros.ros.tools import RosSession, wait_for_message
+    from coreg_ros.ros.session import RosSession
+    from coreg_ros.ros.tools import wait_for_message
     from coreg_ros.ros.uncertainty_outputs import MARKER_QOS
     from visualization_msgs.msg import MarkerArray
 

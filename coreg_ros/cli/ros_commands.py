@@ -23,7 +23,8 @@ SERVICES = ('calibrate', 'reset', 'save_samples')
 def cmd_play(args) -> int:
     """Publish a bag on live topics with its original timing."""
     from coreg_ros.files.bag.posebag import list_topics, POSE_STAMPED, read_pose_bag
-    from coreg_ros.ros.tools import play_streams, RosSession
+    from coreg_ros.ros.session import RosSession
+    from coreg_ros.ros.tools import play_streams
 
     topics = args.topics or [t for t, ty in list_topics(args.bag).items() if POSE_STAMPED in ty]
     if not topics:
@@ -44,7 +45,8 @@ def cmd_record(args) -> int:
     from coreg_ros.core.errors import BagError
     from coreg_ros.files.bag.posebag import write_pose_bag
     from coreg_ros.ros.persistence import read_journal, SampleJournal
-    from coreg_ros.ros.tools import record_streams, RosSession
+    from coreg_ros.ros.session import RosSession
+    from coreg_ros.ros.tools import record_streams
 
     out = Path(args.out_bag)
     partial = out.with_name(out.name + '.partial')
@@ -78,7 +80,9 @@ def cmd_record(args) -> int:
 
 def cmd_call(args) -> int:
     """Call one of coreg_node's Trigger services; exit 0 if it answered success."""
-    from coreg_ros.ros.tools import call_trigger, RosSession, service_name
+    from coreg_ros.ros.interface import service_name
+    from coreg_ros.ros.session import RosSession
+    from coreg_ros.ros.tools import call_trigger
 
     name = service_name(args.service, args.node)
     with RosSession('coreg_call') as session:
@@ -90,7 +94,9 @@ def cmd_call(args) -> int:
 
 def cmd_echo(args) -> int:
     """Print the messages of a topic with its publishers' type and QoS (latched ones too)."""
-    from coreg_ros.ros.tools import echo_topic, RosSession, service_name
+    from coreg_ros.ros.echo import echo_topic
+    from coreg_ros.ros.interface import service_name
+    from coreg_ros.ros.session import RosSession
 
     topic = service_name(args.topic, args.node)
     timeout = args.timeout

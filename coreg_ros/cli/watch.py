@@ -404,7 +404,7 @@ def register(subparsers) -> None:
 def cmd_watch(args) -> int:
     """Run the dashboard until Ctrl-C (or one frame with ``--once``)."""
     # a missing rich or ROS 2 is one line by the error policy (coreg_ros.cli.policy)
-    from coreg_ros.ros.tools import RosSession
+    from coreg_ros.ros.session import RosSession
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rich.console import Console

@@ -21,13 +21,13 @@ from typing import Optional
 from coreg_ros.core.errors import CoregError
 from coreg_ros.files.bag.posebag import list_topics, POSE_STAMPED, read_pose_bag
 from coreg_ros.ros.domain import reserve_domain_id
+from coreg_ros.ros.echo import format_pose_msg
+from coreg_ros.ros.interface import service_name
+from coreg_ros.ros.session import RosSession
 from coreg_ros.ros.tools import (
     call_trigger,
     diagnostics_values,
-    format_pose_msg,
     play_streams,
-    RosSession,
-    service_name,
     wait_for_diagnostics,
     wait_for_result,
 )

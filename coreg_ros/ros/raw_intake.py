@@ -28,7 +28,7 @@ from collections.abc import Callable
 import time
 
 from coreg_ros.files.bag.cdr_pose import decode_pose_stamped
-from coreg_ros.ros.convert import pose_stamped_values
+from coreg_ros.ros.messages import pose_stamped_values
 from geometry_msgs.msg import PoseStamped
 from rclpy.serialization import deserialize_message
 

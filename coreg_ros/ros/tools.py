@@ -1,9 +1,10 @@
 """
-Stand-ins for the ros2 CLI: play a bag, record topics, call a Trigger service, echo a topic.
+Stand-ins for the ros2 CLI: play a bag, record topics, call a Trigger service, wait for a message.
 
-Each tool works on a ``RosSession`` (a context, a node and an executor), so the same code
-serves the ``coreg`` subcommands, the live demo and the tests (which give every session its
-own ROS domain). Failures raise ``ToolError`` with one line saying what is wrong and what to do.
+Each tool works on a ``RosSession`` (``coreg_ros.ros.session``), so the same code serves the
+``coreg`` subcommands, the live demo and the tests (which give every session its own ROS
+domain). Failures raise ``ToolError`` with one line saying what is wrong and what to do.
+``coreg echo`` is in ``coreg_ros.ros.echo``.
 """
 
 from __future__ import annotations
@@ -14,121 +15,22 @@ import math
 import time
 from typing import Optional
 
-from coreg_ros.core.errors import CoregError
 from coreg_ros.core.types import PoseStream
-from coreg_ros.ros.convert import make_pose_stamped, msg_to_uncertain_pose, pose_stamped_values
-from coreg_ros.ros.node import LATCHED_QOS, NODE_NAME, RCLError, shutdown_quietly
+from coreg_ros.ros.interface import LATCHED_QOS, matching_qos, NODE_NAME, PLAY_QOS
+from coreg_ros.ros.lifecycle import RCLError
+from coreg_ros.ros.messages import make_pose_stamped, pose_stamped_values
+from coreg_ros.ros.session import RosSession, ToolError
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import numpy as np
-import rclpy
-from rclpy.context import Context
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
+from rclpy.qos import QoSProfile
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
 
-#: Publisher QoS of ``play``: reliable with a deep history, so a reliable subscriber loses
-#: nothing, and it still matches best-effort (sensor-data) subscribers.
-PLAY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,
-                      reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
-
-
-class ToolError(CoregError):
-    """A tool cannot do what was asked (no subscriber, no service, timeout)."""
-
-
-class RosSession:
-    """
-    An rclpy context, one node and a single-threaded executor, as a context manager.
-
-    Parameters
-    ----------
-    name : str
-        Node name.
-    domain_id : int, optional
-        ROS domain; default ``ROS_DOMAIN_ID`` of the environment.
-    signals : bool
-        Install rclpy's SIGINT/SIGTERM handlers (command-line tools: yes; tests: no).
-
-    """
-
-    def __init__(self, name: str, domain_id: Optional[int] = None, signals: bool = True):
-        self.context = Context()
-        options = SignalHandlerOptions.ALL if signals else SignalHandlerOptions.NO
-        #: Set once a Ctrl-C (KeyboardInterrupt) or an external shutdown was seen.
-        self.interrupted = False
-        try:
-            rclpy.init(context=self.context, domain_id=domain_id,
-                       signal_handler_options=options)
-            self.node = Node(name, context=self.context)
-            self.executor = SingleThreadedExecutor(context=self.context)
-            self.executor.add_node(self.node)
-        except RCLError as e:
-            stopped = not self.context.ok()
-            shutdown_quietly(self.context)
-            if stopped:  # a signal shut the context down while the node was being made
-                raise KeyboardInterrupt from e
-            raise
-        except BaseException:  # e.g. Ctrl-C right now: do not leave the context running
-            shutdown_quietly(self.context)
-            raise
-
-    def ok(self) -> bool:
-        """Return False once interrupted (SIGINT) or the context is shut down."""
-        return not self.interrupted and self.context.ok()
-
-    def interrupt(self) -> None:
-        """Mark the session as interrupted: ``ok()`` is False from now on."""
-        self.interrupted = True
-
-    def spin_until(self, done: Callable[[], bool], timeout: Optional[float]) -> bool:
-        """Spin until ``done()`` or the timeout (s; None: forever) or shutdown; return done()."""
-        end = math.inf if timeout is None else time.monotonic() + timeout
-        while not self._check(done):
-            left = end - time.monotonic()
-            if left <= 0 or not self.ok():
-                break
-            try:
-                self.executor.spin_once(timeout_sec=min(0.1, left))
-            except (KeyboardInterrupt, ExternalShutdownException):
-                # rclpy shuts the context down from another thread: it may still look ok
-                self.interrupt()
-                break
-            except RCLError:
-                if self.ok():  # only the shutdown race (see coreg_ros.ros.node.main) is normal
-                    raise
-                break
-        return self._check(done)
-
-    def _check(self, done: Callable[[], bool]) -> bool:
-        """Return ``done()``; False when it fails because the context was shut down (Ctrl-C)."""
-        try:
-            return done()
-        except RCLError:
-            if self.context.ok():
-                raise
-            self.interrupt()
-            return False
-        except KeyboardInterrupt:
-            self.interrupt()
-            return False
-
-    def close(self) -> None:
-        """Destroy the node and shut the context down."""
-        self.executor.shutdown()
-        self.node.destroy_node()
-        shutdown_quietly(self.context)
-
-    def __enter__(self) -> RosSession:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+#: What tools, tests and benchmarks import from here (the session and the interface too).
+__all__ = ['call_trigger', 'diagnostics_values', 'LATCHED_QOS', 'PLAY_QOS', 'play_streams',
+           'record_streams', 'RosSession', 'ToolError', 'wait_for_diagnostics',
+           'wait_for_message', 'wait_for_result']
 
 
 # --- play ------------------------------------------------------------------------------------
@@ -202,26 +104,15 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
     log(f'playing {len(which)} messages on {", ".join(topics)} at rate {rate:g}')
     start = time.perf_counter()
     sent = 0
-    try:
+    with session.stoppable():  # a shutdown (Ctrl-C) ends the playing, quietly
         for k, i, due in zip(which, index, offsets, strict=True):
             if not _sleep_until(session, start + due):
                 break
-            try:
-                pubs[k].publish(make_pose_stamped(stamps[k][i], frames[k], pos[k][i],
-                                                  quat[k][i]))
-            except RCLError:
-                if session.ok():  # a shutdown (Ctrl-C) after the check is normal
-                    raise
-                break
+            pubs[k].publish(make_pose_stamped(stamps[k][i], frames[k], pos[k][i], quat[k][i]))
             sent += 1
         if session.ok():
             for p in pubs:  # reliable: do not tear down before the readers have everything
                 p.wait_for_all_acked(Duration(seconds=5))
-    except KeyboardInterrupt:
-        session.interrupt()
-    except RCLError:
-        if session.ok():
-            raise
     if session.ok():
         log(f'published {sent} messages in {time.perf_counter() - start:.2f} s')
     return sent
@@ -233,24 +124,12 @@ def _sleep_until(session: RosSession, when: float) -> bool:
         wait = when - time.perf_counter()
         if wait <= 0.0005:
             return True
-        try:
+        with session.stoppable():
             time.sleep(min(wait, 0.05))
-        except KeyboardInterrupt:
-            session.interrupt()
     return False
 
 
 # --- record ----------------------------------------------------------------------------------
-
-def _auto_qos(node: Node, topic: str) -> QoSProfile:
-    """Reliable if every current publisher of ``topic`` is reliable, else best effort."""
-    infos = node.get_publishers_info_by_topic(topic)
-    reliable = bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
-                                   for i in infos)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                      reliability=(ReliabilityPolicy.RELIABLE if reliable
-                                   else ReliabilityPolicy.BEST_EFFORT))
-
 
 def record_streams(session: RosSession, topics: Iterable[str], *,
                    duration: Optional[float] = None, wait_publishers: float = 2.0,
@@ -292,8 +171,11 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
             frames.setdefault(topic, msg.header.frame_id)
         return cb
 
-    subs = [node.create_subscription(PoseStamped, t, make_cb(t), _auto_qos(node, t))
-            for t in topics]
+    # reliable if every current publisher is, else best effort; volatile: from now on
+    subs = [node.create_subscription(
+        PoseStamped, t, make_cb(t),
+        matching_qos(node.get_publishers_info_by_topic(t), depth=1000, latched=False))
+        for t in topics]
     log(f'recording {", ".join(topics)}'
         + (f' for {duration:g} s' if duration else ' until Ctrl-C'))
     flushed = dict.fromkeys(topics, 0)
@@ -309,12 +191,10 @@ def record_streams(session: RosSession, topics: Iterable[str], *,
         left = end - time.monotonic()
         if left <= 0:
             break
-        try:
+        with session.stoppable():  # a Ctrl-C while writing a chunk ends the recording too
             session.spin_until(lambda: False, min(left, flush_period) if on_flush else left)
             if on_flush:
                 flush()
-        except KeyboardInterrupt:  # a Ctrl-C while writing a chunk ends the recording too
-            session.interrupt()
     for s in subs:
         with suppress(RCLError):  # the context may be gone already (a signal)
             node.destroy_subscription(s)
@@ -334,11 +214,6 @@ def _rows_stream(rows: list, frame_id: str) -> PoseStream:
 
 
 # --- call, echo, diagnostics -----------------------------------------------------------------
-
-def service_name(service: str, node_name: str = NODE_NAME) -> str:
-    """Full name of a node's private service (``calibrate`` -> ``/coreg_node/calibrate``)."""
-    return service if service.startswith('/') else f'/{node_name.strip("/")}/{service}'
-
 
 def call_trigger(session: RosSession, service: str, timeout: float = 60.0,
                  wait_service: float = 10.0) -> tuple[bool, str]:
@@ -403,188 +278,3 @@ def wait_for_diagnostics(session: RosSession, node_name: str = NODE_NAME,
 def diagnostics_values(status: DiagnosticStatus) -> dict:
     """Key -> value (strings) of a diagnostic status."""
     return {kv.key: kv.value for kv in status.values}
-
-
-def format_pose_msg(msg: PoseWithCovarianceStamped, topic: str = '') -> str:
-    """Lines for a person: frame, position, quaternion, std from the covariance diagonal."""
-    pose = msg_to_uncertain_pose(msg)
-    diag = np.diag(pose.covariance)
-    std = ['n/a' if d < 0 else f'{math.sqrt(d):.3g}' for d in diag]
-    p, q = pose.position, pose.quat_wxyz
-    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-    return '\n'.join([
-        f'{topic} (frame {msg.header.frame_id}, stamp {stamp:.3f})',
-        f'  position  [m]     x {p[0]: .6f}  y {p[1]: .6f}  z {p[2]: .6f}',
-        f'  quaternion (wxyz) w {q[0]: .6f}  x {q[1]: .6f}  y {q[2]: .6f}  z {q[3]: .6f}',
-        f'  std position [m]  {std[0]}  {std[1]}  {std[2]}',
-        f'  std rotation [rad] {std[3]}  {std[4]}  {std[5]}',
-    ])
-
-
-def format_pose_stamped(msg: PoseStamped, topic: str = '') -> str:
-    """Lines for a person: frame, stamp, position and quaternion of a PoseStamped."""
-    p, q = msg.pose.position, msg.pose.orientation
-    return '\n'.join([
-        f'{topic} (frame {msg.header.frame_id}, stamp {_stamp(msg.header):.3f})',
-        f'  position  [m]     x {p.x: .6f}  y {p.y: .6f}  z {p.z: .6f}',
-        f'  quaternion (wxyz) w {q.w: .6f}  x {q.x: .6f}  y {q.y: .6f}  z {q.z: .6f}',
-    ])
-
-
-#: Names of the DiagnosticStatus levels.
-LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
-
-
-def _level(status: DiagnosticStatus) -> str:
-    level = status.level
-    level = level[0] if isinstance(level, (bytes, bytearray)) else int(level)
-    return LEVEL_NAMES.get(level, str(level))
-
-
-def format_diagnostics(msg: DiagnosticArray, topic: str = '/diagnostics') -> str:
-    """Lines for a person: one ``[LEVEL] name: message`` per status, then its key: value pairs."""
-    lines = [f'{topic} (stamp {_stamp(msg.header):.3f}, {len(msg.status)} status)']
-    for status in msg.status:
-        lines.append(f'  [{_level(status)}] {status.name}: {status.message}')
-        lines.extend(f'      {kv.key}: {kv.value}' for kv in status.values)
-    return '\n'.join(lines)
-
-
-_MARKER_TYPES = {v: k.lower() for k, v in vars(Marker).items()
-                 if k.isupper() and isinstance(v, int)
-                 and k not in ('ADD', 'MODIFY', 'DELETE', 'DELETEALL')}
-_MARKER_ACTIONS = {Marker.ADD: 'add', Marker.DELETE: 'delete', Marker.DELETEALL: 'delete all'}
-
-
-def format_marker_array(msg: MarkerArray, topic: str = '') -> str:
-    """Lines for a person: one line per marker (namespace/id, type, frame, position, scale)."""
-    lines = [f'{topic} ({len(msg.markers)} markers)']
-    for m in msg.markers:
-        p, sc = m.pose.position, m.scale
-        lines.append(
-            f'  {m.ns}/{m.id} {_MARKER_TYPES.get(m.type, m.type)} '
-            f'{_MARKER_ACTIONS.get(m.action, m.action)} (frame {m.header.frame_id}) '
-            f'at [{p.x:.4f}, {p.y:.4f}, {p.z:.4f}] scale [{sc.x:.4g}, {sc.y:.4g}, {sc.z:.4g}]')
-    return '\n'.join(lines)
-
-
-def _stamp(header) -> float:
-    return header.stamp.sec + header.stamp.nanosec * 1e-9
-
-
-#: What ``echo_topic`` can show: ROS type name -> (message class, formatter).
-ECHO_TYPES = {
-    'geometry_msgs/msg/PoseWithCovarianceStamped': (PoseWithCovarianceStamped, format_pose_msg),
-    'geometry_msgs/msg/PoseStamped': (PoseStamped, format_pose_stamped),
-    'diagnostic_msgs/msg/DiagnosticArray': (DiagnosticArray, format_diagnostics),
-    'visualization_msgs/msg/MarkerArray': (MarkerArray, format_marker_array),
-}
-
-
-def matching_qos(infos, depth: int = 100) -> QoSProfile:
-    """
-    Return a subscription QoS that every publisher in ``infos`` serves.
-
-    Reliable only if every publisher is reliable, transient-local (late subscribers get the
-    stored messages) only if every publisher is; otherwise best effort, volatile, which any
-    publisher matches.
-    """
-    reliable = bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
-                                   for i in infos)
-    latched = bool(infos) and all(
-        i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=(ReliabilityPolicy.RELIABLE if reliable
-                                   else ReliabilityPolicy.BEST_EFFORT),
-                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
-                                  else DurabilityPolicy.VOLATILE))
-
-
-def find_publishers(session: RosSession, topic: str, timeout: Optional[float]) -> list:
-    """Return the publishers (TopicEndpointInfo) of ``topic`` once any is found; [] on timeout."""
-    infos: list = []
-
-    def found() -> bool:
-        try:
-            infos[:] = session.node.get_publishers_info_by_topic(topic)
-        except RCLError:  # shut down (Ctrl-C) since the last check
-            if session.ok():
-                raise
-            infos.clear()
-        return bool(infos)
-
-    session.spin_until(found, timeout)
-    return infos
-
-
-def echo_topic(session: RosSession, topic: str, *, timeout: Optional[float] = None,
-               once: bool = False, out: Callable[[str], None] = print) -> int:
-    """
-    Print the messages of ``topic`` with the type and QoS its publishers use.
-
-    Waits for a publisher, takes its message type (one of ``ECHO_TYPES``) and a QoS every
-    publisher serves (``matching_qos``: a transient-local result is received by a late echo,
-    a volatile or best-effort stream is received too), then prints each message readably.
-
-    Parameters
-    ----------
-    session : RosSession
-        The ROS context and node that subscribe.
-    topic : str
-        Full topic name.
-    timeout : float, optional
-        Seconds to wait for a publisher and then for each message; None: until shutdown.
-    once : bool
-        Return after the first message.
-    out : callable
-        Where the lines go.
-
-    Returns
-    -------
-    printed : int
-        Messages printed (0 if the session was shut down, e.g. by Ctrl-C, before any came).
-
-    Raises
-    ------
-    ToolError
-        If no publisher appears within ``timeout``, the topic's type is not one of
-        ``ECHO_TYPES``, or no message comes within ``timeout``.
-
-    """
-    infos = find_publishers(session, topic, timeout)
-    if not infos:
-        if not session.ok() or timeout is None:
-            return 0
-        raise ToolError(f'no publisher of {topic} within {timeout:g} s; is the node running on '
-                        f'this ROS_DOMAIN_ID (and the topic name right)?')
-    types = list(dict.fromkeys(i.topic_type for i in infos))
-    known = [t for t in types if t in ECHO_TYPES]
-    if not known:
-        raise ToolError(f'{topic} carries {", ".join(types)}; coreg echo shows '
-                        f'{", ".join(t.rsplit("/", 1)[-1] for t in ECHO_TYPES)} only')
-    msg_type, formatter = ECHO_TYPES[known[0]]
-    qos = matching_qos([i for i in infos if i.topic_type == known[0]])
-    got: list = []
-    sub = session.node.create_subscription(msg_type, topic, got.append, qos)
-    printed = 0
-    try:
-        while session.ok():
-            if not session.spin_until(lambda: bool(got), timeout):
-                break
-            while got:
-                out(formatter(got.pop(0), topic))
-                printed += 1
-                if once:
-                    return printed
-    except KeyboardInterrupt:
-        session.interrupt()
-    finally:
-        with suppress(RCLError):  # after a Ctrl-C the node may be gone already
-            session.node.destroy_subscription(sub)
-    if printed == 0 and session.ok() and timeout is not None:
-        latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
-        hint = ('it keeps its last message for late subscribers but has none yet (results '
-                'appear after `coreg call calibrate`)' if latched
-                else 'it has not published since echo started')
-        raise ToolError(f'nothing received on {topic} ({known[0]}) within {timeout:g} s; {hint}')
-    return printed

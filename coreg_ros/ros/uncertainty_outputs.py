@@ -47,7 +47,7 @@ from coreg_ros.core.errors import CoregError
 from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration, pending_pairs
 from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
 from coreg_ros.files.results import result_to_dict
-from coreg_ros.ros.convert import ns_to_stamp, uncertain_pose_to_msg
+from coreg_ros.ros.messages import ns_to_stamp, uncertain_pose_to_msg
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 import numpy as np
 from rclpy.node import Node

@@ -11,7 +11,7 @@ import signal
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from coreg_ros.ros.domain import reserve_domain_id  # noqa: E402
-from coreg_ros.ros.tools import RosSession  # noqa: E402
+from coreg_ros.ros.session import RosSession  # noqa: E402
 import pytest  # noqa: E402
 from rosproc import NodeProcess  # noqa: E402
 

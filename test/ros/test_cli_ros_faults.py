@@ -11,8 +11,8 @@ import subprocess
 import time
 
 from coreg_ros.files.bag.posebag import write_pose_bag
-from coreg_ros.ros.convert import make_pose_stamped
-from coreg_ros.ros.node import LATCHED_QOS
+from coreg_ros.ros.interface import LATCHED_QOS
+from coreg_ros.ros.messages import make_pose_stamped
 from coreg_ros.ros.uncertainty_outputs import FUSED_QOS, MARKER_QOS
 from coreg_ros.sim import simulate_recording
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -183,7 +183,7 @@ def test_echo_without_publisher_and_of_an_unknown_type_fail_in_one_line(ros_doma
 
 
 def test_matching_qos_takes_the_weakest_publisher():
-    from coreg_ros.ros.tools import matching_qos
+    from coreg_ros.ros.interface import matching_qos
 
     class Info:
 

@@ -26,7 +26,7 @@ from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.ros import persistence
-from coreg_ros.ros.convert import make_pose_stamped, stamp_to_ns
+from coreg_ros.ros.messages import make_pose_stamped, stamp_to_ns
 from coreg_ros.ros.tools import (
     call_trigger,
     diagnostics_values,

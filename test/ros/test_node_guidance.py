@@ -12,8 +12,9 @@ from coreg_ros.core import guidance as gd
 from coreg_ros.core import watchdog as wd
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.ros.interface import LATCHED_QOS
 from coreg_ros.ros.live_checks import STALE_QOS
-from coreg_ros.ros.tools import LATCHED_QOS, wait_for_message, wait_for_result
+from coreg_ros.ros.tools import wait_for_message, wait_for_result
 from coreg_ros.ros.uncertainty_outputs import FUSED_QOS
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.changes import apply_changes

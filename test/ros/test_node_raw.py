@@ -13,9 +13,10 @@ import time
 from coreg_ros.files.bag.cdr_pose import encode_pose_stamped
 from coreg_ros.files.bag.posebag import read_pose_bag
 from coreg_ros.ros.buffer import REASONS, StreamBuffer
+from coreg_ros.ros.interface import PLAY_QOS
 from coreg_ros.ros.node import PLAIN_ENV
 from coreg_ros.ros.raw_intake import RawIntake
-from coreg_ros.ros.tools import call_trigger, PLAY_QOS
+from coreg_ros.ros.tools import call_trigger
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest

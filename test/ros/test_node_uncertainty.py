@@ -14,7 +14,7 @@ from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import TimeOffset
 from coreg_ros.files.results import pose_from_dict
-from coreg_ros.ros.convert import msg_to_uncertain_pose, stamp_to_ns
+from coreg_ros.ros.messages import msg_to_uncertain_pose, stamp_to_ns
 from coreg_ros.ros.tools import call_trigger, play_streams, wait_for_message, wait_for_result
 from coreg_ros.ros.uncertainty_outputs import AXIS_LENGTH, CONE_SEGMENTS, MARKER_QOS
 from coreg_ros.sim import simulate_recording

@@ -12,15 +12,16 @@ from coreg_ros.core.types import UncertainPose
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import REASONS, StreamBuffer
-from coreg_ros.ros.convert import (
+from coreg_ros.ros.domain import reserve_domain_id
+from coreg_ros.ros.messages import (
     make_pose_stamped,
     msg_to_uncertain_pose,
     pose_stamped_values,
     uncertain_pose_to_msg,
 )
-from coreg_ros.ros.domain import reserve_domain_id
 from coreg_ros.ros.node import CoregNode
-from coreg_ros.ros.tools import play_streams, RosSession
+from coreg_ros.ros.session import RosSession
+from coreg_ros.ros.tools import play_streams
 from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
