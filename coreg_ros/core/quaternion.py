@@ -85,7 +85,8 @@ def multiply_parts(p, q) -> tuple:
     """
     Hamilton product p ⊗ q on components: p, q are (w, x, y, z) sequences of arrays.
 
-    The layout-free core of ``multiply``; ``structured`` calls it on pair-last arrays (4, c).
+    The layout-free core of ``multiply``; ``estimator.normal_equations`` calls it on pair-last
+    arrays (4, c).
     """
     pw, px, py, pz = p
     qw, qx, qy, qz = q
@@ -146,7 +147,7 @@ def matrix_parts(w, x, y, z) -> tuple:
     """
     Entries of the rotation matrix of unit quaternions (Ikits eq. 21), as 3 rows of 3 arrays.
 
-    The layout-free core of ``to_matrix``; ``structured`` calls it on pair-last arrays.
+    The layout-free core of ``to_matrix``.
     """
     ww, xx, yy, zz = w * w, x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
@@ -155,16 +156,25 @@ def matrix_parts(w, x, y, z) -> tuple:
             (2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz))
 
 
-def to_matrix(q: np.ndarray) -> np.ndarray:
+def to_matrix(q: np.ndarray, pair_last: bool = False) -> np.ndarray:
     """
     Rotation matrix of unit quaternions (Ikits eq. 21), shape (..., 3, 3).
 
     Parameters
     ----------
-    q : ndarray, shape (..., 4)
+    q : ndarray, shape (..., 4), or (4, c) with ``pair_last``
         Unit quaternions (w, x, y, z).
+    pair_last : bool
+        Quaternions as columns (4, c) and matrices (3, 3, c), the structure-of-arrays layout
+        of ``estimator.normal_equations``.
 
     """
+    if pair_last:
+        R = np.empty((3, 3, q.shape[1]))
+        for i, row in enumerate(matrix_parts(*q)):
+            for j, entry in enumerate(row):
+                R[i, j] = entry
+        return R
     rows = matrix_parts(*np.moveaxis(np.asarray(q, dtype=float), -1, 0))
     return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
@@ -299,8 +309,8 @@ def rotation_error(q_model: np.ndarray, q_meas: np.ndarray) -> tuple[np.ndarray,
 
     The error is the vector part of ``q_model ⊗ q_meas*`` with the sign chosen so that its scalar
     part is >= 0 (q and -q are one rotation). For a measurement ``q_meas = Exp(δθ) ⊗ q_model``,
-    the error is ``-sin(|δθ|/2) δθ/|δθ| ≈ -δθ/2``: half the rotation angle, so a rotation noise
-    covariance Σθ (rad²) enters the metric as Σθ/4 (docs/design.md §1).
+    the error is ``-sin(|δθ|/2) δθ/|δθ| ≈ -δθ/2``: half the rotation angle (eq. 14), which is
+    how a rotation noise covariance enters the metric (``estimator.problem.metric_covariance``).
 
     Parameters
     ----------

@@ -10,25 +10,37 @@ from coreg_ros.core import quaternion as quat
 import numpy as np
 
 
-def skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray, pair_last: bool = False) -> np.ndarray:
     """
     Cross-product matrix ``[v]×`` with ``[v]× u = v × u``.
 
+    The one skew of the package: the estimator's closed forms take its pair-last layout.
+
     Parameters
     ----------
-    v : array_like, shape (..., 3)
+    v : array_like, shape (..., 3), or (3, c) with ``pair_last``
         The vector(s) v.
+    pair_last : bool
+        Vectors as columns (3, c) and matrices (3, 3, c), the structure-of-arrays layout of
+        ``estimator.normal_equations``.
 
     Returns
     -------
-    ndarray, shape (..., 3, 3)
+    ndarray, shape (..., 3, 3), or (3, 3, c) with ``pair_last``
 
     """
     v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    if pair_last:
+        out = np.zeros((3, 3) + v.shape[1:])
+        x, y, z = v[0], v[1], v[2]
+        S = out
+    else:
+        out = np.zeros(v.shape[:-1] + (3, 3))
+        x, y, z = v[..., 0], v[..., 1], v[..., 2]
+        S = np.moveaxis(out, (-2, -1), (0, 1))  # a view: S[i, j] is out[..., i, j]
+    S[0, 1], S[0, 2] = -z, y
+    S[1, 0], S[1, 2] = z, -x
+    S[2, 0], S[2, 1] = -y, x
     return out
 
 

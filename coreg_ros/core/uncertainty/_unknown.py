@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from coreg_ros.core import quaternion as quat
 from coreg_ros.core.covariance import UNKNOWN
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import UncertainPose
@@ -17,10 +16,6 @@ import numpy as np
 
 #: Below this absolute value a Jacobian entry does not propagate an unknown component.
 _ZERO = 1e-12
-
-
-def _rotation(q: np.ndarray) -> np.ndarray:
-    return quat.to_matrix(np.asarray(q, dtype=float))
 
 
 def _unknown_mask(cov: np.ndarray) -> np.ndarray:

@@ -7,13 +7,13 @@ from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
+from coreg_ros.core.quaternion import to_matrix as _rotation
 from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import CalibrationResult, UncertainPose
 from coreg_ros.core.uncertainty._unknown import (
     _cov_or_zero,
     _known_part,
     _mark_unknown,
-    _rotation,
     _symmetric,
     _unknown_mask,
 )

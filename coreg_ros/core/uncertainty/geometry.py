@@ -6,11 +6,11 @@ from dataclasses import dataclass
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
+from coreg_ros.core.quaternion import to_matrix as _rotation
 from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.core.uncertainty._unknown import (
     _cov_or_zero,
-    _rotation,
     _symmetric,
 )
 from coreg_ros.core.uncertainty.consistency import coverage_probability
