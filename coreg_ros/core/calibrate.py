@@ -20,15 +20,19 @@ from coreg_ros.core.errors import (
     TooFewPairsError,
 )
 from coreg_ros.core.estimator import (
+    back_substitute,
     InputState,
+    noise_covariance,
+    normal_equations,
+    output_covariance,
     Problem,
     Solution,
     solve_ols,
     solve_tls,
     tls_linearization,
     TlsSums,
+    whitening,
 )
-from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.linearized import normalised_squares, PairData
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
@@ -37,59 +41,6 @@ from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
 import numpy as np
 from scipy import stats
-
-
-def noise_covariance(sigma) -> np.ndarray:
-    """6×6 covariance (ROS layout) of isotropic noise given as (position m, rotation rad)."""
-    pos, rot = float(sigma[0]), float(sigma[1])
-    return np.diag([pos ** 2] * 3 + [rot ** 2] * 3)
-
-
-_METRIC = np.diag([1.0, 1.0, 1.0, -0.5, -0.5, -0.5])
-
-
-def metric_covariance(cov: np.ndarray) -> np.ndarray:
-    """
-    Covariance of the error metric from a 6×6 ROS-layout covariance (rotation enters as Σθ/4).
-
-    Parameters
-    ----------
-    cov : ndarray, shape (6, 6)
-        Position (m²) and rotation-vector (rad²) covariance.
-
-    Returns
-    -------
-    ndarray, shape (6, 6)
-
-    """
-    return _METRIC @ np.asarray(cov, dtype=float).reshape(6, 6) @ _METRIC
-
-
-def output_covariance(cov_b: np.ndarray, spec: ModelSpec) -> np.ndarray:
-    """Metric covariance of B's output (m×m): 6×6 full pose, 3×3 per marker otherwise."""
-    metric = metric_covariance(cov_b)
-    if spec.name == 'full_pose':
-        return metric
-    m = 3 * spec.n_markers
-    out = np.zeros((m, m))
-    for j in range(spec.n_markers):
-        out[3 * j:3 * j + 3, 3 * j:3 * j + 3] = metric[0:3, 0:3]
-    return out
-
-
-def whitening(cov: np.ndarray, spec: Optional[ModelSpec], device: str) -> np.ndarray:
-    """
-    L with LᵀL the inverse covariance of the error metric, for device 'a' (6×6) or 'b' (m×m).
-
-    The rotation metric is about half the angle (Ikits §3.2), so a rotation covariance Σθ
-    enters as Σθ/4 (and position-rotation cross terms as -1/2).
-    """
-    metric = metric_covariance(cov) if device == 'a' else output_covariance(cov, spec)
-    try:
-        return np.linalg.inv(np.linalg.cholesky(metric))
-    except np.linalg.LinAlgError as e:
-        raise InputError(f'noise covariance of device {device.upper()} is not positive '
-                         f'definite; give positive standard deviations') from e
 
 
 def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
@@ -315,7 +266,7 @@ class _Fitter:
         """
         keep = np.ones(len(self.pos_a), dtype=bool)
         masked = (FAST_REFIT and self.settings.method == 'ols'
-                  and structured.applies(self.everything, inputs=False)
+                  and normal_equations.applies(self.everything, inputs=False)
                   and sol.residuals.shape[0] == keep.size and sol.gradient is not None)
         for _ in range(MAX_ROUNDS):
             if masked:  # OLS residuals of every pair: d² = ‖r‖² (screening, OLS)
@@ -374,7 +325,7 @@ class _Fitter:
         n_fit = x.pos_t.shape[1]
 
         def dx(delta):
-            return np.take(structured.back_substitute(n_fit, sums.factors, delta), stay_idx,
+            return np.take(back_substitute(n_fit, sums.factors, delta), stay_idx,
                            axis=1)
 
         seed = (TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, sums.factors), dx)
@@ -401,7 +352,7 @@ class _Fitter:
         diff = Problem(self.spec, self.pos_a[idx], self.quat_a[idx], self.pos_b[idx],
                        None if self.quat_b is None else self.quat_b[idx], self.whiten_b,
                        self.whiten_a, weights=np.where(new[idx], 1.0, -1.0))
-        H, g, cost = structured.ols_normal(diff, sol.params)
+        H, g, cost = normal_equations.ols_normal(diff, sol.params)
         problem = replace(self.everything, weights=new.astype(float))
         out = solve_ols(problem, sol.params, max_iterations=self.settings.max_iterations,
                         xtol=XTOL,

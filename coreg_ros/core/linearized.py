@@ -20,11 +20,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.estimator.problem import CHUNK
 from coreg_ros.core.models import linearize, Parameters
 import numpy as np
-
-#: Pairs linearised at once (bounds the transient memory to a few MB).
-CHUNK = 8192
 
 
 @dataclass(frozen=True)

@@ -8,13 +8,13 @@ computes the same number with less work:
 
 - OLS (A's noise does not enter): ``Σ_eff = Σ_y``, so ``d² = ‖L_y e‖²``, the squared whitened
   output residual; only the output error is needed (any model).
-- TLS, full pose and position only with block-diagonal noise (``structured.applies``): by the
+- TLS, full pose and position only with block-diagonal noise (``normal_equations.applies``): by the
   Woodbury identity ``eᵀ Σ_eff⁻¹ e = ‖r‖² - gᵀ U⁻¹ g`` with ``r = L_y e``, ``U = Σ_x⁻¹/s +
   A_yᵀ A_y`` and ``g = A_yᵀ r`` (``A_y`` the whitened input Jacobian): what eliminating one
   pair's input block from the TLS normal equations leaves at the measured input. The input
-  position is eliminated in closed form (scalar or constant 3×3, as in ``structured``), the
-  rotation by a closed-form 3×3 Cholesky factor. The channels are those of
-  ``structured._channels``.
+  position is eliminated in closed form (scalar or constant 3×3, as in
+  ``estimator.normal_equations``), the rotation by a closed-form 3×3 Cholesky factor. The
+  channels are those of ``normal_equations._channels``.
 
 Both equal ``normalised_squares`` to rounding (``test_calibrate_speed_paths.py`` compares
 them); ``exact_for`` says which problems the fast forms cover.
@@ -25,11 +25,10 @@ from __future__ import annotations
 from typing import Optional
 
 from coreg_ros.core.estimator import normal_equations as st
+from coreg_ros.core.estimator.problem import chunk_slices
 from coreg_ros.core.models import output_error, Parameters
+from coreg_ros.core.so3 import skew
 import numpy as np
-
-#: Pairs per chunk (the working set of a chunk stays in cache).
-CHUNK = 8192
 
 
 def exact_for(problem, tls: bool) -> bool:
@@ -63,7 +62,7 @@ def normalised_squares(problem, params: Parameters, tls: bool,
     out = np.empty(n) if out is None else out
     if not tls:
         L = problem.whiten_b
-        for sl in st.chunk_slices(n, CHUNK):
+        for sl in chunk_slices(n):
             quat_b = None if problem.quat_b is None else problem.quat_b[sl]
             pos_b = problem.pos_b[sl]
             e = output_error(params, problem.pos_a[sl], problem.quat_a[sl], pos_b, quat_b)
@@ -84,8 +83,8 @@ def _tls_squares(problem, frame, out: np.ndarray) -> None:
     lp, lap = st._scalar(frame.Lp), st._scalar(frame.Lap)
     iso = lp is not None and lap is not None
     weighted = problem.a_scale is not None
-    # A's rotation information at the measured input (E_A = identity): (L_arᵀ L_ar)/4, the
-    # metric being about half the angle (D = I/2 at the identity, structured eq. 15)
+    # A's rotation information at the measured input (E_A = identity): (L_arᵀ L_ar)/4, as the
+    # metric's Jacobian is D = I/2 there (eq. 15; normal_equations._metric_jacobian)
     Ha = 0.25 * (frame.Lar.T @ frame.Lar)
     if not iso:
         Qap = frame.Lap.T @ frame.Lap
@@ -95,7 +94,7 @@ def _tls_squares(problem, frame, out: np.ndarray) -> None:
         keep = Qap @ Mp                        # I - Q̄p M_p
     else:
         q_p, q_a = lp * lp, lap * lap
-    for sl in st.chunk_slices(problem.n, CHUNK):
+    for sl in chunk_slices(problem.n):
         pos_a, quat_a, pos_b, quat_b = st._chunk_of(problem, sl)
         ch = st._channels(frame, pos_a, quat_a, pos_b, quat_b)
         c = ch.c
@@ -117,7 +116,7 @@ def _tls_squares(problem, frame, out: np.ndarray) -> None:
             hp = (extra * m) * ch.gp
             reduction = m * np.einsum('ij,ij->j', ch.gp, ch.gp)
         else:
-            C = st._skew(c)
+            C = skew(c, pair_last=True)
             N = np.einsum('abn,bc->acn', C, Qe)
             U -= st._mm(N, C)
             hp = keep @ ch.gp

@@ -7,8 +7,7 @@ Schur-complement covariance, the stationarity of the solution and the chi-square
 """
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import noise_covariance, whitening
-from coreg_ros.core.estimator import Problem, solve_ols, solve_tls
+from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, solve_tls, whitening
 from coreg_ros.core.initialize import initialize, project_to_so3, rotations_from_pairs
 from coreg_ros.core.models import output_error, Parameters, SPECS
 from coreg_ros.sim import simulate_pairs, Truth

@@ -1,5 +1,5 @@
 """
-The structured normal equations (core/structured.py) against the generic path.
+The structured normal equations (core/estimator/normal_equations.py) against the generic path.
 
 The generic path forms every pair's Jacobian blocks and eliminates 6×6 input blocks; the
 structured one works in channels, eliminates the input position in closed form and keeps a
@@ -13,7 +13,7 @@ import dataclasses
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import whitening
+from coreg_ros.core.estimator import lm, ols, whitening
 from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
@@ -78,9 +78,9 @@ def test_ols_normal_equations_match_the_generic_path(model, kind, monkeypatch):
     params, _ = _perturbed_state(problem, rng)
     assert structured.applies(problem, inputs=False)
     r1, r2 = np.empty((N, problem.spec.n_res)), np.empty((N, problem.spec.n_res))
-    H1, g1, c1 = est._ols_normal(problem, params, r1)
+    H1, g1, c1 = ols._ols_normal(problem, params, r1)
     with generic(monkeypatch):
-        H2, g2, c2 = est._ols_normal(problem, params, r2)
+        H2, g2, c2 = ols._ols_normal(problem, params, r2)
     assert _rel(H1, H2) < 1e-12
     assert _rel(g1, g2) < 1e-10
     assert c1 == pytest.approx(c2, rel=1e-12)
@@ -108,8 +108,8 @@ def test_tls_schur_complement_matches_the_generic_path(model, kind, weighted, la
     assert np.abs(ry1 - ry2).max() < 1e-10 and np.abs(rx1 - rx2).max() < 1e-10
     # the input corrections of one step agree to the float32 storage of the factors
     delta = np.linalg.solve(S1, b1)
-    dx1 = est.back_substitute(problem, f1, delta)
-    dx2 = est.back_substitute(problem, f2, delta)
+    dx1 = est.back_substitute(problem.n, f1, delta)
+    dx2 = est.back_substitute(problem.n, f2, delta)
     assert dx1.shape == (6, N)
     assert _rel(dx1, dx2) < 1e-5
 
@@ -221,8 +221,8 @@ class _Curve:
             cost = self.faults.pop(0) if self.faults else lin.cost
             return trial, cost, lin
 
-        lin = est._Linearization(H + lam * np.diag(np.diag(H)), -(J.T @ r), self.cost(theta),
-                                 propose)
+        lin = lm.Linearization(H + lam * np.diag(np.diag(H)), -(J.T @ r), self.cost(theta),
+                               propose)
         lin.made_at = (theta, lam)
         return lin
 
@@ -235,8 +235,8 @@ def _optimum():
 
 def test_driver_converges_and_returns_the_linearisation_at_the_solution():
     curve = _Curve()
-    theta, status, it, last, lam = est._levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
-                                                            1e-12)
+    theta, status, it, last, lam = lm.levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
+                                                          1e-12)
     assert status > 0
     assert theta == pytest.approx(_optimum(), abs=1e-6)
     assert last.made_at == (theta, lam)
@@ -246,8 +246,8 @@ def test_driver_converges_and_returns_the_linearisation_at_the_solution():
 @pytest.mark.parametrize('fault', [np.inf, np.nan, 1e300])
 def test_driver_rejects_bad_trials_and_raises_the_damping(fault):
     curve = _Curve(faults=[fault, fault])
-    theta, status, _, last, lam = est._levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
-                                                           1e-12)
+    theta, status, _, last, lam = lm.levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
+                                                         1e-12)
     assert status > 0
     assert theta == pytest.approx(_optimum(), abs=1e-6)
     assert last.made_at == (theta, lam)
@@ -255,8 +255,8 @@ def test_driver_rejects_bad_trials_and_raises_the_damping(fault):
 
 def test_driver_gives_up_with_the_damping_of_its_last_linearisation():
     curve = _Curve(faults=[1e300] * 100)
-    theta, status, _, last, lam = est._levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
-                                                           1e-12)
+    theta, status, _, last, lam = lm.levenberg_marquardt(3.0, curve.linearize, 100, 1e-5,
+                                                         1e-12)
     assert status == -1 and theta == 3.0
     assert last.made_at == (3.0, lam)
 

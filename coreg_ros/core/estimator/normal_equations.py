@@ -1,7 +1,7 @@
 """
 Normal equations of full-pose and position-only problems through their block structure.
 
-The generic code in ``estimator`` forms every pair's Jacobian blocks and multiplies them as
+The generic code in ``ols`` and ``tls`` forms every pair's Jacobian blocks and multiplies them as
 stacks of small matrices. For one marker (full pose, position only) with noise that does not
 correlate position and rotation (block-diagonal whitening, the usual case), the same normal
 equations (Ikits eqs. 36, 42) follow from far less work:
@@ -35,12 +35,10 @@ from typing import NamedTuple, Optional, Union
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConvergenceError
+from coreg_ros.core.estimator.problem import chunk_slices
 from coreg_ros.core.models import Parameters, tangent_of_chart
+from coreg_ros.core.so3 import skew
 import numpy as np
-
-#: Pairs processed at once. Larger than the generic CHUNK: the per-pair state here is small
-#: (about 1.5 KB transient) and longer vectors amortise numpy's per-call overhead.
-CHUNK = 8192
 
 
 def applies(problem, inputs: bool = True) -> bool:
@@ -70,15 +68,6 @@ def _block_diagonal(L: np.ndarray) -> bool:
 # Structure-of-arrays helpers: vectors (3, c), matrices (3, 3, c), quaternions (4, c)
 # ----------------------------------------------------------------------------------------------
 
-def _rotation(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (3, 3, c) of unit quaternions (4, c) (Ikits eq. 21)."""
-    R = np.empty((3, 3, q.shape[1]))
-    for i, row in enumerate(quat.matrix_parts(*q)):
-        for j, entry in enumerate(row):
-            R[i, j] = entry
-    return R
-
-
 def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product of quaternions (4,) or (4, c), broadcast to (4, c)."""
     return np.array(quat.multiply_parts(p, q))
@@ -96,14 +85,6 @@ def rotated(q: np.ndarray, d: np.ndarray) -> np.ndarray:
         qc = _qmul(quat.exp_parts(*d[:, sl]), q[:, sl])
         out[:, sl] = qc / np.sqrt(qc[0] * qc[0] + qc[1] * qc[1] + qc[2] * qc[2] + qc[3] * qc[3])
     return out
-
-
-def _skew(u: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [u]× (3, 3, c) of vectors (3, c)."""
-    S = np.zeros((3, 3, u.shape[1]))
-    S[0, 1], S[0, 2], S[1, 2] = -u[2], u[1], -u[0]
-    S[1, 0], S[2, 0], S[2, 1] = u[2], -u[1], u[0]
-    return S
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -134,7 +115,7 @@ def _gram(Y: np.ndarray) -> np.ndarray:
 
 def _metric_jacobian(E: np.ndarray) -> np.ndarray:
     """D = ∂vec(E)/∂a (3, 3, c) for ``E ← Exp(a) ⊗ E``: ``(E_w I - [E_v]×) / 2`` (eq. 15)."""
-    D = _skew(-0.5 * E[1:])
+    D = skew(-0.5 * E[1:], pair_last=True)
     for k in range(3):
         D[k, k] = 0.5 * E[0]
     return D
@@ -292,7 +273,7 @@ def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b) -> _Chunk:
     """Residuals and channel Jacobians of a chunk, all pair-last: inputs (3, c), (4, c)."""
     params = frame.params
     R0 = params.R0
-    Ra = _rotation(qa)
+    Ra = quat.to_matrix(qa, pair_last=True)
     c = np.einsum('abn,b->an', Ra, params.markers[0])
     v = pos_a + c
     e_p = (params.p0[:, None] + R0 @ v) - pos_b
@@ -359,11 +340,6 @@ def _sum_chunks(fn, n: int) -> list:
     return [functools.reduce(operator.add, terms) for terms in zip(*parts, strict=True)]
 
 
-def chunk_slices(n: int, size: int = CHUNK) -> list:
-    """Slices of at most ``size`` pairs covering n pairs (also ``estimator.Problem.chunks``)."""
-    return [slice(i, min(i + size, n)) for i in range(0, n, size)]
-
-
 def _weighted(M: Optional[np.ndarray], w: np.ndarray) -> Optional[np.ndarray]:
     """Per-pair weights on a pair-last stack (None stays None)."""
     return None if M is None else M * w
@@ -379,7 +355,7 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
 
     Parameters
     ----------
-    problem : estimator.Problem
+    problem : Problem
         One for which ``applies`` is true. With ``problem.weights`` (N,), pair i's terms
         count w_i times (0 leaves a pair out, -1 takes it back out of a sum) while every
         pair's residuals are still given: the robust fit tests the pairs it left out.
@@ -479,11 +455,11 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
 
     Parameters
     ----------
-    problem : estimator.Problem
+    problem : Problem
         One for which ``applies(problem)`` is true.
     params : Parameters
         The calibration φ the sums are taken at.
-    x : estimator.InputState
+    x : tls.InputState
         Current input estimates.
     lam : float
         Damping λ.
@@ -516,7 +492,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             return extra, m, q_p * extra * m
     elif weighted:
         raise ValueError('per-pair input weights need isotropic position noise here '
-                         '(structured.applies is false for this problem)')
+                         '(normal_equations.applies is false for this problem)')
     else:  # constant 3×3 blocks
         Qap = frame.Lap.T @ frame.Lap
         Upp = Qp_bar + Qap
@@ -545,7 +521,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             r_ar *= np.sqrt(w)
             U *= w
             gar *= w
-        C = _skew(ch.c)
+        C = skew(ch.c, pair_last=True)
         g_pos = ch.gp + gap
         if iso:
             # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q_p
@@ -628,7 +604,8 @@ def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
     return out
 
 
-def back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray) -> np.ndarray:
+def closed_form_back_substitute(n: int, factors: TlsFactors,
+                                delta_phi: np.ndarray) -> np.ndarray:
     """
     Input corrections of a parameter step, from the factors of ``tls_schur``.
 

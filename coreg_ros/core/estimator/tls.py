@@ -1,0 +1,354 @@
+"""
+Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
+
+TLS treats every input pose as a parameter (eq. 42). Its normal matrix is block-arrowhead:
+one 6×6 block ``U_i`` per pair, coupled to φ by ``W_i`` (6×P). Eliminating the per-pair
+blocks (Schur complement) leaves a P×P system ``S δφ = b`` with ``S = V - Σ W_iᵀ U_i⁻¹ W_i``;
+the input corrections follow pair by pair, ``δx_i = U_i⁻¹(-g_i - W_i δφ)`` (``back_substitute``).
+No dense (6N+P)² matrix ever exists, and time and memory per iteration are O(N). The posterior
+covariance of φ is ``S⁻¹`` (the φ block of the inverse, B.4.2).
+
+The per-pair blocks are formed here for any model (``_tls_blocks``, factored by the batched
+Cholesky of ``batched``), or in closed form by ``normal_equations.tls_schur`` where that
+applies; both give the same reduced system.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Optional
+
+from coreg_ros.core import batched
+from coreg_ros.core.estimator import normal_equations
+from coreg_ros.core.estimator.lm import (
+    levenberg_marquardt,
+    Linearization,
+    status_message,
+    XTOL,
+)
+from coreg_ros.core.estimator.posterior import covariance, Solution
+from coreg_ros.core.estimator.priors import prior_rows
+from coreg_ros.core.estimator.problem import chunk_slices, pair_last, Problem
+from coreg_ros.core.models import error_rotation_jacobian, linearize, Parameters
+import numpy as np
+
+#: A converged TLS linearisation serves as the posterior information (saving a pass over
+#: the pairs) only when its damping adds at most this share to any diagonal element. The
+#: share is λ·V_jj/S_jj, not λ: the Schur complement S can be far smaller than V = Σ BᵀB
+#: when A is much noisier than B.
+DAMPING_SHARE = 1e-6
+
+
+class InputState:
+    """
+    The TLS estimates of the inputs x_i = (p_A, q_A), stored pair-last: (3, N) and (4, N).
+
+    ``pos`` and ``quat`` are the (N, 3) and (N, 4) views. Each orientation is stepped
+    multiplicatively, ``q ← Exp(δ) ⊗ q``: a chart centred at the current estimate (the limit
+    of §3.1's re-charting), so no per-pair chart bookkeeping is needed and every input block
+    is equally well conditioned.
+    """
+
+    def __init__(self, pos: np.ndarray, quats: np.ndarray):
+        self.pos_t = np.ascontiguousarray(np.asarray(pos, dtype=float).T)
+        self.quat_t = np.ascontiguousarray(np.asarray(quats, dtype=float).T)
+
+    @property
+    def pos(self) -> np.ndarray:
+        """Input positions, (N, 3) view."""
+        return self.pos_t.T
+
+    @property
+    def quat(self) -> np.ndarray:
+        """Input orientations, (N, 4) view."""
+        return self.quat_t.T
+
+    @classmethod
+    def _pair_last(cls, pos_t: np.ndarray, quat_t: np.ndarray) -> InputState:
+        """Wrap pair-last arrays (3, N) and (4, N) without copying them."""
+        out = cls.__new__(cls)
+        out.pos_t, out.quat_t = pos_t, quat_t
+        return out
+
+    def stepped(self, dx: np.ndarray) -> InputState:
+        """Return the state after the step dx (6, N) = (δp, δθ), pair-last."""
+        return InputState._pair_last(self.pos_t + dx[0:3],
+                                     normal_equations.rotated(self.quat_t, dx[3:6]))
+
+
+@dataclass(frozen=True)
+class TlsSums:
+    """
+    A TLS linearisation kept for a refit: the damped reduced system, the cost, the damping.
+
+    The sums are over pairs; a refit of the same pairs less a few starts from these sums less
+    the removed pairs' terms (``solve_tls(seed=...)``), with the kept pairs' factors for its
+    first input step, instead of a pass over all pairs.
+    """
+
+    S: np.ndarray
+    b: np.ndarray
+    cost: float
+    lam: float
+    factors: object   # normal_equations.TlsFactors over the fit's pairs
+
+
+def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
+    """
+    Whitened residuals and Jacobian blocks of the pairs in ``sl`` (eqs. 44, 48, 49).
+
+    Returns r_x (c, 6), r_y (c, m), A_x (c, 6, 6), A_y (c, m, 6), B (c, m, P).
+    """
+    pos_b, quat_b = problem.output(sl)
+    e_y, j_phi, j_x = linearize(params, x.pos[sl], x.quat[sl], pos_b, quat_b, with_input=True)
+    ex_rot, dex = error_rotation_jacobian(x.quat[sl], problem.quat_a[sl])
+    e_x = np.concatenate([x.pos[sl] - problem.pos_a[sl], ex_rot], axis=1)
+    Lx = problem.whiten_a
+    A_x = np.empty((len(e_x), 6, 6))
+    A_x[:, :, 0:3] = Lx[:, 0:3]
+    A_x[:, :, 3:6] = Lx[:, 3:6] @ dex
+    r_x = e_x @ Lx.T
+    if problem.a_scale is not None:
+        w = 1.0 / np.sqrt(problem.a_scale[sl])
+        r_x = r_x * w[:, None]
+        A_x = A_x * w[:, None, None]
+    return r_x, e_y @ problem.whiten_b.T, A_x, problem.whiten_out(j_x), problem.whiten_out(j_phi)
+
+
+def _damped(U: np.ndarray, lam: float) -> np.ndarray:
+    """U + λ diag(U) for a stack of 6×6 blocks."""
+    if lam == 0.0:
+        return U
+    U = U.copy()
+    idx = np.arange(6)
+    U[:, idx, idx] *= 1.0 + lam
+    return U
+
+
+def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float,
+               residuals: Optional[tuple] = None):
+    """
+    Reduced system S δφ = b and the cost at (x, φ), chunk by chunk (Schur complement).
+
+    With ``U_i = L_i L_iᵀ`` (batched Cholesky of the damped 6×6 input blocks) and
+    ``Z_i = L_i⁻¹ [W_i | g_i]``, ``S = Σ B_iᵀB_i - Σ Z_iᵀZ_i`` (W and g parts). Only the
+    factors and Z are kept per pair, for ``back_substitute``. Priors and the damping of the φ
+    block are added by the caller.
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+    b : ndarray, shape (P,)
+    v_diag : ndarray, shape (P,)
+        diag(Σ BᵀB), the scale of the φ damping.
+    cost : float
+    factors : list
+        Per-chunk (L, Z) for ``back_substitute``.
+
+    """
+    P = problem.spec.n_params
+    S = np.zeros((P, P))
+    v_diag = np.zeros(P)
+    b = np.zeros(P)
+    cost = 0.0
+    factors = []
+    for sl in problem.chunks():
+        r_x, r_y, A_x, A_y, B = _tls_blocks(problem, params, x, sl)
+        A = np.concatenate([A_x, A_y], axis=1)  # (c, 6 + m, 6)
+        At = np.ascontiguousarray(A.transpose(0, 2, 1))
+        U = At @ A
+        # [W_i | g_i] = A_yᵀ [B_i | r_y,i] + [0 | A_xᵀ r_x,i], in one product
+        Wg = At[:, :, 6:] @ np.concatenate([B, r_y[:, :, None]], axis=2)
+        Wg[:, :, P] += (At[:, :, :6] @ r_x[:, :, None])[:, :, 0]
+        L = batched.cholesky(_damped(U, lam))
+        Z = batched.solve_lower(L, np.ascontiguousarray(Wg.transpose(1, 2, 0)))  # (6, P+1, c)
+        # The factors are kept only for the input back-substitution. Stored in float32 they
+        # take 9 instead of 17 bytes of each 1 KB per pair; S and b below are accumulated in
+        # float64 first, so δφ is exact and only the input corrections δx_i carry a relative
+        # error of ~1e-7, which the next linearisation absorbs (an inexact Newton step in x).
+        factors.append(([[None if v is None else v.astype(np.float32) for v in row] for row in L],
+                        Z.astype(np.float32)))
+        B2 = B.reshape(-1, P)
+        Zt = Z.transpose(0, 2, 1).reshape(-1, P + 1)  # rows (k, pair)
+        ZW, Zg = Zt[:, :P], Zt[:, P]
+        S += B2.T @ B2 - ZW.T @ ZW
+        v_diag += np.einsum('ij,ij->j', B2, B2)
+        b += -(B2.T @ r_y.reshape(-1)) + ZW.T @ Zg
+        cost += float(np.sum(r_x ** 2) + np.sum(r_y ** 2))
+        if residuals is not None:
+            residuals[0][sl], residuals[1][sl] = r_y, r_x
+    return S, b, v_diag, cost, factors
+
+
+def back_substitute(n: int, factors, delta_phi: np.ndarray) -> np.ndarray:
+    """
+    Input corrections ``δx_i = -U_i⁻¹(g_i + W_i δφ)`` of a parameter step, (6, N) pair-last.
+
+    Generic factors (``_tls_schur``): ``δx_i = -L_i⁻ᵀ(Z_g,i + Z_W,i δφ)`` with the batched
+    Cholesky factors; structured ones (``normal_equations.TlsFactors``): their closed form.
+
+    Parameters
+    ----------
+    n : int
+        Number of pairs N.
+    factors : list or normal_equations.TlsFactors
+        The factors of the linearisation (``tls_linearization``).
+    delta_phi : ndarray, shape (P,)
+        The parameter step.
+
+    """
+    if isinstance(factors, normal_equations.TlsFactors):
+        return normal_equations.closed_form_back_substitute(n, factors, delta_phi)
+    dx = np.empty((6, n))
+    for sl, (L, Z) in zip(chunk_slices(n), factors, strict=True):
+        rhs = Z[:, :-1, :].transpose(0, 2, 1) @ delta_phi + Z[:, -1, :]  # (6, c), float64
+        dx[:, sl] = -batched.solve_upper_t(L, rhs[:, None, :])[:, 0, :]
+    return dx
+
+
+def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: float):
+    """
+    Linearise TLS at (x, φ): the damped reduced system with priors, cost and residuals.
+
+    The structured path (``normal_equations.applies``) and the generic one give the same
+    system.
+
+    Parameters
+    ----------
+    problem : Problem
+        The whitened problem (no pair weights: TLS takes subsets).
+    params : Parameters
+        φ at the linearisation point.
+    x : InputState
+        The input estimates at the linearisation point.
+    lam : float
+        The damping λ (0: the undamped posterior information).
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+        Damped Schur complement (undamped when λ = 0: the posterior information).
+    b : ndarray, shape (P,)
+    cost : float
+    residuals : tuple of ndarray
+        Whitened output (N, m) and input (N, 6) residuals.
+    factors
+        For ``back_substitute``.
+    damping_share : float
+        Largest share of the φ damping in a diagonal element of S, max_j λ·V_jj / S_jj.
+
+    """
+    if problem.weights is not None:
+        raise ValueError('TLS takes subsets of the pairs, not pair weights (Problem.weights)')
+    residuals = (pair_last(problem.n, problem.spec.n_res), pair_last(problem.n, 6))
+    schur = normal_equations.tls_schur if normal_equations.applies(problem) else _tls_schur
+    S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
+    r_prior, j_prior = prior_rows(problem, params)
+    damping = lam * (v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
+    S = S + j_prior.T @ j_prior + np.diag(damping)
+    b = b - j_prior.T @ r_prior
+    share = float(np.max(damping / np.diag(S))) if lam > 0 else 0.0
+    return S, b, cost + float(r_prior @ r_prior), residuals, factors, share
+
+
+def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
+              xtol: Optional[float] = None, ftol: float = 1e-12,
+              inputs: Optional[InputState] = None, damping: float = 1e-6,
+              seed: Optional[tuple] = None) -> Solution:
+    """
+    Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
+
+    The inputs start at their measured values; damping λ·diag is applied to both the per-pair
+    blocks and the φ block, so a damped step is the exact minimiser of the damped linearised
+    problem. Time and memory per iteration are O(N).
+
+    Parameters
+    ----------
+    problem : Problem
+        The whitened problem.
+    params : Parameters
+        Initial φ, e.g. the OLS solution.
+    max_iterations : int
+        Largest number of iterations.
+    xtol, ftol : float
+        As in ``solve_ols``.
+    inputs : InputState, optional
+        Where the input estimates start (default: the measured inputs). The inputs of a fit
+        of nearly the same pairs (``Solution.inputs``) start a refit next to its solution;
+        the minimum and the stopping rule are the same from any start.
+    damping : float
+        First λ. A start next to the minimum (a refit) needs little: with λ small the
+        linearisation at the solution is also the posterior information (``DAMPING_SHARE``)
+        instead of needing one more pass at λ = 0.
+    seed : tuple, optional
+        ``(sums, dx)``: the linearisation at (``params``, ``inputs``) with damping ``damping``
+        (a ``TlsSums`` of exactly this problem's pairs, e.g. a fit's sums less the removed
+        pairs' terms; its factors, if any, are released after the first step) and ``dx(δφ)``
+        giving the inputs' step (6, N) from it. The first step then needs no pass over the
+        pairs.
+
+    Returns
+    -------
+    Solution
+
+    """
+    def linearize(state, lam: float) -> Linearization:
+        phi, x = state
+        S, b, cost, residuals, factors, share = tls_linearization(problem, phi, x, lam)
+
+        def propose(delta, lam_next):
+            trial = phi.stepped(delta)
+            if not trial.valid:
+                return state, np.inf, None
+            trial = (trial.recharted(), x.stepped(back_substitute(problem.n, factors, delta)))
+            factors.clear()  # spent: free them before the trial's are made
+            lin = linearize(trial, lam_next)
+            return trial, lin.cost, lin
+
+        return Linearization(S, b, cost, propose, residuals, share, (factors, lam))
+
+    def seeded(sums: TlsSums, dx_of: Callable) -> Linearization:
+        phi, x = state
+
+        def propose(delta, lam_next):
+            trial = phi.stepped(delta)
+            if not trial.valid:
+                return state, np.inf, None
+            trial = (trial.recharted(), x.stepped(dx_of(delta)))
+            if sums.factors is not None:
+                sums.factors.clear()  # spent: free them before the trial's are made
+            lin = linearize(trial, lam_next)
+            return trial, lin.cost, lin
+
+        # residuals None: if this very state is returned, the posterior is made afresh
+        return Linearization(sums.S, sums.b, sums.cost, propose)
+
+    cold = inputs is None  # inputs at their measured values: they must move at least once
+    if cold:
+        inputs = InputState(problem.pos_a, problem.quat_a)
+    elif inputs.pos_t.shape != (3, problem.n):
+        raise ValueError(f'inputs for {inputs.pos_t.shape[1]} pairs, problem has {problem.n}')
+    state = (params, inputs)
+    xtol = XTOL if xtol is None else xtol
+    first = None if seed is None else seeded(*seed)
+    (params, x), status, it, last, lam = levenberg_marquardt(
+        state, linearize, max_iterations, xtol, ftol, damping, first, min_steps=int(cold))
+    if status > 0 and last.residuals is not None and last.damping_share <= DAMPING_SHARE:
+        # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
+        # is almost undamped: its Schur complement is the posterior information (relative
+        # change of the covariance below DAMPING_SHARE), which saves a pass over the pairs.
+        info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
+        sums = TlsSums(last.info, last.rhs, last.cost, lam, last.factors[0])
+    else:
+        last = None
+        info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
+        sums = TlsSums(info, b, chi2, 0.0, factors)
+    if not (isinstance(sums.factors, normal_equations.TlsFactors) and sums.factors.chunks):
+        # a refit from sums needs the structured factors (back-substitution by n), intact
+        # (a rejected last trial spent them)
+        sums = None
+    n_prior = len(prior_rows(problem, params)[0])
+    return Solution(params, covariance(info), info, chi2,
+                    problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
+                    status_message(status, it, xtol), x, sums=sums)
