@@ -15,6 +15,7 @@ from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.estimator import lm, ols, whitening
 from coreg_ros.core.estimator import normal_equations as structured
+from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
 from coreg_ros.sim import simulate_pairs, Truth
@@ -101,7 +102,7 @@ def test_tls_schur_complement_matches_the_generic_path(model, kind, weighted, la
     S1, b1, c1, (ry1, rx1), f1, _ = est.tls_linearization(problem, params, x, lam)
     with generic(monkeypatch):
         S2, b2, c2, (ry2, rx2), f2, _ = est.tls_linearization(problem, params, x, lam)
-    assert isinstance(f1, structured.TlsFactors) and not isinstance(f2, structured.TlsFactors)
+    assert isinstance(f1, TlsFactors) and not isinstance(f2, TlsFactors)
     assert _rel(S1, S2) < 1e-11
     assert _rel(b1, b2) < 1e-10
     assert c1 == pytest.approx(c2, rel=1e-12)

@@ -9,7 +9,7 @@ No dense (6N+P)² matrix ever exists, and time and memory per iteration are O(N)
 covariance of φ is ``S⁻¹`` (the φ block of the inverse, B.4.2).
 
 The per-pair blocks are formed here for any model (``_tls_blocks``, factored by the batched
-Cholesky of ``batched``), or in closed form by ``normal_equations.tls_schur`` where that
+Cholesky of ``batched``), or in closed form by ``normal_equations_tls.tls_schur`` where that
 applies; both give the same reduced system.
 """
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from coreg_ros.core import batched
-from coreg_ros.core.estimator import normal_equations
+from coreg_ros.core.estimator import normal_equations, normal_equations_tls
 from coreg_ros.core.estimator.lm import (
     levenberg_marquardt,
     Linearization,
@@ -91,7 +91,7 @@ class TlsSums:
     b: np.ndarray
     cost: float
     lam: float
-    factors: object   # normal_equations.TlsFactors over the fit's pairs
+    factors: object   # normal_equations_tls.TlsFactors over the fit's pairs
 
 
 def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
@@ -186,20 +186,20 @@ def back_substitute(n: int, factors, delta_phi: np.ndarray) -> np.ndarray:
     Input corrections ``δx_i = -U_i⁻¹(g_i + W_i δφ)`` of a parameter step, (6, N) pair-last.
 
     Generic factors (``_tls_schur``): ``δx_i = -L_i⁻ᵀ(Z_g,i + Z_W,i δφ)`` with the batched
-    Cholesky factors; structured ones (``normal_equations.TlsFactors``): their closed form.
+    Cholesky factors; structured ones (``normal_equations_tls.TlsFactors``): their closed form.
 
     Parameters
     ----------
     n : int
         Number of pairs N.
-    factors : list or normal_equations.TlsFactors
+    factors : list or normal_equations_tls.TlsFactors
         The factors of the linearisation (``tls_linearization``).
     delta_phi : ndarray, shape (P,)
         The parameter step.
 
     """
-    if isinstance(factors, normal_equations.TlsFactors):
-        return normal_equations.closed_form_back_substitute(n, factors, delta_phi)
+    if isinstance(factors, normal_equations_tls.TlsFactors):
+        return normal_equations_tls.closed_form_back_substitute(n, factors, delta_phi)
     dx = np.empty((6, n))
     for sl, (L, Z) in zip(chunk_slices(n), factors, strict=True):
         rhs = Z[:, :-1, :].transpose(0, 2, 1) @ delta_phi + Z[:, -1, :]  # (6, c), float64
@@ -242,7 +242,7 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
     if problem.weights is not None:
         raise ValueError('TLS takes subsets of the pairs, not pair weights (Problem.weights)')
     residuals = (pair_last(problem.n, problem.spec.n_res), pair_last(problem.n, 6))
-    schur = normal_equations.tls_schur if normal_equations.applies(problem) else _tls_schur
+    schur = normal_equations_tls.tls_schur if normal_equations.applies(problem) else _tls_schur
     S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
     r_prior, j_prior = prior_rows(problem, params)
     damping = lam * (v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
@@ -344,7 +344,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         last = None
         info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
         sums = TlsSums(info, b, chi2, 0.0, factors)
-    if not (isinstance(sums.factors, normal_equations.TlsFactors) and sums.factors.chunks):
+    if not (isinstance(sums.factors, normal_equations_tls.TlsFactors) and sums.factors.chunks):
         # a refit from sums needs the structured factors (back-substitution by n), intact
         # (a rejected last trial spent them)
         sums = None

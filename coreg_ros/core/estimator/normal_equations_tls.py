@@ -1,0 +1,281 @@
+"""
+TLS normal equations of full-pose and position-only problems in closed form (Ikits B.2).
+
+The TLS half of ``normal_equations`` (whose docstring derives the channels and the moment
+matrix): the input position is eliminated in closed form (one constant 3×3 inverse, Schur
+complement ``Q_e``), and only a 3×3 block per pair remains for the input rotation, factored by
+closed-form Cholesky. ``tls.tls_linearization`` uses ``tls_schur`` where
+``normal_equations.applies`` holds; ``tls.back_substitute`` takes the input step from its
+factors (``closed_form_back_substitute``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Optional, Union
+
+from coreg_ros.core.errors import ConvergenceError
+from coreg_ros.core.estimator.normal_equations import (
+    _add_rotation_block,
+    _channels,
+    _cholesky3,
+    _Chunk,
+    _chunk_of,
+    _CONJ,
+    _cross,
+    _error_quaternion,
+    _features,
+    _Frame,
+    _gram,
+    _left,
+    _mm,
+    _rotation_information,
+    _scalar,
+    _sum_chunks,
+    _sum_gradient,
+    _sym_solve3,
+)
+from coreg_ros.core.models import Parameters
+from coreg_ros.core.so3 import skew
+import numpy as np
+
+
+class ChunkFactors(NamedTuple):
+    """
+    What the back-substitution needs of one chunk of c pairs (float32 where marked).
+
+    The float32 arrays cost half the memory; δφ is solved from S and b accumulated in float64,
+    so only the input steps carry a relative error of ~1e-7, which the next linearisation
+    absorbs (an inexact Newton step in x, as in the generic path).
+    """
+
+    pairs: slice
+    L: np.ndarray        # (6, c) float32: l00, l10, l11, l20, l21, l22 of the 3×3 factor
+    Z: np.ndarray        # (3, k, c) float32: L⁻¹ [N | H_r | g̃_θ]
+    c: np.ndarray        # (3, c) R_A p1
+    v: np.ndarray        # (3, c) p_A + R_A p1
+    Ra: np.ndarray       # (3, 3, c) float32 input orientations
+    g_pos: np.ndarray    # (3, c) gradient of the input position before elimination
+    m: Optional[Union[float, np.ndarray]]  # scalar M_p (one or per pair), None: matrix
+
+
+@dataclass
+class TlsFactors:
+    """What the input back-substitution needs of one linearisation."""
+
+    T: np.ndarray                 # (P, P) φ' = T φ (reduced coordinates)
+    Mp: Optional[np.ndarray]      # (3, 3) constant M_p, None when it is a scalar
+    Qp_bar: np.ndarray            # (3, 3) Q̄p
+    chunks: list                  # of ChunkFactors
+
+    def clear(self) -> None:
+        """Drop the per-pair factors (spent after the back-substitution)."""
+        self.chunks.clear()
+
+
+def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
+    """
+    Reduced system ``S δφ = b`` and the cost at (x, φ) (Ikits eqs. 42-49), damped by λ.
+
+    Per pair, the input position is eliminated in closed form (``M_p``, ``Q_e``) and the input
+    rotation by the closed-form Cholesky factor L of the remaining 3×3 block
+    ``Ũ = [c]×ᵀ Q_e [c]× + H_r + H_ar``. With ``Z = L⁻¹ [N | H_r | g̃_θ]`` (``N = [c]× Q_e``)
+    the pair's coupling to φ' is ``Z_W = Z_N B_p + Z_H B_r`` and
+    ``S' = Σ B_pᵀ Q_e B_p + Σ B_rᵀ H_r B_r - Σ Z_Wᵀ Z_W``.
+
+    ``Q_e = Q̄p - Q̄p M_p Q̄p`` is evaluated as ``Q̄p M_p (Q_ap + Λ_p)``, without the
+    cancellation of the first form when A is far noisier than B.
+
+    Damping as in the generic path: λ·diag on every pair's 6×6 input block and λ·diag(V) on
+    the φ block, V = Σ Bᵀ B. Priors are not included (the caller adds them).
+
+    Parameters
+    ----------
+    problem : Problem
+        One for which ``applies(problem)`` is true.
+    params : Parameters
+        The calibration φ the sums are taken at.
+    x : tls.InputState
+        Current input estimates.
+    lam : float
+        Damping λ.
+    residuals : tuple of ndarray, optional
+        (N, m) and (N, 6) arrays filled with the whitened output and input residuals.
+
+    Returns
+    -------
+    S : ndarray, shape (P, P)
+    b : ndarray, shape (P,)
+    v_diag : ndarray, shape (P,)
+        diag(V), for the damping of the φ block by the caller.
+    cost : float
+    factors : TlsFactors
+
+    """
+    frame = _Frame.of(problem, params)
+    P, Qp_bar, has_rot = frame.P, frame.Qp_bar, frame.has_rot
+    weighted = problem.a_scale is not None
+    lp, lap = _scalar(frame.Lp), _scalar(frame.Lap)
+    iso = lp is not None and lap is not None
+    if iso:  # Q̄p = q_p I, Q_ap = q_a I: eliminating δp_A is a scalar per pair
+        q_p, q_a = lp * lp, lap * lap
+        Mp = Qe = None
+
+        def eliminated(w):
+            """M_p⁻¹ - q_p, m = M_p and q_e = q_p - q_p² m (without its cancellation)."""
+            extra = q_a * w + lam * (q_p + q_a * w)
+            m = 1.0 / (q_p + extra)
+            return extra, m, q_p * extra * m
+    elif weighted:
+        raise ValueError('per-pair input weights need isotropic position noise here '
+                         '(normal_equations.applies is false for this problem)')
+    else:  # constant 3×3 blocks
+        Qap = frame.Lap.T @ frame.Lap
+        Upp = Qp_bar + Qap
+        extra = Qap + lam * np.diag(np.diag(Upp))   # M_p⁻¹ - Q̄p
+        Mp = np.linalg.inv(Upp + lam * np.diag(np.diag(Upp)))
+        Qe = Qp_bar @ Mp @ extra
+        Qe = 0.5 * (Qe + Qe.T)
+        keep = extra @ Mp    # I - Q̄p M_p, as hp = gp - Q̄p M_p (gp + gap) needs it
+    factors = TlsFactors(frame.T, Mp, Qp_bar, [])
+    k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
+
+    def chunk(sl):
+        pos_a, quat_a, pos_b, quat_b = _chunk_of(problem, sl)
+        xp, xq = x.pos_t[:, sl], x.quat_t[:, sl]
+        ch = _channels(frame, xp, xq, pos_b, quat_b)
+        n_pairs = ch.c.shape[1]
+        r_ap = frame.Lap @ (xp - pos_a)
+        Ea = _error_quaternion(xq, quat_a * _CONJ)
+        r_ar, U, gar = _rotation_information(frame.Lar, Ea, None)
+        gap = frame.Lap.T @ r_ap
+        # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
+        w = 1.0 if not weighted else 1.0 / problem.a_scale[sl]
+        if weighted:
+            gap *= w
+            r_ap *= np.sqrt(w)
+            r_ar *= np.sqrt(w)
+            U *= w
+            gar *= w
+        C = skew(ch.c, pair_last=True)
+        g_pos = ch.gp + gap
+        if iso:
+            # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q_p
+            extra, m, q_e = eliminated(w)
+            cc = ch.c * ch.c
+            c2 = cc.sum(axis=0)
+            pre = q_p * (c2 - cc) + U[[0, 1, 2], [0, 1, 2]]   # scales the damping
+            for i in range(3):
+                U[i, i] += q_e * (c2 - cc[i])
+                for j in range(i):
+                    U[i, j] -= q_e * (ch.c[i] * ch.c[j])  # the lower triangle is all L uses
+            N = q_e * C
+            hp = (extra * m) * ch.gp - (q_p * m) * gap
+        else:
+            m = None
+            pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
+            N = np.einsum('abn,bc->acn', C, Qe)
+            U -= _mm(N, C)
+            hp = keep @ ch.gp - (Qp_bar @ Mp) @ gap
+        rhs = np.empty((3, k, n_pairs))
+        rhs[:, 0:3] = N
+        rhs[:, k - 1] = _cross(ch.c, hp) + gar
+        Vr = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
+        if has_rot:
+            pre += ch.Hr[[0, 1, 2], [0, 1, 2]]
+            U += ch.Hr
+            rhs[:, 3:6] = ch.Hr
+            rhs[:, k - 1] += ch.gr
+            _add_rotation_block(Vr, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+        for i in range(3):
+            U[i, i] += lam * pre[i]
+        L = _cholesky3(U)
+        Zs = _sym_solve3(L, rhs, transpose=False)
+        f = _features(ch)
+        if residuals is not None:
+            residuals[0][sl] = ch.r_out.T
+            residuals[1][sl, 0:3] = r_ap.T
+            residuals[1][sl, 3:6] = r_ar.T
+        kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c,
+                            ch.v, ch.Ra.astype(np.float32), g_pos, m)
+        cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
+                + np.einsum('ij,ij->', r_ar, r_ar))
+        # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
+        F = f @ f.T
+        Fe = (f * q_e) @ f.T if iso and weighted else F
+        return F, Fe, Vr, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost, [kept]
+
+    F, Fe, Vr, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
+    if iso and not weighted:  # q_e is one scalar for all pairs
+        Qe = eliminated(1.0)[2] * np.eye(3)
+    elif iso:
+        Qe = np.eye(3)
+    T = frame.T
+    S = T.T @ (frame.gram(Fe, Qe) + Vr - ZZ[:P, :P]) @ T
+    b = T.T @ (-g + ZZ[:P, P])
+    v_diag = np.diag(T.T @ (frame.gram(F, Qp_bar) + Vr) @ T).copy()
+    if not (np.isfinite(S).all() and np.isfinite(b).all()):
+        raise ConvergenceError('the linearised TLS system is not finite (a sample or an input '
+                               'weight is inf or NaN, or the noise is zero); check the pairs '
+                               'and the noise settings')
+    return S, b, v_diag, float(cost), factors
+
+
+def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
+    """``[Z_W | Z_g]`` (3, P+1, c) from ``Zs = L⁻¹[N | H_r | g̃_θ]``: Z_W = Z_N B_p + Z_H B_r."""
+    Zn = Zs[:, 0:3]
+    out = np.empty((3, P + 1, Zs.shape[2]))
+    out[:, 0:3] = Zn
+    # -Z_N [v]×: row a is v × (row a of Z_N), for the three rows at once
+    v0, v1, v2 = ch.v
+    z0, z1, z2 = Zn[:, 0], Zn[:, 1], Zn[:, 2]
+    out[:, 3] = v1 * z2 - v2 * z1
+    out[:, 4] = v2 * z0 - v0 * z2
+    out[:, 5] = v0 * z1 - v1 * z0
+    np.einsum('abn,bcn->acn', Zn, ch.Ra, out=out[:, 6:9])
+    if P == 12:
+        out[:, 3:6] += Zs[:, 3:6]
+        np.einsum('abn,bcn->acn', Zs[:, 3:6], ch.Ra, out=out[:, 9:12])
+    out[:, P] = Zs[:, -1]
+    return out
+
+
+def closed_form_back_substitute(n: int, factors: TlsFactors,
+                                delta_phi: np.ndarray) -> np.ndarray:
+    """
+    Input corrections of a parameter step, from the factors of ``tls_schur``.
+
+    ``δθ_A = -L⁻ᵀ(Z_g + Z_N B_p δφ' + Z_H B_r δφ')``, then
+    ``δp_A = -M_p(g_p + g_ap - Q̄p[c]× δθ_A + Q̄p B_p δφ')``.
+
+    Parameters
+    ----------
+    n : int
+        Number of pairs N.
+    factors : TlsFactors
+        The factors ``tls_schur`` returned.
+    delta_phi : ndarray, shape (P,)
+        The parameter step in reduced coordinates.
+
+    Returns
+    -------
+    dx : ndarray, shape (6, N)
+        (δp_A in m, δθ_A in rad) per pair, pair-last.
+
+    """
+    d = factors.T @ delta_phi
+    dx = np.empty((6, n))
+    for ch in factors.chunks:
+        L = tuple(ch.L.astype(float))
+        Z = ch.Z.astype(float)
+        Bp = d[0:3, None] - _cross(ch.v, np.broadcast_to(d[3:6, None], ch.v.shape)) \
+            + np.einsum('abn,b->an', ch.Ra, d[6:9])
+        rhs = np.einsum('abn,bn->an', Z[:, 0:3], Bp) + Z[:, -1]
+        if len(d) == 12:
+            Br = d[3:6, None] + np.einsum('abn,b->an', ch.Ra, d[9:12])
+            rhs += np.einsum('abn,bn->an', Z[:, 3:6], Br)
+        dth = -_sym_solve3(L, rhs, transpose=True)
+        y = ch.g_pos + factors.Qp_bar @ (Bp - _cross(ch.c, dth))
+        dx[0:3, ch.pairs] = -(factors.Mp @ y) if ch.m is None else -(ch.m * y)
+        dx[3:6, ch.pairs] = dth
+    return dx
