@@ -68,34 +68,19 @@ def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
         if q is not None and np.shape(q) != (n, 4):
             raise InputError(f'{name}: expected shape ({n}, 4) (one (w, x, y, z) per pair), got '
                              f'{np.shape(q)}')
-    quat_a = _unit_quaternions(pairs.quat_a, 'device A orientation')
+    quat_a = quat.unit_quaternions(pairs.quat_a, 'device A orientation')
     quat_b = None
     if spec.has_q1:
         if pairs.quat_b is None:
             raise InputError('model full_pose needs device B orientations; use '
                              '--model position_only for a position-only tracker')
-        quat_b = _unit_quaternions(pairs.quat_b, 'device B orientation')
+        quat_b = quat.unit_quaternions(pairs.quat_b, 'device B orientation')
     scale = None
     if pairs.a_var_scale is not None:
         scale = np.asarray(pairs.a_var_scale, dtype=float)
         if scale.shape != (n,) or not (np.isfinite(scale) & (scale > 0)).all():
             raise InputError('a_var_scale must be positive and finite, one per pair')
     return pos_a, quat_a, pos_b, quat_b, scale
-
-
-def _unit_quaternions(q, name: str) -> np.ndarray:
-    """
-    ``quat.validate_quaternions`` in one pass for the usual (N, 4) finite, unit-length input.
-
-    Anything else goes to ``validate_quaternions``, which says what is wrong.
-    """
-    q = np.asarray(q, dtype=float)
-    if q.ndim == 2 and q.shape[1] == 4 and np.isfinite(q).all():
-        norm = np.sqrt(np.einsum('ij,ij->i', q, q))
-        if (np.abs(norm - 1.0) <= quat.UNIT_NORM_TOLERANCE).all():
-            # normalised, w >= 0 (quat.canonical), in one division
-            return q / (norm * np.where(q[:, 0] < 0.0, -1.0, 1.0))[:, None]
-    return quat.validate_quaternions(q, name)
 
 
 #: Chance that the robust fit rejects a pair that fits the stated noise (per pair).
@@ -105,14 +90,13 @@ MAX_REJECTED_SHARE = 0.25
 #: Rounds of rejection and refit (the set of inliers settles in two or three).
 MAX_ROUNDS = 10
 
-#: Convergence tolerance of calibrate's fits (the solvers' own default, ``estimator.XTOL``,
-#: is 1e-5 σ): stop when the next step would move every parameter by at most this many of
-#: its posterior standard deviations. Near the minimum the steps shrink linearly (at 0.5°
-#: rotation noise on A, TLS at 1M pairs: 32 σ, 7.9 σ, 1.5e-3 σ, 2.8e-4 σ, then by ~0.17 a
-#: step), so the estimate is within ~1.2·XTOL σ of the minimum: 5e-3 σ changes no statistic
-#: (a bias of 5e-3 σ adds 2.5e-5 to the mean squared error; scipy's default, 1e-8 relative to
-#: |φ|, is ~1e-2 σ at 100k pairs), while each tenfold tightening costs about one more pass
-#: over the pairs.
+#: Convergence tolerance of calibrate's fits (the solvers' default, ``estimator.XTOL``, is
+#: 1e-5 σ): stop when the next step would move every parameter by at most this many posterior
+#: σ. Near the minimum the steps shrink linearly (0.5° rotation noise on A, TLS, 1M pairs:
+#: 32 σ, 7.9 σ, 1.5e-3 σ, 2.8e-4 σ, then by ~0.17 a step), so the estimate is within
+#: ~1.2·XTOL σ of the minimum: 5e-3 σ changes no statistic (a bias of 5e-3 σ adds 2.5e-5 to
+#: the mean squared error; scipy's default, 1e-8 relative to |φ|, is ~1e-2 σ at 100k pairs),
+#: while each tenfold tightening costs about one more pass over the pairs.
 XTOL = 5e-3
 
 #: Pairs the start (closed form, then OLS) uses at most, every k-th pair, before the fit of
@@ -456,12 +440,11 @@ def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int) -> Calib
     t0, t1, joint = result_poses(sol.params, sol.cov)
     dof = sol.n_rows - spec.n_params
     p_value = float(stats.chi2.sf(sol.chi2, dof)) if dof > 0 else float('nan')
-    success = sol.status > 0 and sol.cov is not None
     message = sol.message if sol.cov is not None else (
         sol.message + '; the covariance is singular (see observability)')
     return CalibrationResult(
-        success=success, status=sol.status, message=message, model=spec.name,
-        method=settings.method, n_pairs=n, base_to_base=t0, tool_to_marker=t1,
+        success=sol.status > 0 and sol.cov is not None, status=sol.status, message=message,
+        model=spec.name, method=settings.method, n_pairs=n, base_to_base=t0, tool_to_marker=t1,
         markers=sol.params.markers.copy(), params=sol.params.phi.copy(), param_cov=sol.cov,
         chi2=float(sol.chi2), dof=int(dof), p_value=p_value, residuals=sol.residuals,
         iterations=sol.iterations, cov_joint=joint, input_residuals=sol.input_residuals,

@@ -71,6 +71,29 @@ def validate_quaternions(q, name: str = 'quaternion') -> np.ndarray:
     return canonical(q / norm[..., None])
 
 
+def unit_quaternions(q, name: str = 'quaternion') -> np.ndarray:
+    """
+    ``validate_quaternions`` in one pass for the usual (N, 4) finite, unit-length input.
+
+    Anything else goes to ``validate_quaternions``, which says what is wrong.
+
+    Parameters
+    ----------
+    q : array_like, shape (N, 4)
+        Measured quaternions (w, x, y, z).
+    name : str
+        What the quaternions are, used in the error message.
+
+    """
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 2 and q.shape[1] == 4 and np.isfinite(q).all():
+        norm = np.sqrt(np.einsum('ij,ij->i', q, q))
+        if (np.abs(norm - 1.0) <= UNIT_NORM_TOLERANCE).all():
+            # normalised, w >= 0 (canonical), in one division
+            return q / (norm * np.where(q[:, 0] < 0.0, -1.0, 1.0))[:, None]
+    return validate_quaternions(q, name)
+
+
 def canonical(q: np.ndarray) -> np.ndarray:
     """
     Return the sign-canonical representative (w >= 0) of each quaternion, shape (..., 4).
