@@ -37,8 +37,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import estimator_bench as eb  # noqa: E402
-from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening  # noqa: E402
-from coreg_ros.core.estimator import Problem, solve_ols, solve_tls  # noqa: E402
+from coreg_ros.core.calibrate import calibrate  # noqa: E402
+from coreg_ros.core.estimator import (  # noqa: E402
+    noise_covariance,
+    Problem,
+    solve_ols,
+    solve_tls,
+    whitening,
+)
 from coreg_ros.core.initialize import initialize  # noqa: E402
 from coreg_ros.core.models import SPECS  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402

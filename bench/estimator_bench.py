@@ -27,9 +27,9 @@ import tracemalloc
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
+from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.covariance import joint_pose_covariance
-from coreg_ros.core.estimator import Problem, solve_ols, solve_tls
+from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, solve_tls, whitening
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import (
     error_rotation_jacobian,

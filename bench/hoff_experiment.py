@@ -32,7 +32,8 @@ import time
 from typing import Optional
 
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.calibrate import calibrate, noise_covariance
+from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.estimator import noise_covariance
 from coreg_ros.core.settings import Settings
 from coreg_ros.parallel import add_arguments, CaseFailure, failures, run_cases
 from coreg_ros.sim import simulate_pairs

@@ -35,8 +35,9 @@ import time
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate, noise_covariance
+from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.crlb import cramer_rao_bound
+from coreg_ros.core.estimator import noise_covariance
 from coreg_ros.core.settings import Settings
 from coreg_ros.parallel import add_arguments, CaseFailure, failures, run_cases
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs

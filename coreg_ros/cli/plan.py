@@ -88,7 +88,7 @@ def _motion_from_bag(args, settings, cov_a, cov_b):
 
 def cmd_plan(args) -> int:
     """Predict the calibration accuracy and rank candidate additions to the motion."""
-    from coreg_ros.core.calibrate import noise_covariance
+    from coreg_ros.core.estimator import noise_covariance
     from coreg_ros.core.planning import plan_recording
     from coreg_ros.core.settings import Settings
     from coreg_ros.files.atomic import write_json

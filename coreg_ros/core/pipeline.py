@@ -19,12 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Optional, Union
 
-from coreg_ros.core.calibrate import (
-    calibrate,
-    MAX_REJECTED_SHARE,
-    noise_covariance,
-    output_covariance,
-)
+from coreg_ros.core.calibrate import calibrate, MAX_REJECTED_SHARE
 from coreg_ros.core.covariance import Prior, result_poses, tangent_map
 from coreg_ros.core.errors import (
     ConvergenceError,
@@ -33,6 +28,7 @@ from coreg_ros.core.errors import (
     TooFewPairsError,
     UnobservableError,
 )
+from coreg_ros.core.estimator import noise_covariance, output_covariance
 from coreg_ros.core.linearized import PairData
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.pairing import pair_streams, validated_streams

@@ -13,8 +13,9 @@ import json
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
+from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.covariance import joint_pose_covariance, Prior
+from coreg_ros.core.estimator import noise_covariance, whitening
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings

@@ -19,8 +19,9 @@ from coreg_ros.core import calibrate as cal
 from coreg_ros.core import estimator as est
 from coreg_ros.core import linearized, screening
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate, noise_covariance
+from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.covariance import Prior
+from coreg_ros.core.estimator import noise_covariance
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.observability import rotation_spread

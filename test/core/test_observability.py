@@ -6,9 +6,9 @@ unobservable parameter and the motion that would fix it.
 """
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate, noise_covariance, whitening
+from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.errors import CoregError, UnobservableError
-from coreg_ros.core.estimator import Problem, solve_ols
+from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, whitening
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.observability import check_motion, check_observability, rotation_spread
 from coreg_ros.core.settings import Settings

@@ -13,7 +13,8 @@ from pathlib import Path
 from coreg_ros.cli import plan as plan_cli
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.calibrate import calibrate, noise_covariance
+from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.estimator import noise_covariance
 from coreg_ros.core.observability import rotation_spread
 from coreg_ros.core.planning import (
     plan_recording,

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import noise_covariance, output_covariance
+from coreg_ros.core.estimator import noise_covariance, output_covariance
 from coreg_ros.core.models import ModelSpec, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.trajectory import Trajectory

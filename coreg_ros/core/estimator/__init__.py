@@ -4,7 +4,7 @@ The estimator, laid out as Ikits (2000) appendix B.
 ====================  ===========================================================================
 module                what it holds
 ====================  ===========================================================================
-``problem``           the problem, its whitening (eqs. 28-30; Σθ enters as Σθ/4, eq. 14) and
+``problem``           the problem, its whitening (eqs. 28-30: how the noise enters the metric) and
                       the chunk size
 ``lm``                the Levenberg-Marquardt driver, its stopping rule and status messages
 ``ols``               weighted OLS, B.1 (eqs. 32-36)
