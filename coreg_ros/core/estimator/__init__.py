@@ -13,6 +13,7 @@ module                what it holds
                       closed form (OLS and TLS), used by ``ols`` and ``tls`` where they apply
 ``priors``            a priori estimates as residual rows, B.3 (eqs. 55-56)
 ``posterior``         the solution and its covariance, B.4.2 (eq. 58)
+``batched``           Cholesky factors and solves of stacks of small SPD blocks (generic TLS)
 ====================  ===========================================================================
 
 Both solvers work through the pairs in chunks, so memory stays O(chunk) above the O(N) state,

@@ -19,8 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core import batched
-from coreg_ros.core.estimator import normal_equations, normal_equations_tls
+from coreg_ros.core.estimator import batched, normal_equations, normal_equations_tls
 from coreg_ros.core.estimator.lm import (
     levenberg_marquardt,
     Linearization,
