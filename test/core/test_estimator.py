@@ -7,9 +7,19 @@ Schur-complement covariance, the stationarity of the solution and the chi-square
 """
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, solve_tls, whitening
+from coreg_ros.core.errors import InputError
+from coreg_ros.core.estimator import (
+    lm,
+    metric_covariance,
+    noise_covariance,
+    Problem,
+    solve_ols,
+    solve_tls,
+    whitening,
+)
 from coreg_ros.core.initialize import initialize, project_to_so3, rotations_from_pairs
 from coreg_ros.core.models import output_error, Parameters, SPECS
+from coreg_ros.core.types import STATUS
 from coreg_ros.sim import simulate_pairs, Truth
 import numpy as np
 import pytest
@@ -254,3 +264,44 @@ def test_solvers_reach_the_truth_from_a_perturbed_start(model, solver):
 def test_solvers_report_convergence_at_the_truth(model, solver):
     sol, _ = _from_perturbed_start(model, solver)
     assert sol.status > 0, sol.message
+
+
+def test_rotation_noise_enters_the_metric_as_a_quarter():
+    """The one statement of Σθ/4 (estimator.problem): the metric is minus half the angle."""
+    cov = noise_covariance((2e-3, 3e-2))
+    cov[0, 4] = cov[4, 0] = 1e-5  # a position-rotation cross term enters as -1/2
+    metric = metric_covariance(cov)
+    np.testing.assert_array_equal(metric[3:6, 3:6], cov[3:6, 3:6] / 4.0)
+    np.testing.assert_array_equal(metric[0:3, 0:3], cov[0:3, 0:3])
+    assert metric[0, 4] == -0.5 * cov[0, 4]
+    # and the whitening is its inverse Cholesky factor
+    L = whitening(cov, None, 'a')
+    np.testing.assert_allclose(L.T @ L, np.linalg.inv(metric), rtol=1e-10)
+    # a small rotation δθ of the measurement moves the metric by -δθ/2 (Ikits eq. 14)
+    q = quat.exp(np.array([0.3, -0.2, 0.1]))
+    d = np.array([1e-6, -2e-6, 3e-6])
+    e, _ = quat.rotation_error(q, quat.multiply(quat.exp(d), q))
+    np.testing.assert_allclose(e, -d / 2.0, atol=1e-15)
+
+
+def test_every_status_has_one_message_and_the_public_table_agrees():
+    for status in STATUS:
+        text = lm.status_message(status, 7, 5e-3)
+        assert text and '{' not in text
+    assert set(lm.MESSAGES) == set(STATUS)
+    assert '7 iterations' in lm.status_message(1, 7, 5e-3)
+    assert '0.005 standard deviations' in lm.status_message(1, 7, 5e-3)
+
+
+def test_unit_quaternions_fast_path_matches_the_full_check():
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(50, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= 1.0 + 1e-4 * rng.normal(size=(50, 1))  # within UNIT_NORM_TOLERANCE
+    np.testing.assert_allclose(quat.unit_quaternions(q, 'q'), quat.validate_quaternions(q, 'q'),
+                               rtol=0, atol=1e-15)
+    assert (quat.unit_quaternions(q, 'q')[:, 0] >= 0).all()
+    bad = q.copy()
+    bad[4] = 0.0
+    with pytest.raises(InputError, match='device A orientation'):
+        quat.unit_quaternions(bad, 'device A orientation')

@@ -18,6 +18,7 @@ from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
+from coreg_ros.core.so3 import skew
 from coreg_ros.sim import simulate_pairs, Truth
 import numpy as np
 import pytest
@@ -295,3 +296,15 @@ def test_infinite_input_weights_are_refused():
     scale[17] = np.inf
     with pytest.raises(InputError, match='finite'):
         calibrate(dataclasses.replace(noisy, a_var_scale=scale), Settings(method='tls'))
+
+
+def test_pair_last_rotation_algebra_is_the_one_of_so3_and_quaternion():
+    """normal_equations uses so3.skew and quaternion.to_matrix in their pair-last layout."""
+    rng = np.random.default_rng(4)
+    v = rng.normal(size=(7, 3))
+    q = rng.normal(size=(7, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    np.testing.assert_array_equal(skew(v.T, pair_last=True), skew(v).transpose(1, 2, 0))
+    np.testing.assert_array_equal(quat.to_matrix(q.T, pair_last=True),
+                                  quat.to_matrix(q).transpose(1, 2, 0))
+    np.testing.assert_allclose(skew(v[0]) @ v[1], np.cross(v[0], v[1]), rtol=0, atol=1e-15)
