@@ -13,7 +13,7 @@ import dataclasses
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.estimator import lm, ols, whitening
+from coreg_ros.core.estimator import lm, ols, tls, whitening
 from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
 from coreg_ros.core.initialize import initialize
@@ -281,7 +281,7 @@ def test_posterior_is_undamped_when_a_is_far_noisier_than_b(model, monkeypatch):
     start = est.solve_ols(problem, initialize(spec, problem.pos_a, problem.quat_a,
                                               problem.pos_b, problem.quat_b)).params
     sol = est.solve_tls(problem, start)
-    monkeypatch.setattr(est, 'DAMPING_SHARE', -1.0)  # always re-linearise at λ = 0
+    monkeypatch.setattr(tls, 'DAMPING_SHARE', -1.0)  # always re-linearise at λ = 0
     exact = est.solve_tls(problem, start)
     assert sol.status > 0
     assert _rel(sol.cov, exact.cov) < 1e-5
