@@ -301,7 +301,6 @@ def pending_pairs(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[Po
     return pairs, int(stamps_b[stop - 1])
 
 
-
 def _empty_pairs(three: bool, with_orientation_b: bool) -> Pairs:
     return Pairs(stamps=np.zeros(0, np.int64), pos_a=np.zeros((0, 3)), quat_a=np.zeros((0, 4)),
                  pos_b=np.zeros((0, 3, 3)) if three else np.zeros((0, 3)),

@@ -29,7 +29,6 @@ EFFECT_UNITS = {
 }
 
 
-
 def full_pose(context: EffectContext) -> bool:
     """Whether B measures orientation too (the ``full_pose`` model)."""
     return context.truth.model == 'full_pose'
