@@ -34,7 +34,7 @@ from coreg_ros.core.estimator import (
     whitening,
 )
 from coreg_ros.core.initialize import initialize
-from coreg_ros.core.linearized import normalised_squares, PairData
+from coreg_ros.core.linearized import PairData, reference_squares
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.observability import check_motion, check_observability
 from coreg_ros.core.settings import Settings
@@ -231,7 +231,7 @@ class _Fitter:
         tls = self.settings.method == 'tls'
         if FAST_SQUARES and screening.exact_for(self.everything, tls):
             return screening.normalised_squares(self.everything, params, tls)
-        return normalised_squares(params, self.data)
+        return reference_squares(params, self.data)
 
     def reject_outliers(self, sol: Solution, max_share: float = MAX_REJECTED_SHARE
                         ) -> tuple[np.ndarray, Solution]:
@@ -239,7 +239,7 @@ class _Fitter:
         Reject pairs far outside the noise, refitting on the rest until the set settles.
 
         A pair is rejected when ``d² > s · χ²_m(1 - OUTLIER_ALPHA)`` with d² its normalised
-        squared residual at the current fit (``linearized.normalised_squares``) and
+        squared residual at the current fit (``linearized.reference_squares``) and
         ``s = max(1, q25(d²) / q25(χ²_m))`` (lower quartiles, which outliers up to half the
         pairs do not reach): the stated noise, or the typical scatter of the inliers if that
         is larger (so that early rounds, fitted with the outliers in, keep the inliers, and a

@@ -112,7 +112,7 @@ def chunks(params: Parameters, data: PairData, chunk: int = CHUNK) -> Iterator[C
         yield Chunk(sl, e, j_phi, j_x, cov)
 
 
-def normalised_squares(params: Parameters, data: PairData) -> np.ndarray:
+def reference_squares(params: Parameters, data: PairData) -> np.ndarray:
     """
     d² = eᵀ Σ_eff⁻¹ e per pair, shape (N,): χ²_m distributed when the model holds.
 

@@ -1,7 +1,7 @@
 """
 The robust fit's per-pair statistic d² in one light pass over the pairs.
 
-``linearized.normalised_squares`` forms, per pair, the output error e at the *measured* input,
+``linearized.reference_squares`` forms, per pair, the output error e at the *measured* input,
 the Jacobians of the model and the effective covariance ``Σ_eff = Σ_y + s F_x Σ_x F_xᵀ``, and
 solves an m×m system: about 1.4 µs per pair, more than a whole TLS linearisation. This module
 computes the same number with less work:
@@ -16,7 +16,7 @@ computes the same number with less work:
   ``estimator.normal_equations``), the rotation by a closed-form 3×3 Cholesky factor. The
   channels are those of ``normal_equations._channels``.
 
-Both equal ``normalised_squares`` to rounding (``test_calibrate_speed_paths.py`` compares
+Both equal ``linearized.reference_squares`` to rounding (``test_calibrate_speed_paths.py`` compares
 them); ``exact_for`` says which problems the fast forms cover.
 """
 
@@ -39,7 +39,7 @@ def exact_for(problem, tls: bool) -> bool:
 def normalised_squares(problem, params: Parameters, tls: bool,
                        out: Optional[np.ndarray] = None) -> np.ndarray:
     """
-    d² = eᵀ Σ_eff⁻¹ e per pair at the measured input (as ``linearized.normalised_squares``).
+    d² = eᵀ Σ_eff⁻¹ e per pair at the measured input (as ``linearized.reference_squares``).
 
     Parameters
     ----------

@@ -15,7 +15,7 @@ from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.covariance import joint_pose_covariance, Prior
-from coreg_ros.core.estimator import noise_covariance, whitening
+from coreg_ros.core.estimator import noise_covariance, tls, whitening
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
@@ -127,7 +127,7 @@ def _tls_reference_covariance(result, noisy, settings):
     e_rot = result.input_residuals[:, 3:6] * settings.sigma_a[1] / 2
     w = np.sqrt(1 - np.sum(e_rot ** 2, axis=1))
     xq = quat.multiply(np.concatenate([w[:, None], e_rot], axis=1), qa)
-    S = est._tls_schur(problem, params, est.InputState(noisy.pos_a + e_pos, xq), 0.0)[0]
+    S = tls._tls_schur(problem, params, est.InputState(noisy.pos_a + e_pos, xq), 0.0)[0]
     return joint_pose_covariance(params, np.linalg.inv(S))[0:6, 0:6]
 
 

@@ -21,7 +21,7 @@ from coreg_ros.core import linearized, screening
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibrate import calibrate
 from coreg_ros.core.covariance import Prior
-from coreg_ros.core.estimator import noise_covariance
+from coreg_ros.core.estimator import noise_covariance, ols
 from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.observability import rotation_spread
@@ -136,7 +136,7 @@ def test_screening_equals_the_linearized_statistic(model, tls, case):
     # at a start a little off the truth, where the statistic of every pair is non-trivial
     params = initialize(problem.spec, problem.pos_a, problem.quat_a, problem.pos_b,
                         problem.quat_b)
-    ref = linearized.normalised_squares(params, data)
+    ref = linearized.reference_squares(params, data)
     got = screening.normalised_squares(problem, params, tls)
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9)
 
@@ -204,5 +204,5 @@ def test_ols_weights_leave_pairs_out_but_give_their_residuals():
                           problem.quat_a, np.repeat(problem.pos_b[:, None], 3, axis=1), None,
                           np.eye(9), problem.whiten_a, weights=keep.astype(float))
     with pytest.raises(ValueError, match='structured'):
-        est._ols_normal(generic, initialize(SPECS['three_marker'], generic.pos_a,
+        ols._ols_normal(generic, initialize(SPECS['three_marker'], generic.pos_a,
                                             generic.quat_a, generic.pos_b))

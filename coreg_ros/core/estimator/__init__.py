@@ -21,7 +21,7 @@ and time is O(N) per iteration.
 """
 
 from coreg_ros.core.estimator.lm import MESSAGES, XTOL
-from coreg_ros.core.estimator.ols import _ols_normal, solve_ols  # noqa: F401 (for tests)
+from coreg_ros.core.estimator.ols import solve_ols
 from coreg_ros.core.estimator.posterior import Solution
 from coreg_ros.core.estimator.priors import PriorTerm
 from coreg_ros.core.estimator.problem import (
@@ -32,8 +32,7 @@ from coreg_ros.core.estimator.problem import (
     Problem,
     whitening,
 )
-from coreg_ros.core.estimator.tls import (  # noqa: F401 (_tls_schur for tests)
-    _tls_schur,
+from coreg_ros.core.estimator.tls import (
     back_substitute,
     DAMPING_SHARE,
     InputState,
