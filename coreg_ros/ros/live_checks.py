@@ -41,10 +41,11 @@ from coreg_ros.core.crlb import CRLB_DIMENSION
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.types import CalibrationResult, PoseStream, TimeOffset, UncertainPose
+from coreg_ros.ros.interface import LATCHED_QOS
+from coreg_ros.ros.throttle import Throttle
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool
 
 #: B samples before the last paired stamp paired again each tick, s (their A neighbours may
@@ -62,15 +63,12 @@ RETRY_PERIOD = 10.0
 RECALIBRATE_AFTER_S = 10.0
 #: Seconds between two automatic recalibration attempts on the same change.
 RECALIBRATE_RETRY = 30.0
-#: Seconds between two log lines of a failing tick.
-WARN_PERIOD = 5.0
 #: Node parameters of the live checks (changeable at run time; the targets apply at once).
 LIVE_KEYS = ('guidance', 'target_sigma_position', 'target_sigma_rotation',
              'target_sigma_time', 'auto_calibrate', 'watchdog', 'auto_recalibrate')
 
-STALE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: QoS of ~/calibration_stale: the result topics' (late subscribers get the last state).
+STALE_QOS = LATCHED_QOS
 
 
 @dataclass(frozen=True)
@@ -169,7 +167,7 @@ class LiveChecks:
         self.state: Optional[wd.WatchState] = None
         self.stale = False
         self.seconds = 0.0          # wall time of the last tick's work, s
-        self._warned = -WARN_PERIOD
+        self._log_throttle = Throttle()  # one line per WARN_PERIOD of a failing tick
         self._error: Optional[str] = None
         self._next_recalibration = 0.0
         self._next_auto = 0.0
@@ -246,9 +244,7 @@ class LiveChecks:
             self._error = None
         except Exception as e:  # never end the diagnostics timer: say it, keep the node up
             self._error = f'live checks failed: {type(e).__name__}: {e}'
-            now = time.monotonic()
-            if now - self._warned >= WARN_PERIOD:
-                self._warned = now
+            if self._log_throttle.ready():
                 self.node.get_logger().error(f'{self._error}\n{traceback.format_exc()}')
             name = self.node.get_name()
             out = [_status(f'{name}: {gd.STATUS_NAME}', self._hardware_id(), 2, self._error,

@@ -69,6 +69,7 @@ from coreg_ros.ros.node_status import NodeStatus
 from coreg_ros.ros.node_storage import NodeStorage, os_reason
 from coreg_ros.ros.parameters import check_params_files, declare_parameters, read_config
 from coreg_ros.ros.raw_intake import RawIntake
+from coreg_ros.ros.throttle import Throttle, WARN_PERIOD
 from coreg_ros.ros.uncertainty_outputs import UncertaintyOutputs
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -84,8 +85,6 @@ from std_srvs.srv import Trigger
 __all__ = ['CoregNode', 'FLUSH_PERIOD', 'LATCHED_QOS', 'main', 'NODE_NAME', 'PLAIN_ENV',
            'RCLError', 'shutdown_quietly']
 
-#: Seconds between two warnings about the same topic and rejection reason.
-WARN_PERIOD = 5.0
 #: Environment switch back to one deserialised message per callback (the path before the raw
 #: intake; kept as the benchmark's baseline and as a fallback): ``COREG_NODE_PLAIN=1``.
 PLAIN_ENV = 'COREG_NODE_PLAIN'
@@ -117,7 +116,8 @@ class CoregNode(NodeServices, NodeStorage, NodeStatus, Node):
         settings = self.config.settings
         self.topics = (settings.topic_a, *settings.topic_b)
         self.buffers = {t: StreamBuffer(self.config.buffer_capacity) for t in self.topics}
-        self._warn_state = {}          # (topic, reason) -> [last log time, count since]
+        self._log_throttle = Throttle()  # one line per problem and WARN_PERIOD
+        self._rejected_since: dict = {}  # (topic, reason) -> rejections since its last line
         self._saved_accepted = 0       # accepted-sample total at the last bag save
         self._io_lock = threading.Lock()
         self._last = None              # summary of the last calibration, for diagnostics
@@ -206,11 +206,8 @@ class CoregNode(NodeServices, NodeStorage, NodeStatus, Node):
     def _warn_throttled(self, key, line: str, level: str = 'warning',
                         period: float = WARN_PERIOD) -> None:
         """Log ``line`` at most once every ``period`` seconds per ``key``."""
-        state = self._warn_state.setdefault(key, [-period, 0])
-        now = time.monotonic()
-        if now - state[0] >= period:
+        if self._log_throttle.ready(key, period):
             getattr(self.get_logger(), level)(line)
-            state[0] = now
 
     # --- subscriptions -------------------------------------------------------------------
 
@@ -247,14 +244,13 @@ class CoregNode(NodeServices, NodeStorage, NodeStatus, Node):
 
     def _warn_rejected(self, topic: str, reason: str, count: int = 1) -> None:
         """Throttled warning: at most one per topic and reason every WARN_PERIOD seconds."""
-        state = self._warn_state.setdefault((topic, reason), [-WARN_PERIOD, 0])
-        state[1] += count
-        now = time.monotonic()
-        if now - state[0] >= WARN_PERIOD:
+        key = (topic, reason)
+        self._rejected_since[key] = self._rejected_since.get(key, 0) + count
+        if self._log_throttle.ready(key):
             self.get_logger().warning(
-                f'{topic}: rejected {state[1]} message(s): {reason_hint(reason)} '
-                f'(counts in /diagnostics)')
-            state[0], state[1] = now, 0
+                f'{topic}: rejected {self._rejected_since[key]} message(s): '
+                f'{reason_hint(reason)} (counts in /diagnostics)')
+            self._rejected_since[key] = 0
 
     def _warn_undecodable(self, topic: str, count: int, error: BaseException) -> None:
         """Throttled warning about bytes on a pose topic that are not a PoseStamped."""

@@ -47,7 +47,9 @@ from coreg_ros.core.errors import CoregError
 from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration, pending_pairs
 from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
 from coreg_ros.files.results import result_to_dict
+from coreg_ros.ros.interface import LATCHED_QOS
 from coreg_ros.ros.messages import ns_to_stamp, uncertain_pose_to_msg
+from coreg_ros.ros.throttle import Throttle
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 import numpy as np
 from rclpy.node import Node
@@ -70,8 +72,6 @@ AXIS_LENGTH = 0.1
 N_SIGMA = 3.0
 #: Segments of a cone's rim.
 CONE_SEGMENTS = 24
-#: Seconds between two log lines about a failing tick.
-WARN_PERIOD = 5.0
 
 OUTPUT_KEYS = ('publish_fused_pose', 'publish_markers', 'fused_rate_limit',
                'marker_magnification', 'fuse_when_stale')
@@ -84,9 +84,8 @@ AXIS_RGBA = ((0.9, 0.15, 0.15, 0.7), (0.15, 0.8, 0.15, 0.7), (0.2, 0.35, 1.0, 0.
 FUSED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                        reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE)
-MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: QoS of the markers: the result topics' (a late RViz gets the calibration's markers).
+MARKER_QOS = LATCHED_QOS
 
 
 # --------------------------------------------------------------------------- markers
@@ -218,7 +217,7 @@ class UncertaintyOutputs:
         self.timing: Optional[TimeOffset] = None
         self._calibration_markers: list = []
         self._cursor: Optional[int] = None
-        self._warned = -WARN_PERIOD
+        self._log_throttle = Throttle()  # one line per WARN_PERIOD of a failing tick
         self._marker_time = -1.0  # monotonic time of the last fused MarkerArray
         self.published = 0  # fused poses published since start-up
         #: the watchdog found the calibration stale (``ros.live_checks``): no fused poses
@@ -313,9 +312,7 @@ class UncertaintyOutputs:
         try:
             self.fuse_and_publish()
         except Exception as e:  # never let a bug stop the services thread's executor
-            now = time.monotonic()
-            if now - self._warned >= WARN_PERIOD:
-                self._warned = now
+            if self._log_throttle.ready():
                 detail = str(e) if isinstance(e, CoregError) else traceback.format_exc()
                 self.node.get_logger().error(f'fused pose: {detail}')
 

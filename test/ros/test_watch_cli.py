@@ -11,9 +11,15 @@ import pytest
 
 pytest.importorskip('rich')
 
-# After the importorskip: coreg_ros.cli.watch needs rich.
-from coreg_ros.cli import watch  # noqa: E402, I100
-from coreg_ros.cli.watch import bar, DashboardState, render_text, sigma_rows, Status  # noqa: E402
+# After the importorskip: coreg_ros.cli.dashboard needs rich.
+from coreg_ros.cli import dashboard, watch  # noqa: E402, I100
+from coreg_ros.cli.dashboard import (  # noqa: E402
+    bar,
+    DashboardState,
+    render_text,
+    sigma_rows,
+    Status,
+)
 from coreg_ros.core import guidance as g  # noqa: E402
 from coreg_ros.core import watchdog as w  # noqa: E402
 from coreg_ros.core.guidance import batch_from_pairs, Estimate, GuidanceAccumulator  # noqa: E402
@@ -94,7 +100,7 @@ def test_sigma_rows_and_bars(statuses):
     over, style = bar(2.0)
     assert style == 'yellow' and '╋' in over
     full, style = bar(1e6)
-    assert full.count('█') == watch.BAR_WIDTH - 1 and '╋' in full and style == 'red'
+    assert full.count('█') == dashboard.BAR_WIDTH - 1 and '╋' in full and style == 'red'
     assert bar(1e-6)[0].count('█') == 0
 
 
