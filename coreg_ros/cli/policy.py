@@ -46,6 +46,12 @@ def fail(command: str, message: str) -> int:
     return 1
 
 
+def interrupted(command: str) -> int:
+    """Say that ``coreg COMMAND`` was interrupted and return exit code 130 (128 + SIGINT)."""
+    print(f'{PROG} {command}: interrupted', file=sys.stderr)
+    return 130
+
+
 def missing_package(error: ImportError) -> str:
     """Return the one-line fix for a missing ROS 2 or optional package ('' for others)."""
     name = (error.name or '').split('.')[0]
@@ -78,13 +84,15 @@ def run_command(command: str, func: Callable, args) -> int:
     except CoregError as e:
         return fail(command, with_flags(str(e)))
     except ImportError as e:
+        # Ctrl-C while an extension module initialises surfaces as an ImportError caused by it
+        if isinstance(e.__cause__ or e.__context__, KeyboardInterrupt):
+            return interrupted(command)
         fix = missing_package(e)
         if not fix:
             raise
         return fail(command, fix)
     except KeyboardInterrupt:
-        print(f'{PROG} {command}: interrupted', file=sys.stderr)
-        return 130
+        return interrupted(command)
     except BrokenPipeError:
         # the reader (e.g. `| head`) went away: not an error of ours
         sys.stderr.close()

@@ -215,3 +215,22 @@ def test_package_declares_what_the_code_imports():
     setup = (ROOT / 'setup.py').read_text()
     assert 'tests_require' not in setup and "'ruamel.yaml'" in setup
     assert "'test': ['pytest', 'hypothesis'" in setup
+
+
+def test_ctrl_c_during_an_extension_import_is_an_interruption(capsys):
+    """A SIGINT while an extension module initialises reaches Python as an ImportError."""
+    from coreg_ros.cli.policy import run_command
+
+    def interrupted_import(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise ImportError('initialization failed') from e
+
+    def broken_import(args):
+        raise ImportError('initialization failed')
+
+    assert run_command('calibrate', interrupted_import, None) == 130
+    assert capsys.readouterr().err.strip() == 'coreg calibrate: interrupted'
+    with pytest.raises(ImportError):  # not ours to hide: a real bug keeps its traceback
+        run_command('calibrate', broken_import, None)
