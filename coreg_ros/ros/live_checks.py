@@ -79,11 +79,6 @@ class PublishedPoses:
     tool_to_marker: UncertainPose
 
 
-def _cut(s: PoseStream, keep) -> PoseStream:
-    return PoseStream(s.stamps[keep], s.position[keep], s.quat_wxyz[keep], s.frame_id,
-                      None if s.receive_stamps is None else s.receive_stamps[keep])
-
-
 def _recent(buffer, mark: int, start_ns: Optional[int]) -> tuple[int, PoseStream]:
     """
     Return the samples accepted after ``mark`` and the held ones stamped ``>= start_ns``.
@@ -100,7 +95,7 @@ def _recent(buffer, mark: int, start_ns: Optional[int]) -> tuple[int, PoseStream
             break
         extra *= 4
     if start_ns is not None and len(stream):
-        stream = _cut(stream, stream.stamps >= start_ns)
+        stream = stream.take(stream.stamps >= start_ns)
     return end, stream
 
 
@@ -398,7 +393,7 @@ class LiveChecks:
             s = b.snapshot()
             start = (st.change_stamp if topic in settings.topic_b else
                      st.change_stamp - offset_ns - settings.max_gap_ns - int(1e9))
-            streams[topic] = _cut(s, s.stamps >= start)
+            streams[topic] = s.take(s.stamps >= start)
         ok, message = self.node.calibrate_and_publish(
             streams=streams, prior=prior, what='auto_recalibrate')
         if ok:
