@@ -198,8 +198,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             residuals[1][sl, 3:6] = r_ar.T
         kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c,
                             ch.v, ch.Ra.astype(np.float32), g_pos, m)
-        cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
-                + np.einsum('ij,ij->', r_ar, r_ar))
+        cost = np.vdot(ch.r_out, ch.r_out) + np.vdot(r_ap, r_ap) + np.vdot(r_ar, r_ar)
         # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
         F = f @ f.T
         Fe = (f * q_e) @ f.T if iso and weighted else F
