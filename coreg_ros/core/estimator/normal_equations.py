@@ -127,22 +127,24 @@ _CONJ = np.array([1.0, -1.0, -1.0, -1.0])[:, None]
 def _error_quaternion(q_model: np.ndarray, q_meas_conj: np.ndarray) -> np.ndarray:
     """``q_model ⊗ q_meas*`` (given q_meas*) with its scalar part made >= 0 (§3.2), (4, c)."""
     E = _qmul(q_model, q_meas_conj)
-    E *= np.where(E[0] < 0.0, -1.0, 1.0)
+    np.negative(E, out=E, where=E[0] < 0.0)   # in place, without a (4, c) sign array
     return E
 
 
 def _sym_solve3(L: tuple, rhs: np.ndarray, transpose: bool) -> np.ndarray:
     """Solve ``L y = rhs`` (or ``Lᵀ y = rhs``) with L the closed-form 3×3 Cholesky factor."""
     l00, l10, l11, l20, l21, l22 = L
+    # one division per pair and diagonal entry, then products (rhs may have many columns)
+    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
     y = np.empty_like(rhs)
     if not transpose:
-        y[0] = rhs[0] / l00
-        y[1] = (rhs[1] - l10 * y[0]) / l11
-        y[2] = (rhs[2] - l20 * y[0] - l21 * y[1]) / l22
+        np.multiply(rhs[0], i00, out=y[0])
+        y[1] = (rhs[1] - l10 * y[0]) * i11
+        y[2] = (rhs[2] - l20 * y[0] - l21 * y[1]) * i22
     else:
-        y[2] = rhs[2] / l22
-        y[1] = (rhs[1] - l21 * y[2]) / l11
-        y[0] = (rhs[0] - l10 * y[1] - l20 * y[2]) / l00
+        np.multiply(rhs[2], i22, out=y[2])
+        y[1] = (rhs[1] - l21 * y[2]) * i11
+        y[0] = (rhs[0] - l10 * y[1] - l20 * y[2]) * i00
     return y
 
 
@@ -229,6 +231,10 @@ class _Chunk:
     gp: np.ndarray      # (3, c) R0ᵀ Qp e_p
     Hr: Optional[np.ndarray]   # (3, 3, c) rotation channel information
     gr: Optional[np.ndarray]   # (3, c) rotation channel gradient
+    # isotropic rotation noise: H_r = h (I - f fᵀ) with h = w²/4 (the moment form of the
+    # θ0', θ1 blocks needs only these); None otherwise
+    hr_f: Optional[np.ndarray] = None   # (3, c)
+    hr_scale: Optional[float] = None
 
 
 def _scalar(L: np.ndarray) -> Optional[float]:
@@ -239,10 +245,16 @@ def _scalar(L: np.ndarray) -> Optional[float]:
     the closed forms then differ from the exact ones by as little.
     """
     w = float(L[0, 0])
+    # |L - w I| <= atol elementwise, as np.allclose(rtol=0) decides it, without its ~70 µs of
+    # overhead (called a few times per chunk); non-finite entries go to allclose itself
+    dev = np.abs(L - w * np.eye(len(L))).max()
+    if np.isfinite(dev):
+        return w if dev <= 1e-12 * abs(w) else None
     return w if np.allclose(L, w * np.eye(len(L)), rtol=0.0, atol=1e-12 * abs(w)) else None
 
 
-def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray]):
+def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray],
+                          matrices: bool = True):
     """
     Whitened residual, information and gradient of a rotation error E (4, c) (§3.2).
 
@@ -250,7 +262,8 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray])
     D of eq. 15. Returns ``r = L e`` (3, c), ``H = (D R)ᵀ Lᵀ L (D R)`` (3, 3, c) and
     ``g = (D R)ᵀ Lᵀ r`` (3, c). For isotropic L = w·I these are closed forms: with
     ``f = Rᵀ e``, ``H = w²/4 (I - f fᵀ)`` (since DᵀD = (I - e eᵀ)/4 for a unit E) and
-    ``g = w²/2 E_w f``. ``R`` None stands for the identity.
+    ``g = w²/2 E_w f``. ``R`` None stands for the identity. Without ``matrices``, H is None
+    for isotropic L (OLS sums it from moments, ``_add_rotation_moments``).
     """
     ev = E[1:]
     w = _scalar(L)
@@ -260,6 +273,8 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray])
         X = _left(L, D if R is None else np.einsum('abn,bc->acn', D, R))
         return r, _tmm(X, X), np.einsum('ban,bn->an', X, r)
     f = ev if R is None else R.T @ ev
+    if not matrices:
+        return w * ev, None, (0.5 * w * w * E[0]) * f
     H = np.empty((3, 3, E.shape[1]))
     quarter = 0.25 * w * w
     for i in range(3):
@@ -269,12 +284,16 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray])
     return w * ev, H, (0.5 * w * w * E[0]) * f
 
 
-def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b) -> _Chunk:
-    """Residuals and channel Jacobians of a chunk, all pair-last: inputs (3, c), (4, c)."""
+def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b, matrices: bool = True) -> _Chunk:
+    """
+    Residuals and channel Jacobians of a chunk, all pair-last: inputs (3, c), (4, c).
+
+    Without ``matrices``, ``Hr`` is None where the moment form (``hr_f``) replaces it.
+    """
     params = frame.params
     R0 = params.R0
     Ra = quat.to_matrix(qa, pair_last=True)
-    c = np.einsum('abn,b->an', Ra, params.markers[0])
+    c = params.markers[0] @ Ra   # Σ_b R_A[a, b] p1[b], (3, c)
     v = pos_a + c
     e_p = (params.p0[:, None] + R0 @ v) - pos_b
     r_p = frame.Lp @ e_p
@@ -282,8 +301,12 @@ def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b) -> _Chunk:
     if not frame.has_rot:
         return _Chunk(Ra, c, v, r_p, gp, None, None)
     E = _error_quaternion(frame.q_model @ qa, quat_b)
-    r_r, Hr, gr = _rotation_information(frame.Lr, E, R0)
-    return _Chunk(Ra, c, v, np.concatenate([r_p, r_r]), gp, Hr, gr)
+    r_r, Hr, gr = _rotation_information(frame.Lr, E, R0, matrices)
+    out = _Chunk(Ra, c, v, np.concatenate([r_p, r_r]), gp, Hr, gr)
+    w = _scalar(frame.Lr)
+    if w is not None:   # H_r = w²/4 (I - f fᵀ), f = R0ᵀ e (as _rotation_information forms it)
+        out.hr_f, out.hr_scale = R0.T @ E[1:], 0.25 * w * w
+    return out
 
 
 def _features(ch: _Chunk) -> np.ndarray:
@@ -291,16 +314,58 @@ def _features(ch: _Chunk) -> np.ndarray:
     return np.concatenate([np.ones((1, ch.v.shape[1])), ch.v, ch.Ra.reshape(9, -1)])
 
 
+def _pair_sum(M: np.ndarray) -> np.ndarray:
+    """Sum over the pairs (last axis) of a C-contiguous stack, as one matrix-vector product."""
+    return (M.reshape(-1, M.shape[-1]) @ np.ones(M.shape[-1])).reshape(M.shape[:-1])
+
+
+def _transposed_apply(Ra: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """``Σ_pairs R_Aᵀ h`` (3,) for matrices (3, 3, c) and vectors (3, c), by matrix products."""
+    return sum(Ra[a] @ h[a] for a in range(3))
+
+
 def _sum_gradient(frame: _Frame, ch: _Chunk, hp: np.ndarray) -> np.ndarray:
     """``Σ (B_pᵀ hp + B_rᵀ gr)`` over the chunk, (P,) in φ' coordinates."""
     g = np.zeros(frame.P)
-    g[0:3] = hp.sum(axis=1)
-    g[3:6] = _cross(ch.v, hp).sum(axis=1)
-    g[6:9] = np.einsum('abn,an->b', ch.Ra, hp)
+    g[0:3] = _pair_sum(hp)
+    g[3:6] = _pair_sum(_cross(ch.v, hp))
+    g[6:9] = _transposed_apply(ch.Ra, hp)
     if frame.has_rot:
-        g[3:6] += ch.gr.sum(axis=1)
-        g[9:12] = np.einsum('abn,an->b', ch.Ra, ch.gr)
+        g[3:6] += _pair_sum(ch.gr)
+        g[9:12] = _transposed_apply(ch.Ra, ch.gr)
     return g
+
+
+def _add_rotation_moments(M: np.ndarray, ch: _Chunk, w: Optional[np.ndarray] = None):
+    """
+    Add ``Σ w B_rᵀ H_r B_r`` to M in place for isotropic rotation noise, from moments.
+
+    With ``H_r = h (I - f fᵀ)`` and ``u = R_Aᵀ f``: ``Σ H_r = h (Σ1·I - Σ f fᵀ)``,
+    ``Σ H_r R_A = h (Σ R_A - Σ f uᵀ)`` and ``Σ R_Aᵀ H_r R_A = h (Σ1·I - Σ u uᵀ)``
+    (R_Aᵀ R_A = I to rounding): one 6×6 moment matrix of (f, u) instead of 3×3 products per
+    pair. ``w`` (c,) weights the pairs (None: all 1).
+    """
+    f, Ra = ch.hr_f, ch.Ra
+    fu = np.empty((6, f.shape[1]))
+    fu[0:3] = f
+    u = fu[3:6]     # u[b] = Σ_a R_A[a, b] f[a]
+    np.multiply(Ra[0], f[0], out=u)
+    u += Ra[1] * f[1]
+    u += Ra[2] * f[2]
+    if w is None:
+        G = fu @ fu.T
+        total = float(f.shape[1])
+        s_ra = _pair_sum(Ra)
+    else:
+        G = (fu * w) @ fu.T
+        total = float(w.sum())
+        s_ra = (Ra.reshape(9, -1) @ w).reshape(3, 3)
+    h = ch.hr_scale
+    eye = total * np.eye(3)
+    M[3:6, 3:6] += h * (eye - G[0:3, 0:3])
+    M[3:6, 9:12] += h * (s_ra - G[0:3, 3:6])
+    M[9:12, 3:6] = M[3:6, 9:12].T
+    M[9:12, 9:12] += h * (eye - G[3:6, 3:6])
 
 
 def _add_rotation_block(M: np.ndarray, Hr: np.ndarray, HrRa: np.ndarray, Ra: np.ndarray):
@@ -309,10 +374,11 @@ def _add_rotation_block(M: np.ndarray, Hr: np.ndarray, HrRa: np.ndarray, Ra: np.
 
     Blocks: ``Σ H_r``, ``Σ H_r R_A`` and ``Σ R_Aᵀ H_r R_A``.
     """
-    M[3:6, 3:6] += Hr.sum(axis=2)
-    M[3:6, 9:12] += HrRa.sum(axis=2)
+    M[3:6, 3:6] += _pair_sum(Hr)
+    M[3:6, 9:12] += _pair_sum(HrRa)
     M[9:12, 3:6] = M[3:6, 9:12].T
-    M[9:12, 9:12] += np.einsum('abn,acn->bc', Ra, HrRa)
+    # Σ_a R_A[a]ᵀ (H_r R_A)[a] as three (3, c)(c, 3) matrix products (3× faster than einsum)
+    M[9:12, 9:12] += sum(Ra[a] @ HrRa[a].T for a in range(3))
 
 
 def _chunk_of(problem, sl: slice) -> tuple:
@@ -376,23 +442,27 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
     weights = getattr(problem, 'weights', None)
 
     def chunk(sl):
-        ch = _channels(frame, *_chunk_of(problem, sl))
+        ch = _channels(frame, *_chunk_of(problem, sl), matrices=False)
         f = _features(ch)
         if residuals is not None:
             residuals[sl] = ch.r_out.T
         r2 = ch.r_out
+        w = None
         if weights is not None:
             w = weights[sl]
-            fw, ch.Hr, ch.gp, r2 = f * w, _weighted(ch.Hr, w), ch.gp * w, ch.r_out * w
+            fw, ch.gp, r2 = f * w, ch.gp * w, ch.r_out * w
             if ch.gr is not None:
                 ch.gr = ch.gr * w
         else:
             fw = f
         H = np.zeros((frame.P, frame.P))
-        if frame.has_rot:
-            _add_rotation_block(H, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+        if frame.has_rot and ch.hr_f is not None:
+            _add_rotation_moments(H, ch, w)
+        elif frame.has_rot:
+            Hr = _weighted(ch.Hr, w) if w is not None else ch.Hr
+            _add_rotation_block(H, Hr, _mm(Hr, ch.Ra), ch.Ra)
         return (fw @ f.T, H, _sum_gradient(frame, ch, ch.gp),
-                np.einsum('ij,ij->', r2, ch.r_out))
+                np.vdot(r2, ch.r_out))
 
     F, H, g, cost = _sum_chunks(chunk, problem.n)
     H += frame.gram(F, frame.Qp_bar)

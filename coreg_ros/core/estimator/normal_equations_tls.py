@@ -17,6 +17,7 @@ from typing import NamedTuple, Optional, Union
 from coreg_ros.core.errors import ConvergenceError
 from coreg_ros.core.estimator.normal_equations import (
     _add_rotation_block,
+    _add_rotation_moments,
     _channels,
     _cholesky3,
     _Chunk,
@@ -157,8 +158,8 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             r_ar *= np.sqrt(w)
             U *= w
             gar *= w
-        C = skew(ch.c, pair_last=True)
         g_pos = ch.gp + gap
+        rhs = np.empty((3, k, n_pairs))
         if iso:
             # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q_p
             extra, m, q_e = eliminated(w)
@@ -169,16 +170,16 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
                 U[i, i] += q_e * (c2 - cc[i])
                 for j in range(i):
                     U[i, j] -= q_e * (ch.c[i] * ch.c[j])  # the lower triangle is all L uses
-            N = q_e * C
+            _scaled_skew(q_e, ch.c, rhs)   # N = q_e [c]×, into its columns of the rhs
             hp = (extra * m) * ch.gp - (q_p * m) * gap
         else:
             m = None
+            C = skew(ch.c, pair_last=True)
             pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
             N = np.einsum('abn,bc->acn', C, Qe)
             U -= _mm(N, C)
             hp = keep @ ch.gp - (Qp_bar @ Mp) @ gap
-        rhs = np.empty((3, k, n_pairs))
-        rhs[:, 0:3] = N
+            rhs[:, 0:3] = N
         rhs[:, k - 1] = _cross(ch.c, hp) + gar
         Vr = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
         if has_rot:
@@ -186,7 +187,10 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             U += ch.Hr
             rhs[:, 3:6] = ch.Hr
             rhs[:, k - 1] += ch.gr
-            _add_rotation_block(Vr, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+            if ch.hr_f is not None:
+                _add_rotation_moments(Vr, ch)
+            else:
+                _add_rotation_block(Vr, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
         for i in range(3):
             U[i, i] += lam * pre[i]
         L = _cholesky3(U)
@@ -198,8 +202,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             residuals[1][sl, 3:6] = r_ar.T
         kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c,
                             ch.v, ch.Ra.astype(np.float32), g_pos, m)
-        cost = (np.einsum('ij,ij->', ch.r_out, ch.r_out) + np.einsum('ij,ij->', r_ap, r_ap)
-                + np.einsum('ij,ij->', r_ar, r_ar))
+        cost = np.vdot(ch.r_out, ch.r_out) + np.vdot(r_ap, r_ap) + np.vdot(r_ar, r_ar)
         # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
         F = f @ f.T
         Fe = (f * q_e) @ f.T if iso and weighted else F
@@ -219,6 +222,18 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
                                'weight is inf or NaN, or the noise is zero); check the pairs '
                                'and the noise settings')
     return S, b, v_diag, float(cost), factors
+
+
+def _scaled_skew(q, c: np.ndarray, out: np.ndarray) -> None:
+    """Write ``q [c]×`` (q scalar or (n,), c (3, n)) into ``out[:, 0:3]`` (3, k, n)."""
+    x, y, z = c
+    out[0, 0] = out[1, 1] = out[2, 2] = 0.0
+    np.multiply(q, -z, out=out[0, 1])
+    np.multiply(q, y, out=out[0, 2])
+    np.multiply(q, z, out=out[1, 0])
+    np.multiply(q, -x, out=out[1, 2])
+    np.multiply(q, -y, out=out[2, 0])
+    np.multiply(q, x, out=out[2, 1])
 
 
 def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
