@@ -250,7 +250,7 @@ _PHASES = (
     ('TLS passes (reduced system)', 'tls_schur', 'normal_equations_tls.py'),
     ('TLS input steps (back-substitution)', 'closed_form_back_substitute',
      'normal_equations_tls.py'),
-    ('TLS input steps (rotations)', 'rotated', 'normal_equations.py'),
+    ('TLS input steps (rotations)', 'rotated', 'pair_algebra.py'),
     ('robust statistic d² (screening)', 'normalised_squares', 'screening.py'),
     ('subsets of the pairs', 'problem', 'calibrate.py'),
     ('observability', 'check_observability', 'observability.py'),

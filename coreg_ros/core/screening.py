@@ -25,6 +25,7 @@ from __future__ import annotations
 from typing import Optional
 
 from coreg_ros.core.estimator import normal_equations as st
+from coreg_ros.core.estimator import pair_algebra
 from coreg_ros.core.estimator.problem import chunk_slices
 from coreg_ros.core.models import output_error, Parameters
 from coreg_ros.core.so3 import skew
@@ -84,7 +85,7 @@ def _tls_squares(problem, frame, out: np.ndarray) -> None:
     iso = lp is not None and lap is not None
     weighted = problem.a_scale is not None
     # A's rotation information at the measured input (E_A = identity): (L_arᵀ L_ar)/4, as the
-    # metric's Jacobian is D = I/2 there (eq. 15; normal_equations._metric_jacobian)
+    # metric's Jacobian is D = I/2 there (eq. 15; pair_algebra.metric_jacobian)
     Ha = 0.25 * (frame.Lar.T @ frame.Lar)
     if not iso:
         Qap = frame.Lap.T @ frame.Lap
@@ -118,13 +119,14 @@ def _tls_squares(problem, frame, out: np.ndarray) -> None:
         else:
             C = skew(c, pair_last=True)
             N = np.einsum('abn,bc->acn', C, Qe)
-            U -= st._mm(N, C)
+            U -= pair_algebra.mm(N, C)
             hp = keep @ ch.gp
             reduction = np.einsum('ij,ij->j', ch.gp, Mp @ ch.gp)
-        g = st._cross(c, hp)
+        g = pair_algebra.cross(c, hp)
         if frame.has_rot:
             U += ch.Hr
             g += ch.gr
-        z = st._sym_solve3(st._cholesky3(U), g[:, None, :], transpose=False)[:, 0, :]
+        z = pair_algebra.sym_solve3(pair_algebra.cholesky3(U), g[:, None, :],
+                                    transpose=False)[:, 0, :]
         out[sl] = (np.einsum('ij,ij->j', ch.r_out, ch.r_out) - reduction
                    - np.einsum('ij,ij->j', z, z))

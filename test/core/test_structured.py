@@ -13,7 +13,7 @@ import dataclasses
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.estimator import lm, ols, tls, whitening
+from coreg_ros.core.estimator import lm, ols, pair_algebra, tls, whitening
 from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
 from coreg_ros.core.initialize import initialize
@@ -179,7 +179,7 @@ def test_rotated_input_step():
     q = quat.exp(rng.normal(size=(50, 3)))
     d = np.concatenate([rng.normal(0.0, 1e-8, (10, 3)), rng.normal(0.0, 1.0, (40, 3))])
     want = quat.multiply(quat.exp(d), q)
-    got = structured.rotated(np.ascontiguousarray(q.T), np.ascontiguousarray(d.T)).T
+    got = pair_algebra.rotated(np.ascontiguousarray(q.T), np.ascontiguousarray(d.T)).T
     assert np.abs(got - want).max() < 1e-14
     assert np.abs(np.linalg.norm(got, axis=1) - 1.0).max() < 1e-15
 

@@ -35,9 +35,17 @@ import operator
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.estimator.pair_algebra import (
+    CONJ,
+    cross,
+    error_quaternion,
+    left,
+    metric_jacobian,
+    mm,
+    tmm,
+)
 from coreg_ros.core.estimator.problem import chunk_slices
 from coreg_ros.core.models import Parameters, tangent_of_chart
-from coreg_ros.core.so3 import skew
 import numpy as np
 
 
@@ -62,101 +70,6 @@ def applies(problem, inputs: bool = True) -> bool:
 def _block_diagonal(L: np.ndarray) -> bool:
     """Tell whether L (3×3 or 6×6) has no position-rotation cross blocks."""
     return L.shape == (3, 3) or (not L[0:3, 3:6].any() and not L[3:6, 0:3].any())
-
-
-# ----------------------------------------------------------------------------------------------
-# Structure-of-arrays helpers: vectors (3, c), matrices (3, 3, c), quaternions (4, c)
-# ----------------------------------------------------------------------------------------------
-
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product of quaternions (4,) or (4, c), broadcast to (4, c)."""
-    return np.array(quat.multiply_parts(p, q))
-
-
-def rotated(q: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """
-    ``Exp(d) ⊗ q``, renormalised, for quaternions (4, N) and rotation vectors d (3, N), rad.
-
-    The TLS input step (pair-last layout), chunk by chunk so that the temporaries stay in
-    cache.
-    """
-    out = np.empty_like(q)
-    for sl in chunk_slices(q.shape[1]):
-        qc = _qmul(quat.exp_parts(*d[:, sl]), q[:, sl])
-        out[:, sl] = qc / np.sqrt(qc[0] * qc[0] + qc[1] * qc[1] + qc[2] * qc[2] + qc[3] * qc[3])
-    return out
-
-
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Cross products of vectors (3, c) (np.cross with axis=0 is 1.5× slower here)."""
-    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
-                     u[0] * v[1] - u[1] * v[0]])
-
-
-def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Per-pair products A B of matrices (3, 3, c) (contiguous inputs keep einsum fast)."""
-    return np.einsum('abn,bcn->acn', A, B)
-
-
-def _tmm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Per-pair products Aᵀ B of matrices (3, 3, c)."""
-    return np.einsum('ban,bcn->acn', A, B)
-
-
-def _left(Q: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """Q A for a constant Q (3, 3) and matrices (3, 3, c): one matrix product."""
-    return (Q @ A.reshape(3, -1)).reshape(A.shape)
-
-
-def _gram(Y: np.ndarray) -> np.ndarray:
-    """``Σ_pairs Y_iᵀ Y_i`` for Y (r, k, c): k×k, by r symmetric matrix products."""
-    return sum(Y[a] @ Y[a].T for a in range(Y.shape[0]))
-
-
-def _metric_jacobian(E: np.ndarray) -> np.ndarray:
-    """D = ∂vec(E)/∂a (3, 3, c) for ``E ← Exp(a) ⊗ E``: ``(E_w I - [E_v]×) / 2`` (eq. 15)."""
-    D = skew(-0.5 * E[1:], pair_last=True)
-    for k in range(3):
-        D[k, k] = 0.5 * E[0]
-    return D
-
-
-_CONJ = np.array([1.0, -1.0, -1.0, -1.0])[:, None]
-
-
-def _error_quaternion(q_model: np.ndarray, q_meas_conj: np.ndarray) -> np.ndarray:
-    """``q_model ⊗ q_meas*`` (given q_meas*) with its scalar part made >= 0 (§3.2), (4, c)."""
-    E = _qmul(q_model, q_meas_conj)
-    np.negative(E, out=E, where=E[0] < 0.0)   # in place, without a (4, c) sign array
-    return E
-
-
-def _sym_solve3(L: tuple, rhs: np.ndarray, transpose: bool) -> np.ndarray:
-    """Solve ``L y = rhs`` (or ``Lᵀ y = rhs``) with L the closed-form 3×3 Cholesky factor."""
-    l00, l10, l11, l20, l21, l22 = L
-    # one division per pair and diagonal entry, then products (rhs may have many columns)
-    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
-    y = np.empty_like(rhs)
-    if not transpose:
-        np.multiply(rhs[0], i00, out=y[0])
-        y[1] = (rhs[1] - l10 * y[0]) * i11
-        y[2] = (rhs[2] - l20 * y[0] - l21 * y[1]) * i22
-    else:
-        np.multiply(rhs[2], i22, out=y[2])
-        y[1] = (rhs[1] - l21 * y[2]) * i11
-        y[0] = (rhs[0] - l10 * y[1] - l20 * y[2]) * i00
-    return y
-
-
-def _cholesky3(U: np.ndarray) -> tuple:
-    """Closed-form lower Cholesky factors of SPD blocks (3, 3, c): l00, l10, l11, l20, l21, l22."""
-    l00 = np.sqrt(U[0, 0])
-    l10 = U[1, 0] / l00
-    l20 = U[2, 0] / l00
-    l11 = np.sqrt(U[1, 1] - l10 * l10)
-    l21 = (U[2, 1] - l20 * l10) / l11
-    l22 = np.sqrt(U[2, 2] - l20 * l20 - l21 * l21)
-    return l00, l10, l11, l20, l21, l22
 
 
 # ----------------------------------------------------------------------------------------------
@@ -269,9 +182,9 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray],
     w = _scalar(L)
     if w is None:
         r = L @ ev
-        D = _metric_jacobian(E)
-        X = _left(L, D if R is None else np.einsum('abn,bc->acn', D, R))
-        return r, _tmm(X, X), np.einsum('ban,bn->an', X, r)
+        D = metric_jacobian(E)
+        X = left(L, D if R is None else np.einsum('abn,bc->acn', D, R))
+        return r, tmm(X, X), np.einsum('ban,bn->an', X, r)
     f = ev if R is None else R.T @ ev
     if not matrices:
         return w * ev, None, (0.5 * w * w * E[0]) * f
@@ -300,7 +213,7 @@ def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b, matrices: bool = True) ->
     gp = (R0.T @ frame.Lp.T) @ r_p
     if not frame.has_rot:
         return _Chunk(Ra, c, v, r_p, gp, None, None)
-    E = _error_quaternion(frame.q_model @ qa, quat_b)
+    E = error_quaternion(frame.q_model @ qa, quat_b)
     r_r, Hr, gr = _rotation_information(frame.Lr, E, R0, matrices)
     out = _Chunk(Ra, c, v, np.concatenate([r_p, r_r]), gp, Hr, gr)
     w = _scalar(frame.Lr)
@@ -328,7 +241,7 @@ def _sum_gradient(frame: _Frame, ch: _Chunk, hp: np.ndarray) -> np.ndarray:
     """``Σ (B_pᵀ hp + B_rᵀ gr)`` over the chunk, (P,) in φ' coordinates."""
     g = np.zeros(frame.P)
     g[0:3] = _pair_sum(hp)
-    g[3:6] = _pair_sum(_cross(ch.v, hp))
+    g[3:6] = _pair_sum(cross(ch.v, hp))
     g[6:9] = _transposed_apply(ch.Ra, hp)
     if frame.has_rot:
         g[3:6] += _pair_sum(ch.gr)
@@ -391,7 +304,7 @@ def _chunk_of(problem, sl: slice) -> tuple:
     """
     def t(a):
         return np.ascontiguousarray(a[sl].T)
-    q_b = None if problem.quat_b is None else t(problem.quat_b) * _CONJ
+    q_b = None if problem.quat_b is None else t(problem.quat_b) * CONJ
     return t(problem.pos_a), t(problem.quat_a), t(problem.pos_b), q_b
 
 
@@ -460,7 +373,7 @@ def ols_normal(problem, params: Parameters, residuals: Optional[np.ndarray] = No
             _add_rotation_moments(H, ch, w)
         elif frame.has_rot:
             Hr = _weighted(ch.Hr, w) if w is not None else ch.Hr
-            _add_rotation_block(H, Hr, _mm(Hr, ch.Ra), ch.Ra)
+            _add_rotation_block(H, Hr, mm(Hr, ch.Ra), ch.Ra)
         return (fw @ f.T, H, _sum_gradient(frame, ch, ch.gp),
                 np.vdot(r2, ch.r_out))
 

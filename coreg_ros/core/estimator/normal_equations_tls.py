@@ -19,22 +19,24 @@ from coreg_ros.core.estimator.normal_equations import (
     _add_rotation_block,
     _add_rotation_moments,
     _channels,
-    _cholesky3,
     _Chunk,
     _chunk_of,
-    _CONJ,
-    _cross,
-    _error_quaternion,
     _features,
     _Frame,
-    _gram,
-    _left,
-    _mm,
     _rotation_information,
     _scalar,
     _sum_chunks,
     _sum_gradient,
-    _sym_solve3,
+)
+from coreg_ros.core.estimator.pair_algebra import (
+    cholesky3,
+    CONJ,
+    cross,
+    error_quaternion,
+    gram,
+    left,
+    mm,
+    sym_solve3,
 )
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.so3 import skew
@@ -147,7 +149,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         ch = _channels(frame, xp, xq, pos_b, quat_b)
         n_pairs = ch.c.shape[1]
         r_ap = frame.Lap @ (xp - pos_a)
-        Ea = _error_quaternion(xq, quat_a * _CONJ)
+        Ea = error_quaternion(xq, quat_a * CONJ)
         r_ar, U, gar = _rotation_information(frame.Lar, Ea, None)
         gap = frame.Lap.T @ r_ap
         # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
@@ -175,12 +177,12 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         else:
             m = None
             C = skew(ch.c, pair_last=True)
-            pre = (C * _left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
+            pre = (C * left(Qp_bar, C)).sum(axis=0) + U[[0, 1, 2], [0, 1, 2]]
             N = np.einsum('abn,bc->acn', C, Qe)
-            U -= _mm(N, C)
+            U -= mm(N, C)
             hp = keep @ ch.gp - (Qp_bar @ Mp) @ gap
             rhs[:, 0:3] = N
-        rhs[:, k - 1] = _cross(ch.c, hp) + gar
+        rhs[:, k - 1] = cross(ch.c, hp) + gar
         Vr = np.zeros((P, P))   # Σ B_rᵀ H_r B_r, in both V and S
         if has_rot:
             pre += ch.Hr[[0, 1, 2], [0, 1, 2]]
@@ -190,11 +192,11 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             if ch.hr_f is not None:
                 _add_rotation_moments(Vr, ch)
             else:
-                _add_rotation_block(Vr, ch.Hr, _mm(ch.Hr, ch.Ra), ch.Ra)
+                _add_rotation_block(Vr, ch.Hr, mm(ch.Hr, ch.Ra), ch.Ra)
         for i in range(3):
             U[i, i] += lam * pre[i]
-        L = _cholesky3(U)
-        Zs = _sym_solve3(L, rhs, transpose=False)
+        L = cholesky3(U)
+        Zs = sym_solve3(L, rhs, transpose=False)
         f = _features(ch)
         if residuals is not None:
             residuals[0][sl] = ch.r_out.T
@@ -206,7 +208,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
         F = f @ f.T
         Fe = (f * q_e) @ f.T if iso and weighted else F
-        return F, Fe, Vr, _gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost, [kept]
+        return F, Fe, Vr, gram(_coupling(Zs, ch, P)), _sum_gradient(frame, ch, hp), cost, [kept]
 
     F, Fe, Vr, ZZ, g, cost, factors.chunks = _sum_chunks(chunk, problem.n)
     if iso and not weighted:  # q_e is one scalar for all pairs
@@ -283,14 +285,14 @@ def closed_form_back_substitute(n: int, factors: TlsFactors,
     for ch in factors.chunks:
         L = tuple(ch.L.astype(float))
         Z = ch.Z.astype(float)
-        Bp = d[0:3, None] - _cross(ch.v, np.broadcast_to(d[3:6, None], ch.v.shape)) \
+        Bp = d[0:3, None] - cross(ch.v, np.broadcast_to(d[3:6, None], ch.v.shape)) \
             + np.einsum('abn,b->an', ch.Ra, d[6:9])
         rhs = np.einsum('abn,bn->an', Z[:, 0:3], Bp) + Z[:, -1]
         if len(d) == 12:
             Br = d[3:6, None] + np.einsum('abn,b->an', ch.Ra, d[9:12])
             rhs += np.einsum('abn,bn->an', Z[:, 3:6], Br)
-        dth = -_sym_solve3(L, rhs, transpose=True)
-        y = ch.g_pos + factors.Qp_bar @ (Bp - _cross(ch.c, dth))
+        dth = -sym_solve3(L, rhs, transpose=True)
+        y = ch.g_pos + factors.Qp_bar @ (Bp - cross(ch.c, dth))
         dx[0:3, ch.pairs] = -(factors.Mp @ y) if ch.m is None else -(ch.m * y)
         dx[3:6, ch.pairs] = dth
     return dx

@@ -19,7 +19,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.estimator import batched, normal_equations, normal_equations_tls
+from coreg_ros.core.estimator import (
+    batched,
+    normal_equations,
+    normal_equations_tls,
+    pair_algebra,
+)
 from coreg_ros.core.estimator.lm import (
     levenberg_marquardt,
     Linearization,
@@ -73,7 +78,7 @@ class InputState:
     def stepped(self, dx: np.ndarray) -> InputState:
         """Return the state after the step dx (6, N) = (δp, δθ), pair-last."""
         return InputState._pair_last(self.pos_t + dx[0:3],
-                                     normal_equations.rotated(self.quat_t, dx[3:6]))
+                                     pair_algebra.rotated(self.quat_t, dx[3:6]))
 
 
 @dataclass(frozen=True)
