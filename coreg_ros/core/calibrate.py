@@ -94,9 +94,8 @@ MAX_ROUNDS = 10
 #: 1e-5 σ): stop when the next step would move every parameter by at most this many posterior
 #: σ. Near the minimum the steps shrink linearly (0.5° rotation noise on A, TLS, 1M pairs:
 #: 32 σ, 7.9 σ, 1.5e-3 σ, 2.8e-4 σ, then by ~0.17 a step), so the estimate is within
-#: ~1.2·XTOL σ of the minimum: 5e-3 σ changes no statistic (a bias of 5e-3 σ adds 2.5e-5 to
-#: the mean squared error; scipy's default, 1e-8 relative to |φ|, is ~1e-2 σ at 100k pairs),
-#: while each tenfold tightening costs about one more pass over the pairs.
+#: ~1.2·XTOL σ of the minimum: 5e-3 σ changes no statistic (+2.5e-5 on the mean squared error;
+#: scipy's 1e-8 relative to |φ| is ~1e-2 σ at 100k pairs); ten times tighter is one more pass.
 XTOL = 5e-3
 
 #: Pairs the start (closed form, then OLS) uses at most, every k-th pair, before the fit of
