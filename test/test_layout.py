@@ -1,5 +1,5 @@
 """
-The package's layout rules (docs/architecture.md): no import cycle, and layers that point inwards.
+Layout rules (docs/architecture.md): no import cycle, inward layers, small modules, no copies.
 
 The import graph is read from the source (every ``import``, at module level or inside a
 function, but not under ``if TYPE_CHECKING:``), so a cycle hidden in a function-level import is
@@ -7,9 +7,16 @@ found too.
 """
 
 import ast
+from collections import defaultdict
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'coreg_ros'
+
+#: The size a module may have (lines); a module beyond it is split by idea.
+MAX_LINES = 450
+
+#: Bodies shorter than this many statements may repeat (a guard clause, a one-line wrapper).
+MIN_COPIED_STATEMENTS = 4
 
 
 def _modules() -> dict:
@@ -105,3 +112,54 @@ def test_layers_only_point_inwards():
                 bad += [f'{name} -> {t}' for t in _imports(name, path, set(mods))
                         if t.startswith(forbidden)]
     assert bad == []
+
+
+def test_modules_are_small():
+    big = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob('*.py')
+           if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert big == {}
+
+
+def test_core_gives_each_name_one_meaning():
+    """No two functions or classes of the numerical core share a name (one home, one meaning)."""
+    homes = defaultdict(list)
+    for path in (PACKAGE / 'core').rglob('*.py'):
+        for node in ast.parse(path.read_text()).body:
+            named = isinstance(node, (ast.FunctionDef, ast.ClassDef))
+            if named and not node.name.startswith('__'):
+                homes[node.name].append(str(path.relative_to(PACKAGE)))
+    assert {k: v for k, v in homes.items() if len(v) > 1} == {}
+
+
+class _Shape(ast.NodeTransformer):
+    """Forget names and constants: two bodies of the same shape are the same logic copied."""
+
+    def visit_Name(self, node):
+        return ast.copy_location(ast.Name(id='_', ctx=node.ctx), node)
+
+    def visit_arg(self, node):
+        return ast.copy_location(ast.arg(arg='_'), node)
+
+    def visit_Constant(self, node):
+        return ast.copy_location(ast.Constant(value=None), node)
+
+
+def _body_shape(fn: ast.FunctionDef):
+    body = fn.body
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        body = body[1:]  # the docstring
+    statements = sum(isinstance(n, ast.stmt) for b in body for n in ast.walk(b))
+    if statements < MIN_COPIED_STATEMENTS:
+        return None
+    return ast.dump(_Shape().visit(ast.Module(body=[ast.parse(ast.unparse(b)).body[0]
+                                                    for b in body], type_ignores=[])))
+
+
+def test_no_function_body_is_copied():
+    """No two functions of the package have the same body up to names and constants."""
+    shapes = defaultdict(list)
+    for path in PACKAGE.rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef) and (shape := _body_shape(node)) is not None:
+                shapes[shape].append(f'{path.relative_to(PACKAGE)}:{node.lineno} {node.name}')
+    assert [v for v in shapes.values() if len(v) > 1] == []
