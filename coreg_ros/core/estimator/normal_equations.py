@@ -176,7 +176,8 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray],
     ``g = (D R)ᵀ Lᵀ r`` (3, c). For isotropic L = w·I these are closed forms: with
     ``f = Rᵀ e``, ``H = w²/4 (I - f fᵀ)`` (since DᵀD = (I - e eᵀ)/4 for a unit E) and
     ``g = w²/2 E_w f``. ``R`` None stands for the identity. Without ``matrices``, H is None
-    for isotropic L (OLS sums it from moments, ``_add_rotation_moments``).
+    for isotropic L (OLS sums it from moments, ``_add_rotation_moments``). The fourth value is
+    f (3, c) for isotropic L, the moment form's vector, and None otherwise.
     """
     ev = E[1:]
     w = _scalar(L)
@@ -184,17 +185,18 @@ def _rotation_information(L: np.ndarray, E: np.ndarray, R: Optional[np.ndarray],
         r = L @ ev
         D = metric_jacobian(E)
         X = left(L, D if R is None else np.einsum('abn,bc->acn', D, R))
-        return r, tmm(X, X), np.einsum('ban,bn->an', X, r)
+        return r, tmm(X, X), np.einsum('ban,bn->an', X, r), None
     f = ev if R is None else R.T @ ev
+    g = (0.5 * w * w * E[0]) * f
     if not matrices:
-        return w * ev, None, (0.5 * w * w * E[0]) * f
+        return w * ev, None, g, f
     H = np.empty((3, 3, E.shape[1]))
     quarter = 0.25 * w * w
     for i in range(3):
         for j in range(i + 1):
             H[i, j] = H[j, i] = -quarter * f[i] * f[j]
         H[i, i] += quarter
-    return w * ev, H, (0.5 * w * w * E[0]) * f
+    return w * ev, H, g, f
 
 
 def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b, matrices: bool = True) -> _Chunk:
@@ -214,11 +216,11 @@ def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b, matrices: bool = True) ->
     if not frame.has_rot:
         return _Chunk(Ra, c, v, r_p, gp, None, None)
     E = error_quaternion(frame.q_model @ qa, quat_b)
-    r_r, Hr, gr = _rotation_information(frame.Lr, E, R0, matrices)
+    r_r, Hr, gr, f = _rotation_information(frame.Lr, E, R0, matrices)
     out = _Chunk(Ra, c, v, np.concatenate([r_p, r_r]), gp, Hr, gr)
-    w = _scalar(frame.Lr)
-    if w is not None:   # H_r = w²/4 (I - f fᵀ), f = R0ᵀ e (as _rotation_information forms it)
-        out.hr_f, out.hr_scale = R0.T @ E[1:], 0.25 * w * w
+    if f is not None:   # isotropic Lr = w I: H_r = w²/4 (I - f fᵀ)
+        w = float(frame.Lr[0, 0])
+        out.hr_f, out.hr_scale = f, 0.25 * w * w
     return out
 
 

@@ -150,7 +150,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         n_pairs = ch.c.shape[1]
         r_ap = frame.Lap @ (xp - pos_a)
         Ea = error_quaternion(xq, quat_a * CONJ)
-        r_ar, U, gar = _rotation_information(frame.Lar, Ea, None)
+        r_ar, U, gar, _ = _rotation_information(frame.Lar, Ea, None)
         gap = frame.Lap.T @ r_ap
         # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
         w = 1.0 if not weighted else 1.0 / problem.a_scale[sl]
