@@ -13,7 +13,9 @@ import time
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
+from coreg_ros.ros.interface import PLAY_QOS  # noqa: E402
 from coreg_ros.ros.tools import diagnostics_values, wait_for_diagnostics  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
 import yaml  # noqa: E402
 
 PY = sys.executable
@@ -74,3 +76,14 @@ def wait_counts(session, expect: dict, timeout: float = 20.0) -> dict:
             if all(int(values.get(k, -1)) >= v for k, v in expect.items()):
                 return values
     raise AssertionError(f'diagnostics never reached {expect}; last: {values}')
+
+
+def publishers(session, topics, msg_type=PoseStamped, qos=PLAY_QOS) -> dict:
+    """Create a publisher per topic; for PoseStamped, wait until the node has subscribed."""
+    pubs = {t: session.node.create_publisher(msg_type, t, qos) for t in topics}
+    if msg_type is PoseStamped:
+        assert session.spin_until(lambda: all(p.get_subscription_count()
+                                              for p in pubs.values()), 20.0), \
+            'node did not subscribe'
+        session.spin_until(lambda: False, 0.3)
+    return pubs

@@ -20,16 +20,14 @@ from coreg_ros.ros.messages import make_pose_stamped, msg_to_uncertain_pose
 from coreg_ros.ros.tools import (
     call_trigger,
     diagnostics_values,
-    PLAY_QOS,
     play_streams,
     wait_for_diagnostics,
     wait_for_result,
 )
 from coreg_ros.sim import simulate_recording
-from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-from rosproc import run_cli, wait_counts
+from rosproc import publishers, run_cli, wait_counts
 import yaml
 
 A, B = '/device_a/pose', '/device_b/pose'
@@ -149,14 +147,6 @@ def test_play_into_node_matches_offline_calibration(ros_domain, ros_session, sta
     assert f'{x: .6f}'.strip() in echoed.stdout
 
 
-def _publishers(session, topics):
-    pubs = {t: session.node.create_publisher(PoseStamped, t, PLAY_QOS) for t in topics}
-    assert session.spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()),
-                              20.0), 'node did not subscribe'
-    session.spin_until(lambda: False, 0.3)
-    return pubs
-
-
 def test_sigint_during_accumulation_leaves_a_bag(ros_session, start_node):
     rec = simulate_recording(5, 1.0)
     node = start_node({'qos_reliable': True})
@@ -255,7 +245,7 @@ def test_fuzzed_bad_input_is_counted_and_survived(ros_session, start_node):
     for t in (A, B):
         expect[t]['received'] += 1
         expect[t]['accepted'] += 1
-    pubs = _publishers(ros_session, (A, B))
+    pubs = publishers(ros_session, (A, B))
     rng = np.random.default_rng(7)
     k = 0
     for topic, msg in first + messages:

@@ -30,7 +30,6 @@ from coreg_ros.ros.messages import make_pose_stamped, stamp_to_ns
 from coreg_ros.ros.tools import (
     call_trigger,
     diagnostics_values,
-    PLAY_QOS,
     play_streams,
     wait_for_diagnostics,
     wait_for_result,
@@ -39,13 +38,12 @@ from coreg_ros.ros.uncertainty_outputs import stored_result_dict
 from coreg_ros.sim import simulate_recording
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import (
-    PoseStamped,
     PoseWithCovarianceStamped,
     TransformStamped,
 )
 import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rosproc import wait_counts
+from rosproc import publishers, wait_counts
 
 A, B = '/device_a/pose', '/device_b/pose'
 NODE = '/coreg_node'
@@ -61,15 +59,6 @@ def _quiet(_line):
 
 def _play(session, rec, rate=math.inf, wait=20.0):
     play_streams(session, rec.streams, rate=rate, wait_subscribers=wait, log=_quiet)
-
-
-def _publishers(session, topics, msg_type=PoseStamped, qos=PLAY_QOS):
-    pubs = {t: session.node.create_publisher(msg_type, t, qos) for t in topics}
-    if msg_type is PoseStamped:
-        assert session.spin_until(lambda: all(p.get_subscription_count()
-                                              for p in pubs.values()), 20.0), 'no subscriber'
-        session.spin_until(lambda: False, 0.3)
-    return pubs
 
 
 def _diag(session, accept, timeout=15.0):
@@ -316,7 +305,7 @@ def test_messages_missing_from_the_stamps_are_counted_and_warned(ros_session, st
     period = 1_000_000  # 1 kHz stamps
     t0 = 1_700_000_000 * 10**9
     holes = {100, 101, 102, 250, 400, 401, 402, 403, 404, 405}  # 10 messages never sent
-    pubs = _publishers(ros_session, (A, B))
+    pubs = publishers(ros_session, (A, B))
     sent = {A: 0, B: 0}
     for k in range(600):
         stamp = t0 + k * period
@@ -345,7 +334,7 @@ def test_flooded_node_shows_what_it_lost(ros_session, start_node):
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20000,
                      reliability=ReliabilityPolicy.BEST_EFFORT,
                      durability=DurabilityPolicy.VOLATILE)
-    pub = _publishers(ros_session, (A,), qos=qos)[A]
+    pub = publishers(ros_session, (A,), qos=qos)[A]
     t0, n = 1_700_000_000 * 10**9, 30000
     msgs = [make_pose_stamped(t0 + k * 100_000, 'device_a_base', (0, 0, 0), (1, 0, 0, 0))
             for k in range(n)]
@@ -433,7 +422,7 @@ def test_sigkill_loses_at_most_a_second_and_the_node_resumes(ros_domain, ros_ses
 
 def test_swapped_devices_are_warned_about(ros_session, start_node):
     node = start_node({'qos_reliable': True})
-    pubs = _publishers(ros_session, (A, B))
+    pubs = publishers(ros_session, (A, B))
     t0 = 1_700_000_000 * 10**9
     for k in range(200):  # each device's stream on the other's topic
         pubs[A].publish(make_pose_stamped(t0 + k * 10**7, 'device_b_base', (0, 0, 0),

@@ -13,14 +13,12 @@ import time
 from coreg_ros.files.bag.cdr_pose import encode_pose_stamped
 from coreg_ros.files.bag.posebag import read_pose_bag
 from coreg_ros.ros.buffer import REASONS, StreamBuffer
-from coreg_ros.ros.interface import PLAY_QOS
 from coreg_ros.ros.node import PLAIN_ENV
 from coreg_ros.ros.raw_intake import RawIntake
 from coreg_ros.ros.tools import call_trigger
-from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-from rosproc import wait_counts
+from rosproc import publishers, wait_counts
 
 A, B = '/device_a/pose', '/device_b/pose'
 SAVE = '/coreg_node/save_samples'
@@ -113,13 +111,6 @@ def test_intake_counts_bytes_that_are_not_a_pose_and_keeps_the_rest():
 
 # --- the node --------------------------------------------------------------------------------
 
-def _raw_publishers(session, topics):
-    pubs = {t: session.node.create_publisher(PoseStamped, t, PLAY_QOS) for t in topics}
-    assert session.spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()),
-                              20.0), 'node did not subscribe'
-    session.spin_until(lambda: False, 0.3)
-    return pubs
-
 
 def _stream_messages(rate_hz: float, seconds: float) -> list:
     """(due s, topic, CDR bytes) of two clean streams at ``rate_hz``, in time order."""
@@ -156,7 +147,7 @@ def test_two_streams_at_2_khz_arrive_without_a_loss(ros_session, start_node):
     # Sensor-data QoS (best effort), as the drivers publish: whatever the node fails to take
     # in time is lost. 2 x 2 kHz for 3 s is ~4x below what the raw path handles on one core.
     node = start_node()
-    pubs = _raw_publishers(ros_session, (A, B))
+    pubs = publishers(ros_session, (A, B))
     messages = _stream_messages(2000.0, 3.0)
     wall = _publish_timed(pubs, messages)
     n = len(messages) // 2
@@ -173,7 +164,7 @@ def test_two_streams_at_2_khz_arrive_without_a_loss(ros_session, start_node):
 def _play_bad_streams(session):
     """Publish two streams with bad messages (NaN, a wrong frame, repeats...) at ~500 Hz."""
     rng = np.random.default_rng(11)
-    pubs = _raw_publishers(session, (A, B))
+    pubs = publishers(session, (A, B))
     sent = {}
     # A in one frame (decoded in bulk), B partly in A's frame (mixed batches: one by one)
     for topic, frames in ((A, ('a_base',)), (B, ('b_base', 'a_base'))):
