@@ -269,7 +269,7 @@ def run(sizes=(100_000, 1_000_000), noises=('realistic', 'bench'), repeats: int 
 
 #: What ``profile`` reports: (label, function name, file) whose cumulative time it sums.
 _PHASES = (
-    ('validation', '_validated', 'calibrate.py'),
+    ('validation', 'validated_arrays', 'pair_input.py'),
     ('motion check', 'check_motion', 'observability.py'),
     ('start (closed form + OLS, subsample)', '_start', 'calibrate.py'),
     ('OLS passes (normal equations)', 'ols_normal', 'normal_equations.py'),

@@ -10,13 +10,11 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Optional
 
-from coreg_ros.core import quaternion as quat
 from coreg_ros.core import screening
 from coreg_ros.core.covariance import Prior, result_poses
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
-    InputError,
     TooFewPairsError,
 )
 from coreg_ros.core.estimator import (
@@ -37,51 +35,11 @@ from coreg_ros.core.initialize import initialize
 from coreg_ros.core.linearized import PairData, reference_squares
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.observability import check_motion, check_observability
+from coreg_ros.core.pair_input import validated_arrays
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
 import numpy as np
 from scipy import stats
-
-
-def _validated(pairs: Pairs, spec: ModelSpec, settings: Settings):
-    n = len(pairs)
-    min_pairs = max(int(settings.min_pairs), spec.n_params // spec.n_res + 2)
-    if n < min_pairs:
-        raise TooFewPairsError(
-            f'only {n} pairs (need at least {min_pairs}); record longer, move while recording, '
-            f'or raise max_gap if the devices were not paired')
-    pos_a = np.asarray(pairs.pos_a, dtype=float)
-    pos_b = np.asarray(pairs.pos_b, dtype=float)
-    want_b = (n, 3, 3) if spec.name == 'three_marker' else (n, 3)
-    if pos_a.shape != (n, 3) or pos_b.shape != want_b:
-        raise InputError(f'pairs have shapes {pos_a.shape} and {pos_b.shape}; model '
-                         f'{spec.name} needs (N, 3) and {want_b}')
-    for name, arr in (('device A position', pos_a), ('device B position', pos_b)):
-        if np.isfinite(arr).all():  # the usual case, without a per-pair mask
-            continue
-        bad = ~np.isfinite(arr).reshape(n, -1).all(axis=1)
-        if bad.any():
-            raise InputError(f'{name}: {int(bad.sum())} pair(s) contain NaN or inf (first at '
-                             f'pair {int(np.flatnonzero(bad)[0])}); drop those samples')
-    orientations = (('device A orientation', pairs.quat_a), ('device B orientation', pairs.quat_b))
-    for name, q in orientations:
-        if q is not None and np.shape(q) != (n, 4):
-            raise InputError(f'{name}: expected shape ({n}, 4) (one (w, x, y, z) per pair), got '
-                             f'{np.shape(q)}')
-    quat_a = quat.unit_quaternions(pairs.quat_a, 'device A orientation')
-    quat_b = None
-    if spec.has_q1:
-        if pairs.quat_b is None:
-            raise InputError('model full_pose needs device B orientations; use '
-                             '--model position_only for a position-only tracker')
-        quat_b = quat.unit_quaternions(pairs.quat_b, 'device B orientation')
-    scale = None
-    if pairs.a_var_scale is not None:
-        scale = np.asarray(pairs.a_var_scale, dtype=float)
-        if scale.shape != (n,) or not (np.isfinite(scale) & (scale > 0)).all():
-            raise InputError('a_var_scale must be positive and finite, one per pair')
-    return pos_a, quat_a, pos_b, quat_b, scale
-
 
 #: Chance that the robust fit rejects a pair that fits the stated noise (per pair).
 OUTLIER_ALPHA = 1e-4
@@ -110,11 +68,13 @@ WARM_DAMPING = 1e-9
 #: rule; ``test_calibrate_speed_paths.py`` compares them): the start from a subsample
 #: (FAST_START); robust refits from the last fit (FAST_REFIT: TLS from its inputs, or from
 #: its sums less the removed pairs; OLS from its normal equations with 0/1 weights); the
-#: robust statistic in one light pass (FAST_SQUARES, ``screening``). Switched off only to
-#: compare with the plain paths.
+#: robust statistic in one light pass (FAST_SQUARES, ``screening``); the first robust TLS
+#: fit screened where its second step leads, before the pass that would prove convergence
+#: (FAST_SCREEN, ``reject_outliers``). Switched off only to compare with the plain paths.
 FAST_START = True
 FAST_REFIT = True
 FAST_SQUARES = True
+FAST_SCREEN = True
 
 
 class _Fitter:
@@ -124,7 +84,7 @@ class _Fitter:
                  prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray):
         self.spec, self.settings = spec, settings
         (self.pos_a, self.quat_a, self.pos_b, self.quat_b,
-         self.scale) = _validated(pairs, spec, settings)
+         self.scale) = validated_arrays(pairs, spec, settings)
         self.stamps = np.asarray(pairs.stamps, dtype=np.int64)
         self.whiten_a = whitening(cov_a, None, 'a')
         self.whiten_b = whitening(cov_b, spec, 'b')
@@ -149,13 +109,14 @@ class _Fitter:
                        sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
                        self.priors if with_priors else [])
 
-    def solve(self, keep: np.ndarray, start: Optional[Parameters],
-              warm: bool = False, with_priors: bool = True) -> Solution:
+    def solve(self, keep: np.ndarray, start: Optional[Parameters], warm: bool = False,
+              with_priors: bool = True, screened: bool = False) -> Solution:
         """
         Fit the pairs in ``keep`` from ``start`` (closed form when None).
 
         OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) goes to TLS
-        directly, its inputs starting at the last TLS fit's estimates.
+        directly, its inputs starting at the last TLS fit's estimates. A fit to be
+        ``screened`` for outliers may pause (FAST_SCREEN, ``reject_outliers``).
         """
         settings = self.settings
         n_keep = int(keep.sum())
@@ -177,8 +138,11 @@ class _Fitter:
             inputs = self._warm_inputs(keep) if warm else None
             # next to the minimum (inputs of nearly the same fit), the first step needs
             # hardly any damping
+            pause = 2 if (screened and FAST_SCREEN and inputs is None
+                          and normal_equations.applies(problem)) else None
             sol = solve_tls(problem, start, max_iterations=settings.max_iterations, xtol=XTOL,
-                            inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING)
+                            inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING,
+                            pause_at=pause)
             check_observability(sol.info, sol.params, problem.quat_a)
             self.last_inputs = (keep, sol.inputs)
         return sol
@@ -246,20 +210,28 @@ class _Fitter:
         down). Rejected pairs are tested again each round. More than ``max_share`` rejected is
         refused (InconsistentDataError). A round that changes nothing ends the loop without
         a refit.
+
+        A paused TLS fit (``sol.step``; the first robust fit, FAST_SCREEN) is screened where
+        its step leads, which after the inputs' first move is within ~XTOL σ of its minimum
+        (the 1M-pair steps of ``XTOL``'s comment), and goes on from its sums less the removed
+        pairs: the pass that would have proved the fit of all pairs converged is not made.
         """
         keep = np.ones(len(self.pos_a), dtype=bool)
         masked = (FAST_REFIT and self.settings.method == 'ols'
                   and normal_equations.applies(self.everything, inputs=False)
                   and sol.residuals.shape[0] == keep.size and sol.gradient is not None)
+        at = None  # where the last d² was taken
         for _ in range(MAX_ROUNDS):
             if masked:  # OLS residuals of every pair: d² = ‖r‖² (screening, OLS)
                 d2 = np.einsum('ij,ij->i', sol.residuals, sol.residuals)
-            else:
-                d2 = self.squares(sol.params)
+            elif at is None or not at.same_as(sol.params):  # else d² is the last one
+                at = sol.params if sol.step is None else sol.params.stepped(sol.step).recharted()
+                d2 = self.squares(at)
             new = self._inliers(d2, keep)
-            if np.array_equal(new, keep):
+            if np.array_equal(new, keep) and sol.step is None:
                 break
-            self._refuse_if_mostly_outside(~new, max_share)
+            if not new.all():
+                self._refuse_if_mostly_outside(~new, max_share)
             if masked:
                 sol = self._refit_ols(sol, keep, new)
             elif self._downdatable(sol, keep, new):
@@ -297,23 +269,25 @@ class _Fitter:
         """
         stay = new[keep]           # among the pairs of the last fit
         gone = np.flatnonzero(keep & ~new)
-        x = sol.inputs
-        removed = Problem(self.spec, self.pos_a[gone], self.quat_a[gone], self.pos_b[gone],
-                          None if self.quat_b is None else self.quat_b[gone], self.whiten_b,
-                          self.whiten_a, None if self.scale is None else self.scale[gone])
-        x_gone = InputState._pair_last(x.pos_t[:, ~stay], x.quat_t[:, ~stay])
-        stay_idx = np.flatnonzero(stay)
-        sums = sol.sums
-        S, b, cost, _, _, _ = tls_linearization(removed, sol.params, x_gone, sums.lam)
+        x, sums = sol.inputs, sol.sums
         n_fit = x.pos_t.shape[1]
+        if gone.size == 0:  # a paused fit whose screening removed nothing: it goes on
+            seed, start = (sums, lambda delta: back_substitute(n_fit, sums.factors, delta)), x
+        else:
+            removed = Problem(self.spec, self.pos_a[gone], self.quat_a[gone], self.pos_b[gone],
+                              None if self.quat_b is None else self.quat_b[gone], self.whiten_b,
+                              self.whiten_a, None if self.scale is None else self.scale[gone])
+            x_gone = InputState._pair_last(x.pos_t[:, ~stay], x.quat_t[:, ~stay])
+            stay_idx = np.flatnonzero(stay)
+            S, b, cost, _, _, _ = tls_linearization(removed, sol.params, x_gone, sums.lam)
 
-        def dx(delta):
-            return np.take(back_substitute(n_fit, sums.factors, delta), stay_idx,
-                           axis=1)
+            def dx(delta):
+                return np.take(back_substitute(n_fit, sums.factors, delta), stay_idx, axis=1)
 
-        seed = (TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, sums.factors), dx)
-        start = InputState._pair_last(np.take(x.pos_t, stay_idx, axis=1),
-                                      np.take(x.quat_t, stay_idx, axis=1))
+            seed = (TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, sums.factors),
+                    dx)
+            start = InputState._pair_last(np.take(x.pos_t, stay_idx, axis=1),
+                                          np.take(x.quat_t, stay_idx, axis=1))
         problem = self.problem(new, with_priors=False)
         out = solve_tls(problem, sol.params, max_iterations=self.settings.max_iterations,
                         xtol=XTOL, inputs=start, damping=sums.lam, seed=seed)
@@ -421,7 +395,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     # tested against the data (verdict.prior_check) instead of pulling pairs out of the fit
     with_priors = not (settings.robust and prior is not None)
     try:
-        sol = fitter.solve(keep, start, warm and start is not None, with_priors)
+        sol = fitter.solve(keep, start, warm and start is not None, with_priors,
+                           screened=settings.robust)
         if settings.robust:
             keep, sol = fitter.reject_outliers(sol, max_rejected_share)
             if prior is not None:

@@ -144,6 +144,11 @@ class Parameters:
                 charts[i] = (int(k_new), float(sg_new))
         return Parameters(self.spec, phi, charts)
 
+    def same_as(self, other: Parameters) -> bool:
+        """Tell whether ``other`` holds the very same φ in the same charts (bit for bit)."""
+        return (self.spec is other.spec and self.charts == other.charts
+                and np.array_equal(self.phi, other.phi))
+
 
 def predict(params: Parameters, pos_a: np.ndarray, quat_a: np.ndarray):
     """

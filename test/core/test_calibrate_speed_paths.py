@@ -1,7 +1,8 @@
 """
 The fast paths of ``calibrate`` give the answers of the plain ones.
 
-Fast: the start from a subsample, TLS refits from the last fit's inputs, OLS refits from the
+Fast: the start from a subsample, TLS refits from the last fit's inputs (the first one
+screened where its step leads, before the pass that proves it converged), OLS refits from the
 last fit's normal equations (0/1 weights), the robust statistic in one light pass
 (``screening``), the motion check from a 3×3 moment, the stopping rule at
 ``calibrate.XTOL`` = 5e-3 σ.
@@ -37,7 +38,7 @@ SIGMA_B = (5e-4, 2e-3)
 
 def _plain(monkeypatch):
     """Switch every fast path off and restore the stopping rule of before."""
-    for flag in ('FAST_START', 'FAST_REFIT', 'FAST_SQUARES'):
+    for flag in ('FAST_START', 'FAST_REFIT', 'FAST_SQUARES', 'FAST_SCREEN'):
         monkeypatch.setattr(cal, flag, False)
     monkeypatch.setattr(cal, 'XTOL', 1e-5)
 
@@ -103,6 +104,48 @@ def test_fast_and_plain_paths_agree_with_a_prior(monkeypatch):
     sd = np.sqrt(np.diag(plain.param_cov))
     assert np.max(np.abs(fast.params - plain.params) / sd) < 0.02
     np.testing.assert_allclose(np.diag(fast.param_cov), np.diag(plain.param_cov), rtol=1e-2)
+
+
+@pytest.mark.parametrize('seed', [1, 3])
+@pytest.mark.parametrize('outliers', [True, False])
+def test_the_first_robust_tls_fit_is_screened_before_its_last_pass(monkeypatch, seed, outliers):
+    """
+    Save one pass over all pairs where pairs are rejected, and change nothing where not.
+
+    FAST_SCREEN leaves out the pass that proves the fit of all pairs converged, makes no d²
+    pass more, and when no pair is rejected the paused fit goes on exactly as the plain one.
+    """
+    rng = np.random.default_rng([seed, outliers])
+    n = 6000
+    noisy, _, _ = simulate_pairs(rng, n, 'full_pose', sigma_a=SIGMA_A, sigma_b=SIGMA_B)
+    # the tail of the model's own d² (as the ~1e-4·N pairs of a long recording), or no pair
+    monkeypatch.setattr(cal, 'OUTLIER_ALPHA', 3e-3 if outliers else 1e-15)
+    monkeypatch.setattr(cal, 'SUBSAMPLE_TLS', n // 8)
+    settings = Settings(model='full_pose', method='tls', sigma_a=SIGMA_A, sigma_b=SIGMA_B)
+
+    def counted(screen: bool):
+        passes, squares = [], []
+        schur, normalised = est.normal_equations_tls.tls_schur, screening.normalised_squares
+        with monkeypatch.context() as m:
+            m.setattr(cal, 'FAST_SCREEN', screen)
+            m.setattr(est.normal_equations_tls, 'tls_schur',
+                      lambda problem, *a, **k: passes.append(problem.n) or schur(problem, *a, **k))
+            m.setattr(screening, 'normalised_squares',
+                      lambda *a, **k: squares.append(1) or normalised(*a, **k))
+            result = calibrate(noisy, settings)
+        return result, sum(size > n // 2 for size in passes), len(squares)
+
+    fast, passes, squares = counted(True)
+    plain, plain_passes, plain_squares = counted(False)
+    assert fast.success and plain.success
+    assert (~fast.inliers).any() == outliers
+    assert passes == plain_passes - outliers
+    assert squares == plain_squares
+    np.testing.assert_array_equal(fast.inliers, plain.inliers)
+    if not outliers:  # the paused fit goes on exactly as the plain one
+        np.testing.assert_array_equal(fast.params, plain.params)
+    sd = np.sqrt(np.diag(plain.param_cov))
+    assert np.max(np.abs(fast.params - plain.params) / sd) < 0.02
 
 
 def _problem_and_data(model, pairs, cov_a, cov_b, tls, scale=None):

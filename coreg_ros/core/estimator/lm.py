@@ -33,9 +33,16 @@ MESSAGES = {
         'fit the data (check stream directions and units)',
 }
 
+#: Not a final status: the driver stopped before trying the step of iteration ``pause_at``
+#: (its linearisation and that step are returned), so that the caller can continue the fit
+#: from there, e.g. after screening the pairs where the step leads (``calibrate``).
+PAUSED = 3
+
 
 def status_message(status: int, iterations: int, xtol: float) -> str:
     """Return the message of ``status`` (``MESSAGES``) after ``iterations`` iterations."""
+    if status == PAUSED:
+        return f'paused before the step of iteration {iterations}'
     return MESSAGES[status].format(iterations=iterations, xtol=xtol)
 
 
@@ -58,10 +65,12 @@ class Linearization:
     residuals: Optional[tuple] = None
     damping_share: float = 0.0  # largest λ·V_jj / info_jj: how far info is from undamped
     factors: object = None      # TLS: the per-pair factors (for a refit's first step)
+    step: Optional[np.ndarray] = None  # set by the driver when it pauses before this step
 
 
 def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
-                        ftol: float, damping: float = 1e-6, first=None, min_steps: int = 0):
+                        ftol: float, damping: float = 1e-6, first=None, min_steps: int = 0,
+                        pause_at: Optional[int] = None):
     """
     Levenberg-Marquardt iterations shared by OLS and TLS.
 
@@ -89,6 +98,9 @@ def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: f
         Accepted steps before a small step may prove convergence: TLS from the measured
         inputs must move them at least once, since a small step of φ says nothing about the
         inputs (whose adjustment lowers the cost by about the input noise's share of chi2).
+    pause_at : int, optional
+        Return with status ``PAUSED`` before trying the step of this iteration (unless that
+        step proves convergence or follows a rejection), with the step in ``last.step``.
 
     Returns
     -------
@@ -107,6 +119,9 @@ def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: f
             # damping raised by rejections shrinks any step below xtol·σ eventually.
             if not rejected and it > min_steps and step_is_small(delta, lin.info, xtol):
                 return state, 1, it, lin, lam
+            if not rejected and it == pause_at:
+                lin.step = delta
+                return state, PAUSED, it, lin, lam
             lam_next = max(lam / 10.0, 1e-12)
             # the residuals at the current state are not needed while the trial is made
             # (a return after a rejection re-linearises): their memory goes first

@@ -60,7 +60,8 @@ class Solution:
     iterations : int
     status : int
         How the iterations ended (``lm.MESSAGES``): 1 step small, 2 cost change small,
-        0 iteration limit, -1 no acceptable step.
+        0 iteration limit, -1 no acceptable step; ``lm.PAUSED`` (3) a fit stopped before
+        its step ``step``, to be continued by the caller.
     message : str
     inputs : InputState or None
         TLS: the estimated inputs at the solution (a warm start for a refit of nearly the
@@ -69,6 +70,8 @@ class Solution:
         OLS: Jᵀr at the solution (with ``info`` and ``chi2``, the normal equations there).
     sums : TlsSums or None
         TLS on the structured path: the last linearisation, for a refit of fewer pairs.
+    step : ndarray, shape (P,) or None
+        A paused fit: the step its last linearisation gives (where the fit goes next).
 
     """
 
@@ -85,3 +88,4 @@ class Solution:
     inputs: Optional[InputState] = None
     gradient: Optional[np.ndarray] = None
     sums: Optional[TlsSums] = None
+    step: Optional[np.ndarray] = None

@@ -28,6 +28,7 @@ from coreg_ros.core.estimator import (
 from coreg_ros.core.estimator.lm import (
     levenberg_marquardt,
     Linearization,
+    PAUSED,
     status_message,
     XTOL,
 )
@@ -259,7 +260,7 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
               inputs: Optional[InputState] = None, damping: float = 1e-6,
-              seed: Optional[tuple] = None) -> Solution:
+              seed: Optional[tuple] = None, pause_at: Optional[int] = None) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -291,6 +292,10 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         pairs' terms; its factors, if any, are released after the first step) and ``dx(δφ)``
         giving the inputs' step (6, N) from it. The first step then needs no pass over the
         pairs.
+    pause_at : int, optional
+        Stop before trying the step of this iteration (``lm.levenberg_marquardt``): the
+        Solution has status ``lm.PAUSED``, that step in ``step`` and the linearisation in
+        ``sums``, from which a refit (``seed``) goes on without a new pass.
 
     Returns
     -------
@@ -337,11 +342,15 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     xtol = XTOL if xtol is None else xtol
     first = None if seed is None else seeded(*seed)
     (params, x), status, it, last, lam = levenberg_marquardt(
-        state, linearize, max_iterations, xtol, ftol, damping, first, min_steps=int(cold))
-    if status > 0 and last.residuals is not None and last.damping_share <= DAMPING_SHARE:
-        # Converged within xtol·σ (or on a flat cost), and the linearisation at the solution
-        # is almost undamped: its Schur complement is the posterior information (relative
-        # change of the covariance below DAMPING_SHARE), which saves a pass over the pairs.
+        state, linearize, max_iterations, xtol, ftol, damping, first, min_steps=int(cold),
+        pause_at=pause_at)
+    paused = status == PAUSED  # the linearisation where it stopped is what goes on
+    if paused or (status > 0 and last.residuals is not None
+                  and last.damping_share <= DAMPING_SHARE):
+        # Paused (the caller goes on from this linearisation), or converged within xtol·σ
+        # (or on a flat cost) with the linearisation at the solution almost undamped: its
+        # Schur complement is the posterior information (relative change of the covariance
+        # below DAMPING_SHARE), which saves a pass over the pairs.
         info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
         sums = TlsSums(last.info, last.rhs, last.cost, lam, last.factors[0])
     else:
@@ -355,4 +364,5 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     n_prior = len(prior_rows(problem, params)[0])
     return Solution(params, covariance(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
-                    status_message(status, it, xtol), x, sums=sums)
+                    status_message(status, it, xtol), x, sums=sums,
+                    step=last.step if paused else None)
