@@ -77,6 +77,32 @@ def test_diverse_motion_passes(model, method):
     assert r.success and r.param_cov is not None
 
 
+@pytest.mark.parametrize('motion', ['diverse', 'single_axis', 'no_rotation'])
+def test_the_motion_check_of_a_long_recording_reads_a_subsample_to_the_same_verdict(
+        monkeypatch, motion):
+    """Every k-th orientation (MOTION_SAMPLE) gives the spread of all and the same verdict."""
+    from coreg_ros.core import observability
+
+    noisy, _, _ = simulate_pairs(np.random.default_rng(7), 4000, 'full_pose', motion=motion,
+                                 sigma_a=(2e-4, 2e-3))
+    full, _ = rotation_spread(noisy.quat_a)
+    sub, _ = rotation_spread(noisy.quat_a[::4])
+    np.testing.assert_allclose(sub, full, rtol=0.05, atol=1e-3)
+
+    def verdict():
+        try:
+            check_motion(noisy.quat_a, SPECS['full_pose'], 2e-3)
+        except UnobservableError as e:
+            return str(e).split(' (')[0]
+        return 'observable'
+
+    everything = verdict()
+    monkeypatch.setattr(observability, 'MOTION_SAMPLE', 1000)  # every 4th of 4000
+    assert verdict() == everything == {'diverse': 'observable',
+                                       'single_axis': 'rotation about only one axis',
+                                       'no_rotation': "device A's tool hardly rotated"}[motion]
+
+
 def test_rotation_spread_finds_the_single_axis():
     noisy, _, _ = simulate_pairs(np.random.default_rng(5), 400, 'full_pose',
                                  motion='single_axis', sigma_a=(0.0, 0.0))
