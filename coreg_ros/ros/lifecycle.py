@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+import signal
 from typing import Optional
 
 import rclpy
@@ -85,3 +86,26 @@ def shutdown_quietly(context: Optional[Context] = None) -> None:
     except RCLError:
         if rclpy.ok(context=context):
             raise
+
+
+def record_stop_signals() -> list:
+    """
+    Let SIGINT and SIGTERM stop this process through ROS only, never as a KeyboardInterrupt.
+
+    Call in the main thread before ``rclpy.init``. rclpy's handlers shut the context down and
+    then chain to Python's, whose KeyboardInterrupt arrives at the main thread's next
+    bytecode: possibly only after the block that expects the stop (``ended_by_shutdown``)
+    has ended, in the middle of saving what was collected. With this, Python only records
+    the signal and the spin ends through the shut-down context.
+
+    Returns
+    -------
+    list
+        The signals received, in order: one that came before ``rclpy.init`` installed its
+        handlers did not reach ROS and is the caller's to act on.
+
+    """
+    received: list = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: received.append(signum))
+    return received

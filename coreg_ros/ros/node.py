@@ -61,7 +61,12 @@ from coreg_ros.files.bag.per_message import typestore as bag_typestore
 from coreg_ros.ros import persistence
 from coreg_ros.ros.buffer import GapCounter, reason_hint, StreamBuffer
 from coreg_ros.ros.interface import LATCHED_QOS, NODE_NAME, POSE_TYPE, stream_qos
-from coreg_ros.ros.lifecycle import ended_by_shutdown, RCLError, shutdown_quietly
+from coreg_ros.ros.lifecycle import (
+    ended_by_shutdown,
+    RCLError,
+    record_stop_signals,
+    shutdown_quietly,
+)
 from coreg_ros.ros.live_checks import LiveChecks
 from coreg_ros.ros.messages import pose_stamped_values
 from coreg_ros.ros.node_services import NodeServices
@@ -269,7 +274,9 @@ def main(args=None) -> int:
         print(f'coreg_node: {e}', file=sys.stderr)
         return 1
     # ALL: rclpy's handlers for both SIGINT and SIGTERM shut the context down, so spin
-    # returns and the finally block saves the samples in either case.
+    # returns and the finally block saves the samples in either case; Python's own handler
+    # only records the signal, so that no late KeyboardInterrupt cuts the saving short.
+    stops = record_stop_signals()
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.ALL)
     except RCLError as e:
@@ -277,6 +284,9 @@ def main(args=None) -> int:
         print(f'coreg_node: cannot start ROS: {reason}; check the --ros-args arguments',
               file=sys.stderr)
         return 1
+    if stops:  # stopped before ROS was up: nothing was collected yet
+        shutdown_quietly()
+        return 128 + int(stops[0])
     node = None
     code = 0
     services = None

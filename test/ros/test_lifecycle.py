@@ -5,6 +5,10 @@ A shutdown (Ctrl-C, SIGTERM: rclpy's handler shuts the context down from its own
 end a block quietly; any other failure, an rcl error of a live context included, must not.
 """
 
+import os
+import signal
+import time
+
 from coreg_ros.ros import lifecycle
 from coreg_ros.ros.lifecycle import ended_by_shutdown, RCLError, shutdown_quietly
 from coreg_ros.ros.session import RosSession
@@ -96,3 +100,22 @@ def test_lifecycle_is_the_one_home_of_the_race():
     from coreg_ros.ros import node, session
     assert node.shutdown_quietly is lifecycle.shutdown_quietly
     assert session.ended_by_shutdown is lifecycle.ended_by_shutdown
+
+
+def test_stop_signals_are_recorded_not_raised():
+    """
+    After ``record_stop_signals`` a SIGINT is no KeyboardInterrupt (the node's save is safe).
+
+    The node stops through rclpy's handler, which shuts the context down; Python's handler
+    only records the signal (a late KeyboardInterrupt once cut a node's stop short, exit -2).
+    """
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        received = lifecycle.record_stop_signals()
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)  # handlers run at the next bytecodes; no KeyboardInterrupt may come
+        assert received == [signal.SIGINT, signal.SIGTERM]
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
