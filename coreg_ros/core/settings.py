@@ -16,6 +16,10 @@ from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import METHODS, MODELS
 import numpy as np
 
+#: Largest noise σ taken as meant (position m, rotation rad): beyond it the numbers are in
+#: other units (mm, degrees), as no tracker that could be coregistered is that noisy.
+MAX_SIGMA_M = 1.0
+MAX_SIGMA_RAD = 0.5
 DEFAULT_TOPIC_A = '/device_a/pose'
 DEFAULT_TOPIC_B = ('/device_b/pose',)
 DEFAULT_TOPICS_B_THREE_MARKER = (
@@ -86,6 +90,11 @@ class Settings:
                 raise ConfigError(
                     f'{name} must be two positive numbers (position m, rotation rad), got '
                     f'{getattr(self, name)!r}')
+            if value[0] > MAX_SIGMA_M or value[1] > MAX_SIGMA_RAD:
+                raise ConfigError(
+                    f'{name} = ({value[0]:g}, {value[1]:g}) is no tracker noise in m and rad '
+                    f'(above {MAX_SIGMA_M:g} m or {MAX_SIGMA_RAD:g} rad); give metres and '
+                    f'radians, e.g. 0.002 0.0087 for 2 mm and 0.5°')
             object.__setattr__(self, name, value)
         topics = (self.topic_b,) if isinstance(self.topic_b, str) else tuple(self.topic_b)
         object.__setattr__(self, 'topic_b', topics)
@@ -97,6 +106,12 @@ class Settings:
                 raise ConfigError(
                     f'model {self.model} needs {needed} device B topic(s), got {len(topics)}: '
                     f'give `topic_b` {"three topics" if needed == 3 else "one topic"}')
+        every = (self.topic_a, *self.topic_b)
+        same = [t for t in every if every.count(t) > 1]
+        if same:
+            raise ConfigError(
+                f'topic {same[0]} is given for more than one device: each device (topic_a, '
+                f'topic_b) needs its own topic, or A would be calibrated against itself')
         for name in ('estimate_time_offset', 'estimate_clock_drift', 'robust'):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')

@@ -8,7 +8,7 @@ problem; never a bare numpy / LinAlg / attribute error from deep inside the esti
 from dataclasses import replace
 
 from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.errors import CoregError, InputError, TooFewPairsError
+from coreg_ros.core.errors import ConfigError, CoregError, InputError, TooFewPairsError
 from coreg_ros.core.pairing import pair_streams, validate_stream
 from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
@@ -248,3 +248,24 @@ def test_pipeline_bad_stream_is_an_input_error(rec):
     st[3] = st[2]
     raises(InputError, lambda: calibrate_streams(a, replace(b, stamps=st), Settings()),
            'stream_b', 'duplicate stamp')
+
+
+@pytest.mark.parametrize('topics', [
+    {'topic_a': '/device_a/pose', 'topic_b': '/device_a/pose'},
+    {'model': 'three_marker', 'topic_b': ('/m1', '/m2', '/m1')},
+    {'model': 'three_marker', 'topic_a': '/m3', 'topic_b': ('/m1', '/m2', '/m3')},
+])
+def test_one_topic_for_two_devices_is_refused(topics):
+    """A calibrated against itself fits perfectly: a silent wrong answer, refused instead."""
+    with pytest.raises(ConfigError, match='given for more than one device') as info:
+        Settings(**topics)
+    assert '\n' not in str(info.value)
+
+
+@pytest.mark.parametrize('sigma', [(2.0, 0.0087), (0.002, 5.0), (2.0, 5.0)])
+@pytest.mark.parametrize('name', ['sigma_a', 'sigma_b'])
+def test_noise_in_other_units_is_refused(name, sigma):
+    """σ in mm or degrees read as m and rad: named as a units problem, not as bad motion."""
+    with pytest.raises(ConfigError, match='give metres and radians'):
+        Settings(**{name: sigma})
+    Settings(**{name: (0.9, 0.45)})  # large, but still a noise

@@ -30,7 +30,7 @@ def test_every_key_has_a_type_and_an_example():
 @pytest.mark.parametrize('values, expected', [
     ({'max_gap': 1}, {'max_gap': 1.0}),
     ({'time_offset': 0}, {'time_offset': 0.0}),
-    ({'sigma_a': [1, 2]}, {'sigma_a': [1.0, 2.0]}),
+    ({'sigma_a': [0.001, 0.002]}, {'sigma_a': [0.001, 0.002]}),
     ({'topic_b': '/b'}, {'topic_b': ['/b']}),
     ({'min_pairs': 40, 'robust': False}, {'min_pairs': 40, 'robust': False}),
     ({'use_sim_time': True, 'qos_overrides./x.publisher.depth': 3}, {}),

@@ -280,6 +280,7 @@ def test_invalid_parameters_exit_with_one_line(start_node, bad):
     assert 'coreg_node:' in node.log()
 
 
+@pytest.mark.ros  # starts coreg_node itself (no ros_domain fixture): not for test-fast
 def test_live_demo_runs_end_to_end(tmp_path):
     from coreg_ros.ros.demo import run_live_demo
 
