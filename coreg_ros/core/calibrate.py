@@ -83,6 +83,7 @@ class _Fitter:
     def __init__(self, pairs: Pairs, spec: ModelSpec, settings: Settings,
                  prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray):
         self.spec, self.settings = spec, settings
+        self.stated = f'sigma_a {_stated(cov_a)}, sigma_b {_stated(cov_b)}'
         (self.pos_a, self.quat_a, self.pos_b, self.quat_b,
          self.scale) = validated_arrays(pairs, spec, settings)
         self.stamps = np.asarray(pairs.stamps, dtype=np.int64)
@@ -325,7 +326,13 @@ class _Fitter:
             raise InconsistentDataError(
                 f'{share:.0%} of the pairs lie far outside the stated noise: the data are '
                 f'not the model plus a few outliers{_where(outside, self.stamps)}; check the '
-                f'units and the noise (sigma_a, sigma_b) and run coreg diagnose')
+                f'units and the noise (stated: {self.stated}) and run coreg diagnose')
+
+
+def _stated(cov: np.ndarray) -> str:
+    """Say the largest position and rotation σ of a 6×6 noise covariance (ROS layout)."""
+    sd = np.sqrt(np.abs(np.diag(np.asarray(cov, dtype=float).reshape(6, 6))))
+    return f'{sd[0:3].max():g} m, {sd[3:6].max():g} rad'
 
 
 def _where(rejected: np.ndarray, stamps: np.ndarray) -> str:

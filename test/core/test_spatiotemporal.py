@@ -155,8 +155,10 @@ def test_too_many_outliers_are_refused():
     rec = simulate_recording(7, 20.0, 'full_pose')
     a, bs = _streams(rec)
     b = with_outliers(bs[0], 0.45, np.random.default_rng(1))
-    with pytest.raises(InconsistentDataError, match='not the model plus a few outliers'):
-        calibrate_streams(a, [b], Settings())
+    with pytest.raises(InconsistentDataError, match='not the model plus a few outliers') as e:
+        calibrate_streams(a, [b], Settings(sigma_a=(3e-4, 6e-4)))
+    # the refusal names the noise it judged the pairs by
+    assert 'stated: sigma_a 0.0003 m, 0.0006 rad, sigma_b 0.0005 m, 0.002 rad' in str(e.value)
 
 
 def test_clock_step_is_refused_with_where():
