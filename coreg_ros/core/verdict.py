@@ -118,6 +118,9 @@ def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[P
     if np.isfinite(p) and p < CONSISTENT_P:
         causes = [c for c in (unit_mismatch(stream_a, streams_b[0]),
                               swapped_frames(stream_a, streams_b[0], frames)) if c]
+        if not causes and settings.method == 'ols':
+            causes.append("OLS leaves device A's noise (sigma_a) out of the fit, where it "
+                          'shows as excess; --method tls includes it')
         ratio = result.chi2 / result.dof if result.dof > 0 else float('nan')
         reasons.append(
             f'the fit does not match the stated noise (chi2/dof {ratio:.3g}, p = {p:.2g}): '

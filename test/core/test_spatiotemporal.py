@@ -186,6 +186,17 @@ def test_unit_mismatch_named_and_not_a_success():
     assert 'mm' in result.verdict
 
 
+def test_ols_on_noisy_input_points_to_tls():
+    """OLS fits A's rotation noise as excess: the verdict says so and names the one that fits."""
+    rec = simulate_recording(11, 60.0, 'full_pose', sigma_a=(2e-4, np.radians(0.5)))
+    a, bs = _streams(rec)
+    settings = Settings(sigma_a=(2e-4, float(np.radians(0.5))))
+    ols, _ = calibrate_streams(a, bs, settings.updated(method='ols'))
+    assert not ols.success and '--method tls includes it' in ols.verdict
+    tls, _ = calibrate_streams(a, bs, settings)
+    assert tls.success and 'method tls' not in tls.verdict
+
+
 def test_swapped_devices_named_from_frame_ids():
     rec = simulate_recording(10, 20.0, 'full_pose')
     a, bs = _streams(rec)
