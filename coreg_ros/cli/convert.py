@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 
-from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B
 from coreg_ros.files.csv_poses import (
     check_conventions,
@@ -55,6 +55,10 @@ def cmd_convert(args) -> int:
                       sort=args.sort, option='-a', **options['a'])
     b = read_pose_csv(args.csv_b, invert=args.invert_b, frame_id=FRAME_B, name='CSV_B',
                       sort=args.sort, option='-b', **options['b'])
+    if not a.has_orientation:
+        raise InputError(f'{args.csv_a} (device A) has no orientation columns (t, x, y, z): '
+                         f"every model needs the orientation of A's tool; export its "
+                         f'quaternion, or give the position-only tracker as B')
     topic_a, topic_b = args.topic_a, args.topic_b
     if topic_a == topic_b:
         raise ConfigError(f'--topic-a and --topic-b are both {topic_a}; give two topics')

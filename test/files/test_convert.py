@@ -138,6 +138,21 @@ def test_cli_errors_are_one_line(tmp_path, rec, capsys):
     assert code == 1 and capsys.readouterr().err.count('\n') == 1
 
 
+def test_device_a_without_orientation_is_refused(tmp_path, rec, capsys):
+    """A is the tool whose orientation every model needs: a t, x, y, z export is refused."""
+    b = write_csv(tmp_path / 'b.csv', rec.streams_b[0])
+    a = tmp_path / 'a.csv'
+    s = rec.streams[rec.topics_a]
+    a.write_text(''.join(f'{t * 1e-9:.9f}, {x}, {y}, {z}\n'
+                         for t, (x, y, z) in zip(s.stamps, s.position, strict=True)))
+    code = main(['convert', str(a), b, str(tmp_path / 'bag')])
+    err = capsys.readouterr().err
+    assert code == 1 and 'has no orientation columns' in err and err.count('\n') == 1
+    assert not (tmp_path / 'bag').exists()
+    # as B (a position-only tracker) the same file is taken
+    assert main(['convert', b, str(a), str(tmp_path / 'bag2')]) == 0
+
+
 @pytest.mark.skipif(not REAL.is_dir(), reason='shared real data folder absent')
 def test_real_eth_robot_arm_camera(tmp_path, capsys):
     folder = REAL / 'robot_arm_camera_real'
