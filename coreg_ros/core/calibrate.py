@@ -231,8 +231,7 @@ class _Fitter:
             new = self._inliers(d2, keep)
             if np.array_equal(new, keep) and sol.step is None:
                 break
-            if not new.all():
-                self._refuse_if_mostly_outside(~new, max_share)
+            self._refuse_if_mostly_outside(~new, max_share)
             if masked:
                 sol = self._refit_ols(sol, keep, new)
             elif self._downdatable(sol, keep, new):
@@ -268,30 +267,29 @@ class _Fitter:
         terms (a linearisation of those few pairs), and the kept pairs' factors give the first
         input step, so the refit's first step costs no pass over all pairs.
         """
-        stay = new[keep]           # among the pairs of the last fit
         gone = np.flatnonzero(keep & ~new)
         x, sums = sol.inputs, sol.sums
-        n_fit = x.pos_t.shape[1]
-        if gone.size == 0:  # a paused fit whose screening removed nothing: it goes on
-            seed, start = (sums, lambda delta: back_substitute(n_fit, sums.factors, delta)), x
-        else:
+        factors, n_fit = sums.factors, x.pos_t.shape[1]
+        stay_idx = None  # all stay (a paused fit whose screening removed nothing goes on)
+        if gone.size:
+            stay = new[keep]           # among the pairs of the last fit
             removed = Problem(self.spec, self.pos_a[gone], self.quat_a[gone], self.pos_b[gone],
                               None if self.quat_b is None else self.quat_b[gone], self.whiten_b,
                               self.whiten_a, None if self.scale is None else self.scale[gone])
             x_gone = InputState._pair_last(x.pos_t[:, ~stay], x.quat_t[:, ~stay])
-            stay_idx = np.flatnonzero(stay)
             S, b, cost, _, _, _ = tls_linearization(removed, sol.params, x_gone, sums.lam)
+            sums = TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, factors)
+            stay_idx = np.flatnonzero(stay)
+            x = InputState._pair_last(np.take(x.pos_t, stay_idx, axis=1),
+                                      np.take(x.quat_t, stay_idx, axis=1))
 
-            def dx(delta):
-                return np.take(back_substitute(n_fit, sums.factors, delta), stay_idx, axis=1)
+        def dx(delta):
+            step = back_substitute(n_fit, factors, delta)
+            return step if stay_idx is None else np.take(step, stay_idx, axis=1)
 
-            seed = (TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, sums.factors),
-                    dx)
-            start = InputState._pair_last(np.take(x.pos_t, stay_idx, axis=1),
-                                          np.take(x.quat_t, stay_idx, axis=1))
         problem = self.problem(new, with_priors=False)
         out = solve_tls(problem, sol.params, max_iterations=self.settings.max_iterations,
-                        xtol=XTOL, inputs=start, damping=sums.lam, seed=seed)
+                        xtol=XTOL, inputs=x, damping=sums.lam, seed=(sums, dx))
         check_observability(out.info, out.params, problem.quat_a)
         self.last_inputs = (new, out.inputs)
         return out
