@@ -69,8 +69,8 @@ def time_large(n_pairs: int = N_PAIRS, seed: int = 7, effect: str = 'time_offset
 def time_calibration(n_pairs: int = N_PAIRS, seed: int = 7,
                      effect: str = 'time_offset=0.012') -> float:
     """Seconds of the calibration alone (``pair_for`` + ``calibrate``) on the same recording."""
-    from coreg_ros.core.calibrate import calibrate
-    from coreg_ros.core.pipeline import pair_for
+    from coreg_ros.core.calibration.calibrate import calibrate
+    from coreg_ros.core.calibration.pairing import pair_for
     from coreg_ros.core.settings import Settings
 
     rec = _recording(n_pairs, seed, effect)

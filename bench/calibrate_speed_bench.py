@@ -38,7 +38,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import estimator_bench as eb  # noqa: E402
-from coreg_ros.core.calibrate import calibrate  # noqa: E402
+from coreg_ros.core.calibration.calibrate import calibrate  # noqa: E402
+from coreg_ros.core.calibration.initialize import initialize  # noqa: E402
 from coreg_ros.core.estimator import (  # noqa: E402
     noise_covariance,
     Problem,
@@ -46,7 +47,6 @@ from coreg_ros.core.estimator import (  # noqa: E402
     solve_tls,
     whitening,
 )
-from coreg_ros.core.initialize import initialize  # noqa: E402
 from coreg_ros.core.models import SPECS  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs  # noqa: E402
@@ -68,7 +68,7 @@ import os, sys, time, pickle, json
 for v in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ[v] = '1'
 sys.path.insert(0, sys.argv[1])
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
 pairs, settings = pickle.load(open(sys.argv[2], 'rb'))
 best = float('inf')
 for _ in range(int(sys.argv[3])):

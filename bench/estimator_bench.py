@@ -27,10 +27,10 @@ import tracemalloc
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import joint_pose_covariance
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.initialize import initialize
 from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, solve_tls, whitening
-from coreg_ros.core.initialize import initialize
+from coreg_ros.core.estimator.posterior import joint_pose_covariance
 from coreg_ros.core.models import (
     error_rotation_jacobian,
     linearize,

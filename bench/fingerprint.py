@@ -212,8 +212,8 @@ def _live_outputs(out: dict) -> None:
 
     import coreg_ros as cr
     from coreg_ros.sim import simulate_recording
-    guidance = _module('coreg_ros.core.live.guidance', 'coreg_ros.core.guidance')
-    watchdog = _module('coreg_ros.core.live.watchdog', 'coreg_ros.core.watchdog')
+    guidance = _module('coreg_ros.core.live.guidance', 'coreg_ros.core.live.guidance')
+    watchdog = _module('coreg_ros.core.live.watchdog', 'coreg_ros.core.live.watchdog')
     changes = _module('coreg_ros.sim.changes')
     sa, sb = (2e-4, 5e-4), (5e-4, 2e-3)
     for model in ('full_pose', 'position_only', 'three_marker'):

@@ -31,11 +31,12 @@ import sys
 import time
 from typing import Optional
 
+from coreg_ros.cli.argtypes import add_parallel_arguments
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.estimator import noise_covariance
 from coreg_ros.core.settings import Settings
-from coreg_ros.parallel import add_arguments, CaseFailure, failures, run_cases
+from coreg_ros.parallel import CaseFailure, failures, run_cases
 from coreg_ros.sim import simulate_pairs
 import numpy as np
 from scipy import stats
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
     parser.add_argument('--json', help='write the numbers as JSON')
     parser.add_argument('--markdown', help='write the table as markdown')
     parser.add_argument('--plot', help='write a bar chart of the per-axis errors (PNG)')
-    add_arguments(parser)
+    add_parallel_arguments(parser)
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     res = run(args.calibrations, args.calibration_pairs, args.test_pairs, args.seed,

@@ -10,7 +10,7 @@ reported joint covariance ``cov_joint`` and the chi-square p-value. The checks:
 - bias: Hotelling's T² of the mean error (exact F reference with the sample covariance) and
   the Bonferroni-corrected largest |mean|/standard error;
 - efficiency: MSE against the Cramér-Rao bound of the errors-in-variables model at the true
-  parameters and noise-free inputs (``coreg_ros.core.crlb``), as trace(MSE)/trace(CRLB) and
+  parameters and noise-free inputs (``core.planning.crlb``), as trace(MSE)/trace(CRLB) and
   whitened as the mean of the per-component ratios MSE_jj/CRLB_jj;
 - consistency: mean NEES ``eᵀ C⁻¹ e`` against the dimension d, and the share of trials inside
   the 95 % ellipsoid;
@@ -34,12 +34,13 @@ import sys
 import time
 from typing import Optional
 
+from coreg_ros.cli.argtypes import add_parallel_arguments
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.crlb import cramer_rao_bound
+from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.estimator import noise_covariance
+from coreg_ros.core.planning.crlb import cramer_rao_bound
 from coreg_ros.core.settings import Settings
-from coreg_ros.parallel import add_arguments, CaseFailure, failures, run_cases
+from coreg_ros.parallel import CaseFailure, failures, run_cases
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs
 import numpy as np
 from scipy import stats
@@ -460,7 +461,7 @@ def _p(p: float) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--scale', type=float, default=1.0, help='trials × this factor')
-    add_arguments(parser)
+    add_parallel_arguments(parser)
     parser.add_argument('--json', help='write the reports here')
     args = parser.parse_args(argv)
     reports = run_all(args.scale, args.workers, log=lambda s: print(s, file=sys.stderr),

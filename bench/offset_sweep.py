@@ -23,9 +23,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coreg_ros.core.pipeline import calibrate_streams  # noqa: E402
+from coreg_ros.cli.argtypes import add_parallel_arguments  # noqa: E402
+from coreg_ros.core.calibration.pipeline import calibrate_streams  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
-from coreg_ros.parallel import add_arguments, CaseFailure, run_cases  # noqa: E402
+from coreg_ros.parallel import CaseFailure, run_cases  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--seed', type=int, default=6)
     parser.add_argument('--cases', type=int, default=60)
-    add_arguments(parser)
+    add_parallel_arguments(parser)
     args = parser.parse_args(argv)
     out = run(args.seed, args.cases, workers=args.workers, scheduler=args.scheduler)
     return 1 if out['failed'] else 0

@@ -27,8 +27,8 @@ import sys
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.live.fusion import fused_stream, FusionCalibration
 from coreg_ros.core.settings import Settings
 from coreg_ros.ros.uncertainty_outputs import AXIS_LENGTH, pose_markers
 from coreg_ros.sim import simulate_pairs

@@ -29,7 +29,7 @@ if str(ROOT) not in sys.path:
 from bench import estimator_bench as eb  # noqa: E402
 from bench import montecarlo as mc  # noqa: E402
 from coreg_ros.core import quaternion as quat  # noqa: E402
-from coreg_ros.core.pairing import pair_streams  # noqa: E402
+from coreg_ros.core.calibration.pairing import pair_streams  # noqa: E402
 from coreg_ros.core.types import PoseStream  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402

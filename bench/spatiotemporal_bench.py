@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from coreg_ros.core.pipeline import calibrate_streams
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import parse_effect, simulate_recording
 

@@ -32,11 +32,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coreg_ros.core.guidance import PairFeed  # noqa: E402
-from coreg_ros.core.pipeline import calibrate_streams, pair_for  # noqa: E402
-from coreg_ros.core.settings import Settings  # noqa: E402
-from coreg_ros.core.types import Pairs, PoseStream  # noqa: E402
-from coreg_ros.core.watchdog import (  # noqa: E402
+from coreg_ros.core.calibration.pairing import pair_for  # noqa: E402
+from coreg_ros.core.calibration.pipeline import calibrate_streams  # noqa: E402
+from coreg_ros.core.live.guidance import PairFeed  # noqa: E402
+from coreg_ros.core.live.watchdog import (  # noqa: E402
     cusum_threshold,
     DESIGN_INFLATION,
     llr_constants,
@@ -44,6 +43,8 @@ from coreg_ros.core.watchdog import (  # noqa: E402
     run_length,
     Watchdog,
 )
+from coreg_ros.core.settings import Settings  # noqa: E402
+from coreg_ros.core.types import Pairs, PoseStream  # noqa: E402
 from coreg_ros.sim import DEFAULT_START_NS, simulate_recording  # noqa: E402
 from coreg_ros.sim.changes import apply_change, Change  # noqa: E402
 import numpy as np  # noqa: E402

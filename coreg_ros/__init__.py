@@ -21,9 +21,9 @@ _HOMES = {
     # calibration
     'calibrate': 'coreg_ros.api',
     'model_of': 'coreg_ros.api',
-    'calibrate_streams': 'coreg_ros.core.pipeline',
-    'calibrate_pairs': ('coreg_ros.core.calibrate', 'calibrate'),
-    'pair_streams': 'coreg_ros.core.pairing',
+    'calibrate_streams': 'coreg_ros.core.calibration.pipeline',
+    'calibrate_pairs': ('coreg_ros.core.calibration.calibrate', 'calibrate'),
+    'pair_streams': 'coreg_ros.core.calibration.pairing',
     'Settings': 'coreg_ros.core.settings',
     'PoseStream': 'coreg_ros.core.types',
     'Pairs': 'coreg_ros.core.types',
@@ -32,7 +32,7 @@ _HOMES = {
     'UncertainPose': 'coreg_ros.core.types',
     'TimeOffset': 'coreg_ros.core.types',
     'STATUS': 'coreg_ros.core.types',
-    'Prior': 'coreg_ros.core.covariance',
+    'Prior': 'coreg_ros.core.estimator.priors',
     # uncertainty (Hoff & Vincent 2000)
     'compose': 'coreg_ros.core.uncertainty',
     'chain': 'coreg_ros.core.uncertainty',

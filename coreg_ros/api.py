@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from typing import Optional, Union
 
-from coreg_ros.core.covariance import Prior
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.pipeline import calibrate_streams
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
 import numpy as np

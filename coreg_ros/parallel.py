@@ -83,24 +83,6 @@ def default_workers() -> int:
     return max(1, os.cpu_count() or 1)
 
 
-def add_arguments(parser) -> None:
-    """
-    Add ``--workers N`` and ``--scheduler ADDRESS`` to an argparse parser.
-
-    Every many-case command and evidence script takes the same two options, with the same
-    meaning: ``args.workers`` (int, default the machine's cores) and ``args.scheduler``
-    (str or None), passed on to :func:`run_cases`.
-    """
-    from coreg_ros.cli.argtypes import positive_int
-
-    parser.add_argument('--workers', type=positive_int, default=default_workers(),
-                        metavar='N', help='local processes to run the cases in (default: '
-                                          f'every core, {default_workers()} here)')
-    parser.add_argument('--scheduler', metavar='ADDRESS',
-                        help='run the cases on an existing Dask distributed cluster instead, '
-                             "e.g. tcp://host:8786 (needs pip install 'coreg_ros[dask]')")
-
-
 def one_line(error: BaseException) -> str:
     """``Type: message`` on one line, cut at MAX_ERROR_CHARS."""
     text = ' '.join(f'{type(error).__name__}: {error}'.split())

@@ -30,17 +30,46 @@ def _modules() -> dict:
     return mods
 
 
-def _imports(name: str, path: Path, known: set) -> set:
-    """Modules of the package that ``name`` imports (resolved to the deepest known module)."""
+def _reexports(mods: dict) -> dict:
+    """
+    (package, name) -> the module that defines a name a package re-exports.
+
+    A package's ``__init__`` re-exports names from its submodules (``from .x import name``) or
+    lazily (a ``_HOMES`` dict of ``lazy_exports``); an import of the name through the package is
+    an import of that module, so a cycle through a package's front is found too.
+    """
+    out = {}
+    for pkg, path in mods.items():
+        if path.name != '__init__.py':
+            continue
+        tree = ast.parse(path.read_text())
+        for node in tree.body:
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                for a in node.names:
+                    out[(pkg, a.asname or a.name)] = node.module
+            targets = node.targets if isinstance(node, ast.Assign) else []
+            if any(isinstance(t, ast.Name) and t.id == '_HOMES' for t in targets):
+                for key, value in zip(node.value.keys, node.value.values, strict=True):
+                    home = ast.literal_eval(value)
+                    home = home[0] if isinstance(home, tuple) else home
+                    out[(pkg, ast.literal_eval(key))] = home if '.' in home else f'{pkg}.{home}'
+    return out
+
+
+def _imports(name: str, path: Path, known: set, reexports: dict = None) -> set:
+    """
+    Modules of the package that ``name`` imports (resolved to the deepest known module).
+
+    Every import counts: at module level, inside a function, and under ``if TYPE_CHECKING:``
+    (an annotation-only import is a dependency too: the two modules cannot be read apart).
+    A name imported through a package that re-exports it resolves to its defining module.
+    """
     out = set()
+    reexports = reexports or {}
     package = name if path.name == '__init__.py' else name.rpartition('.')[0]
     tree = ast.parse(path.read_text())
-    typing_only = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
-                   and 'TYPE_CHECKING' in ast.unparse(block.test) for n in ast.walk(block)}
     for node in ast.walk(tree):
         targets = []
-        if id(node) in typing_only:  # annotations only: not an import at run time
-            continue
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -48,13 +77,23 @@ def _imports(name: str, path: Path, known: set) -> set:
             if node.level:
                 anchor = package.split('.')[:len(package.split('.')) - node.level + 1]
                 base = '.'.join(anchor + ([base] if base else []))
-            targets = [f'{base}.{a.name}' for a in node.names] + [base]
+            targets = [reexports.get((base, a.name), f'{base}.{a.name}') for a in node.names]
+            if not any(f'{base}.{a.name}' in known or (base, a.name) in reexports
+                       for a in node.names):
+                targets.append(base)
         for t in targets:
             while t and t not in known:
                 t = t.rpartition('.')[0]
             if t and t != name and not name.startswith(t + '.'):
                 out.add(t)
     return out
+
+
+def import_graph() -> dict:
+    """Return each module of the package with the package modules it imports (``_imports``)."""
+    mods = _modules()
+    known, reexports = set(mods), _reexports(mods)
+    return {name: _imports(name, path, known, reexports) for name, path in mods.items()}
 
 
 def _cycles(graph: dict) -> list:
@@ -90,8 +129,7 @@ def _cycles(graph: dict) -> list:
 
 
 def test_no_import_cycle():
-    mods = _modules()
-    graph = {name: _imports(name, path, set(mods)) for name, path in mods.items()}
+    graph = import_graph()
     # a package's __init__ re-exporting its submodules is not a cycle with them
     for name in graph:
         graph[name] = {t for t in graph[name] if not t.startswith(name + '.')}
@@ -100,17 +138,51 @@ def test_no_import_cycle():
 
 def test_layers_only_point_inwards():
     """Core imports nothing of the edges; report/ and sim/ import no cli/ or ros/."""
-    mods = _modules()
     inner = {'coreg_ros.core': ('coreg_ros.cli', 'coreg_ros.ros', 'coreg_ros.report',
                                 'coreg_ros.bag', 'coreg_ros.sim', 'coreg_ros.files'),
              'coreg_ros.report': ('coreg_ros.cli', 'coreg_ros.ros'),
-             'coreg_ros.sim': ('coreg_ros.cli', 'coreg_ros.ros')}
+             'coreg_ros.sim': ('coreg_ros.cli', 'coreg_ros.ros'),
+             'coreg_ros.files': ('coreg_ros.cli', 'coreg_ros.ros'),
+             'coreg_ros.parallel': ('coreg_ros.cli', 'coreg_ros.ros')}
     bad = []
-    for name, path in mods.items():
+    for name, targets in import_graph().items():
         for layer, forbidden in inner.items():
             if name == layer or name.startswith(layer + '.'):
-                bad += [f'{name} -> {t}' for t in _imports(name, path, set(mods))
-                        if t.startswith(forbidden)]
+                bad += [f'{name} -> {t}' for t in targets if t.startswith(forbidden)]
+    assert bad == []
+
+
+#: The core's levels, lowest first: a module imports only modules of its own level or below.
+#: The root modules are the foundation (records, errors, quaternions, SO(3), settings, the
+#: parameter schema, the models, the result text); every package of the core has one level.
+CORE_LEVELS = (
+    ('',),                                   # the foundation: coreg_ros/core/*.py
+    ('estimator',),                          # Ikits appendix B, the prior and the posterior
+    ('uncertainty', 'clock'),                # Hoff & Vincent; the clock's signals and step
+    ('calibration',),                        # streams and pairs to a judged result
+    ('planning',),                           # the Cramér-Rao bound, a recording's plan
+    ('live', 'diagnosis'),                   # guidance, watchdog, fusion; the gap diagnosis
+)
+
+
+def _core_level(module: str):
+    """Return the level of a core module (``CORE_LEVELS``), None outside the core."""
+    parts = module.split('.')
+    if parts[:2] != ['coreg_ros', 'core'] or len(parts) < 3:
+        return None
+    package = parts[2] if (PACKAGE / 'core' / parts[2]).is_dir() else ''
+    return next(i for i, names in enumerate(CORE_LEVELS) if package in names)
+
+
+def test_core_levels_only_point_down():
+    """Inside the core, no module imports a module of a higher level (``CORE_LEVELS``)."""
+    bad = []
+    for name, targets in import_graph().items():
+        level = _core_level(name)
+        if level is None:
+            continue
+        bad += [f'{name} -> {t}' for t in targets
+                if (other := _core_level(t)) is not None and other > level]
     assert bad == []
 
 

@@ -46,3 +46,21 @@ def finite(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f'must be finite, got {text}')
     return value
+
+
+def add_parallel_arguments(parser) -> None:
+    """
+    Add ``--workers N`` and ``--scheduler ADDRESS`` to an argparse parser.
+
+    Every many-case command and evidence script takes the same two options, with the same
+    meaning: ``args.workers`` (int, default the machine's cores) and ``args.scheduler``
+    (str or None), passed on to ``coreg_ros.parallel.run_cases``.
+    """
+    from coreg_ros.parallel import default_workers
+
+    parser.add_argument('--workers', type=positive_int, default=default_workers(),
+                        metavar='N', help='local processes to run the cases in (default: '
+                                          f'every core, {default_workers()} here)')
+    parser.add_argument('--scheduler', metavar='ADDRESS',
+                        help='run the cases on an existing Dask distributed cluster instead, '
+                             "e.g. tcp://host:8786 (needs pip install 'coreg_ros[dask]')")

@@ -162,8 +162,8 @@ def cmd_batch(args) -> int:
 
 def register(sub) -> None:
     """Add ``batch calibrate`` and ``batch diagnose`` to the ``coreg`` subparsers."""
+    from coreg_ros.cli.argtypes import add_parallel_arguments
     from coreg_ros.cli.options import add_calibration_options
-    from coreg_ros.parallel import add_arguments
 
     p = sub.add_parser('batch', help='calibrate or diagnose every recording under a folder, '
                                      'in parallel (a JSON per bag and a summary table)')
@@ -174,7 +174,7 @@ def register(sub) -> None:
         q.add_argument('folder', help='folder searched for rosbag2 recordings (metadata.yaml)')
         q.add_argument('--out', required=True, metavar='DIR',
                        help='folder for one JSON per recording and summary.json')
-        add_arguments(q)
+        add_parallel_arguments(q)
         q.add_argument('--quiet', action='store_true', help='no progress bar')
         add_calibration_options(q, bag=False)
         if name == 'calibrate':

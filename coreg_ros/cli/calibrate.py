@@ -22,7 +22,7 @@ from coreg_ros.core.types import PoseStream
 import numpy as np
 
 if TYPE_CHECKING:  # the fit machinery is imported when a fit is checked, not by `coreg --help`
-    from coreg_ros.core.stream_directions import DirectionReport
+    from coreg_ros.core.calibration.stream_directions import DirectionReport
 
 #: p-value below which ``coreg calibrate`` checks the stream directions.
 DIRECTION_CHECK_P = 1e-3
@@ -84,9 +84,9 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
         the wrong way round when that explains it).
 
     """
+    from coreg_ros.core.calibration.pipeline import calibrate_streams
+    from coreg_ros.core.calibration.stream_directions import check_directions
     from coreg_ros.core.errors import InconsistentDataError
-    from coreg_ros.core.pipeline import calibrate_streams
-    from coreg_ros.core.stream_directions import check_directions
     from coreg_ros.files.bag.posebag import read_pose_bag
     from coreg_ros.files.results import result_to_dict
 
@@ -176,7 +176,7 @@ def direction_guard(stream_a: PoseStream, streams_b, settings, result,
     p = float(result.p_value)
     if np.isfinite(p) and p >= DIRECTION_CHECK_P:
         return None
-    from coreg_ros.core.stream_directions import check_directions
+    from coreg_ros.core.calibration.stream_directions import check_directions
 
     return check_directions(stream_a, streams_b, settings)
 

@@ -2,8 +2,8 @@
 The view of ``coreg watch``: coreg_node's statuses as plain data, and the dashboard of them.
 
 The node publishes one ``diagnostic_msgs/DiagnosticStatus`` per concern, named
-``<node>: coregistration``, ``<node>: guidance`` (keys of ``coreg_ros.core.guidance``) and
-``<node>: watchdog`` (keys of ``coreg_ros.core.watchdog``). ``DashboardState`` gathers the
+``<node>: coregistration``, ``<node>: guidance`` (keys of ``coreg_ros.core.live.guidance``) and
+``<node>: watchdog`` (keys of ``coreg_ros.core.live.watchdog``). ``DashboardState`` gathers the
 latest of each; ``render`` draws them with rich: the live sample counts, the σ each parameter
 would have now against the targets as bars, the suggested next motion, and the calibration and
 watchdog states. Pure functions, testable without ROS; rich is imported only inside them. The
@@ -18,8 +18,8 @@ import math
 import time
 from typing import Optional
 
-from coreg_ros.core.guidance import keys as g
-from coreg_ros.core.watchdog import keys as w
+from coreg_ros.core.live.guidance import keys as g
+from coreg_ros.core.live.watchdog import keys as w
 
 #: Name suffix of the node's main status (``coreg_ros.ros.node``).
 CALIBRATION_STATUS = 'coregistration'

@@ -163,8 +163,8 @@ def cmd_validate(args) -> int:
 
 def register(sub) -> None:
     """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
+    from coreg_ros.cli.argtypes import add_parallel_arguments
     from coreg_ros.cli.options import add_calibration_options
-    from coreg_ros.parallel import add_arguments
 
     p = sub.add_parser('diagnose', help='detect, locate and explain the gap between a '
                                         'recording and the model (sim-to-real)')
@@ -178,7 +178,7 @@ def register(sub) -> None:
                        help='score the diagnosis on simulated recordings with hidden effects')
     p.add_argument('--cases', type=positive_int, default=40, help='recordings (default 40)')
     p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
-    add_arguments(p)
+    add_parallel_arguments(p)
     p.add_argument('--jobs', type=positive_int, dest='workers', default=argparse.SUPPRESS,
                    help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument('--json', metavar='OUT', help='also write every case and the summary')

@@ -5,7 +5,7 @@ Without data (``--duration S --motion PRESET``) the preset motion is simulated w
 truth; with a recording (``--bag BAG``) device A's recorded motion is used, at B's pair instants
 when B is in the bag, and the bound is evaluated at a calibration of the bag when one succeeds
 (else at a random truth). The prediction is the Cramér-Rao bound of the errors-in-variables
-model (``coreg_ros.core.planning``).
+model (``coreg_ros.core.planning.plan``).
 """
 
 from __future__ import annotations
@@ -49,9 +49,9 @@ def register(subparsers) -> None:
 
 def _motion_from_bag(args, settings, cov_a, cov_b):
     """A's poses at the pair instants, the pair rate, and a calibration estimate if possible."""
-    from coreg_ros.core.calibrate import calibrate
+    from coreg_ros.core.calibration.calibrate import calibrate
+    from coreg_ros.core.calibration.pairing import pair_for
     from coreg_ros.core.errors import CoregError, InputError
-    from coreg_ros.core.pipeline import pair_for
     from coreg_ros.files.bag.posebag import list_topics, read_pose_bag
 
     topics = list_topics(args.bag)
@@ -89,7 +89,7 @@ def _motion_from_bag(args, settings, cov_a, cov_b):
 def cmd_plan(args) -> int:
     """Predict the calibration accuracy and rank candidate additions to the motion."""
     from coreg_ros.core.estimator import noise_covariance
-    from coreg_ros.core.planning import plan_recording
+    from coreg_ros.core.planning.plan import plan_recording
     from coreg_ros.core.settings import Settings
     from coreg_ros.files.atomic import write_json
     from coreg_ros.sim import make_motion, random_truth

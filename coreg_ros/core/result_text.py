@@ -1,14 +1,15 @@
-"""Human-readable rendering of a calibration result (`coreg calibrate`, `result.summary()`)."""
+"""
+Human-readable rendering of a calibration result (`coreg calibrate`, `result.summary()`).
+
+The records it renders (``types.CalibrationResult``, ``PairingReport``, ``TimeOffset``,
+``UncertainPose``) are read by their attributes only: ``CalibrationResult.summary()`` imports
+this module, so this module does not import ``types`` back (no import circle).
+"""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from coreg_ros.core import quaternion as quat
 import numpy as np
-
-if TYPE_CHECKING:  # types.CalibrationResult.summary() imports this module
-    from coreg_ros.core.types import CalibrationResult, PairingReport, TimeOffset, UncertainPose
 
 
 def fit_verdict(p_value: float) -> str:
@@ -23,7 +24,7 @@ def fit_verdict(p_value: float) -> str:
     return 'consistent with the stated noise'
 
 
-def format_time_offset(timing: TimeOffset) -> str:
+def format_time_offset(timing) -> str:
     """One line on the clock offset (and drift) the pairs were made with."""
     if not timing.estimated:
         return f'time offset: {timing.value_s * 1e3:.3f} ms ({timing.message or "given"})'
@@ -34,7 +35,7 @@ def format_time_offset(timing: TimeOffset) -> str:
     return line
 
 
-def format_pose(name: str, meaning: str, pose: UncertainPose, rotation_known: bool = True) -> str:
+def format_pose(name: str, meaning: str, pose, rotation_known: bool = True) -> str:
     """Pose with 1σ uncertainties: position in m (σ in mm), orientation (σ in degrees)."""
     lines = [f'{name}  ({meaning})']
     p = pose.position
@@ -58,7 +59,7 @@ def format_pose(name: str, meaning: str, pose: UncertainPose, rotation_known: bo
     return '\n'.join(lines)
 
 
-def format_result(result: CalibrationResult, report: PairingReport | None = None) -> str:
+def format_result(result, report=None) -> str:
     """Render the full report a person reads after ``coreg calibrate``."""
     state = 'success' if result.success else (
         'INCONSISTENT (converged, but the data contradict the fit)'

@@ -27,8 +27,8 @@ from collections.abc import Mapping
 import math
 from typing import Any
 
-from coreg_ros.core.covariance import Prior
 from coreg_ros.core.errors import InputError
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.types import CalibrationResult, UncertainPose
 import numpy as np
 

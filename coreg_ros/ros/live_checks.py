@@ -5,7 +5,7 @@ Once a second, from the diagnostics timer of the services thread (never in the s
 callbacks), ``LiveChecks.tick``:
 
 1. pairs only the recent slice of the buffers (B from the last paired stamp minus
-   ``OVERLAP_S``, A around it) by the one pairing rule (``pipeline.pair_for`` at the published
+   ``OVERLAP_S``, A around it) by the one pairing rule (``pairing.pair_for`` at the published
    calibration's clock offset) and turns the new pairs into a ``PairBatch`` with A's velocity
    (``guidance.PairFeed``, which ignores pairs it has seen);
 2. guidance (parameter ``guidance``): adds the batch to a ``GuidanceAccumulator``; until a
@@ -35,11 +35,11 @@ import time
 import traceback
 from typing import Optional
 
-from coreg_ros.core import guidance as gd
-from coreg_ros.core import watchdog as wd
-from coreg_ros.core.crlb import CRLB_DIMENSION
+from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.errors import CoregError
-from coreg_ros.core.pipeline import pair_for
+from coreg_ros.core.live import guidance as gd
+from coreg_ros.core.live import watchdog as wd
+from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import CalibrationResult, PoseStream, TimeOffset, UncertainPose
 from coreg_ros.ros.interface import LATCHED_QOS
 from coreg_ros.ros.throttle import Throttle

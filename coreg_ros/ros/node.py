@@ -9,7 +9,7 @@ Subscriptions
     in the environment takes one deserialised message per callback instead (the older path,
     the benchmark's baseline; same samples and counts).
 Services (std_srvs/Trigger)
-    ``~/calibrate`` runs ``coreg_ros.core.pipeline.calibrate_streams`` on a snapshot of the
+    ``~/calibrate`` runs ``calibration.pipeline.calibrate_streams`` on a snapshot of the
     raw samples, the very function ``coreg calibrate BAG`` runs, so live and offline results
     agree; ``~/reset`` forgets the samples; ``~/save_samples`` writes them to a rosbag2 in
     ``storage_dir``.

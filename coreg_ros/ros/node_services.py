@@ -14,8 +14,8 @@ import time
 import traceback
 from typing import Optional
 
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import CoregError
-from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.files.results import load_prior
 from coreg_ros.ros import persistence

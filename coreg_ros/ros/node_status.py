@@ -11,8 +11,8 @@ from __future__ import annotations
 import time
 from typing import Optional
 
+from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.errors import CoregError
-from coreg_ros.core.pipeline import pair_for
 from coreg_ros.ros.buffer import REASONS
 from coreg_ros.ros.interface import POSE_TYPE
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue

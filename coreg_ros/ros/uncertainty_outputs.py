@@ -7,7 +7,7 @@ Once a calibration exists (fresh from ``~/calibrate`` or stored and loaded at st
     header stamp of the pair)
     Device A's pose carried into B's base frame through the calibration (``T0 · T_A · T1``,
     with the calibration's joint covariance and A's noise ``sigma_a``), fused with device B's
-    measurement (noise ``sigma_b``); see ``coreg_ros.core.fusion_stream``. ``full_pose``: the
+    measurement (noise ``sigma_b``); see ``coreg_ros.core.live.fusion``. ``full_pose``: the
     whole pose is fused. ``position_only`` / ``three_marker``: the positions only (B's marker
     1); the orientation is A's prediction and its covariance rows are marked unknown (-1 on
     the diagonal). QoS: reliable, volatile, depth 100 (every-pair mode publishes in batches).
@@ -44,7 +44,7 @@ from typing import Optional
 
 from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.errors import CoregError
-from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration, pending_pairs
+from coreg_ros.core.live.fusion import fused_stream, FusionCalibration, pending_pairs
 from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, UncertainPose
 from coreg_ros.files.results import result_to_dict
 from coreg_ros.ros.interface import LATCHED_QOS

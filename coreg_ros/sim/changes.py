@@ -1,7 +1,7 @@
 """
 Changes in the middle of a simulated recording: T0 or T1 steps and clock steps.
 
-What the watchdog (``coreg_ros.core.watchdog``) must notice:
+What the watchdog (``coreg_ros.core.live.watchdog``) must notice:
 
 - ``t0_step``: device A's base moves in B's base frame at time t (the base was bumped):
   from then on ``T0' = (p0 + δp, Exp(δθ) R0)``, δp and δθ in B's base axes;

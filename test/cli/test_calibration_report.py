@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip('matplotlib')
 
 from coreg_ros.core import uncertainty as unc  # noqa: E402, I100 (after the importorskip)
-from coreg_ros.core.calibrate import calibrate  # noqa: E402
+from coreg_ros.core.calibration.calibrate import calibrate  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.report.calibration_report import (  # noqa: E402
     point_errors,

@@ -7,10 +7,10 @@ problem; never a bare numpy / LinAlg / attribute error from deep inside the esti
 
 from dataclasses import replace
 
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pairing import pair_streams, validate_stream
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import ConfigError, CoregError, InputError, TooFewPairsError
-from coreg_ros.core.pairing import pair_streams, validate_stream
-from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_pairs, simulate_recording
 import numpy as np

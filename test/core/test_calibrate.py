@@ -13,11 +13,12 @@ import json
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import joint_pose_covariance, Prior
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.estimator import noise_covariance, tls, whitening
+from coreg_ros.core.estimator.posterior import joint_pose_covariance
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import Parameters, SPECS
-from coreg_ros.core.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.files.results import result_to_dict

@@ -16,16 +16,16 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from coreg_ros.core import calibrate as cal
 from coreg_ros.core import estimator as est
-from coreg_ros.core import linearized, screening
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import Prior
-from coreg_ros.core.estimator import noise_covariance, ols
-from coreg_ros.core.initialize import initialize
+from coreg_ros.core.calibration import calibrate as cal
+from coreg_ros.core.calibration import screening
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.initialize import initialize
+from coreg_ros.core.calibration.observability import rotation_spread
+from coreg_ros.core.estimator import linearized, noise_covariance, ols
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import SPECS
-from coreg_ros.core.observability import rotation_spread
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.sim import simulate_pairs

@@ -63,7 +63,7 @@ SCRIPT = textwrap.dedent("""
 
     import numpy as np
     from coreg_ros.core import quaternion as quat
-    from coreg_ros.core.calibrate import calibrate
+    from coreg_ros.core.calibration.calibrate import calibrate
     from coreg_ros.core.settings import Settings
     from coreg_ros.core.types import Pairs
 

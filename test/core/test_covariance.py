@@ -8,8 +8,8 @@ reduced-quaternion coordinates, and by Monte Carlo against the empirical covaria
 """
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.covariance import joint_pose_covariance, tangent_map, UNKNOWN
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.estimator.posterior import joint_pose_covariance, tangent_map, UNKNOWN
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs

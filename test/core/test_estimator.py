@@ -7,6 +7,7 @@ Schur-complement covariance, the stationarity of the solution and the chi-square
 """
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.initialize import initialize, project_to_so3, rotations_from_pairs
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.estimator import (
     lm,
@@ -17,7 +18,6 @@ from coreg_ros.core.estimator import (
     solve_tls,
     whitening,
 )
-from coreg_ros.core.initialize import initialize, project_to_so3, rotations_from_pairs
 from coreg_ros.core.models import output_error, Parameters, SPECS
 from coreg_ros.core.types import STATUS
 from coreg_ros.sim import simulate_pairs, Truth

@@ -1,5 +1,5 @@
 """
-Tests of coreg_ros.core.fusion_stream.
+Tests of coreg_ros.core.live.fusion.
 
 The fused covariance against the spread of a seeded Monte Carlo (calibration error, A's and B's
 noise all drawn), the position-only branch, and incremental pairing against pair_streams on the
@@ -14,13 +14,13 @@ from dataclasses import replace
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.fusion_stream import (
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pairing import pair_streams
+from coreg_ros.core.live.fusion import (
     fused_stream,
     FusionCalibration,
     pending_pairs,
 )
-from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
 from coreg_ros.sim import random_rotation, simulate_pairs, simulate_recording

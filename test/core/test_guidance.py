@@ -1,8 +1,10 @@
 """Guidance while collecting: σ now (against the calibration's own), the best next motion."""
 
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import CoregError, InputError
-from coreg_ros.core.guidance import (
+from coreg_ros.core.live.guidance import (
     batch_from_pairs,
     candidate_motions,
     Estimate,
@@ -15,7 +17,6 @@ from coreg_ros.core.guidance import (
     KEY_SUMMARY,
     PairFeed,
 )
-from coreg_ros.core.pipeline import calibrate_streams, pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs
 from coreg_ros.sim import add_pose_noise, simulate_recording

@@ -13,9 +13,9 @@ import os
 
 from bench import montecarlo as mc
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
-from coreg_ros.core.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
+from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.estimator import noise_covariance
+from coreg_ros.core.planning.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import make_motion, random_truth, simulate_pairs
 import numpy as np

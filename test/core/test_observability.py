@@ -6,11 +6,15 @@ unobservable parameter and the motion that would fix it.
 """
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.observability import (
+    check_motion,
+    check_observability,
+    rotation_spread,
+)
 from coreg_ros.core.errors import CoregError, UnobservableError
 from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, whitening
 from coreg_ros.core.models import Parameters, SPECS
-from coreg_ros.core.observability import check_motion, check_observability, rotation_spread
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_pairs
 import numpy as np
@@ -81,7 +85,7 @@ def test_diverse_motion_passes(model, method):
 def test_the_motion_check_of_a_long_recording_reads_a_subsample_to_the_same_verdict(
         monkeypatch, motion):
     """Every k-th orientation (MOTION_SAMPLE) gives the spread of all and the same verdict."""
-    from coreg_ros.core import observability
+    from coreg_ros.core.calibration import observability
 
     noisy, _, _ = simulate_pairs(np.random.default_rng(7), 4000, 'full_pose', motion=motion,
                                  sigma_a=(2e-4, 2e-3))

@@ -1,9 +1,9 @@
-"""Tests of coreg_ros.core.pairing: the one pairing rule of the package."""
+"""Tests of coreg_ros.core.calibration.pairing: the one pairing rule of the package."""
 
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.pairing import pair_streams, UNPAIRED_REASONS, validate_stream
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.pairing import pair_streams, UNPAIRED_REASONS, validate_stream
 from coreg_ros.core.types import PoseStream
 from hypothesis import given, settings
 from hypothesis import strategies as st

@@ -1,5 +1,5 @@
 """
-Tests of coreg_ros.core.planning and the ``coreg plan`` command.
+Tests of coreg_ros.core.planning.plan and the ``coreg plan`` command.
 
 The bound is checked against the estimator's own posterior covariance on a simulated
 recording, and the registration error against an independent propagation path
@@ -13,10 +13,10 @@ from pathlib import Path
 from coreg_ros.cli import plan as plan_cli
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.observability import rotation_spread
 from coreg_ros.core.estimator import noise_covariance
-from coreg_ros.core.observability import rotation_spread
-from coreg_ros.core.planning import (
+from coreg_ros.core.planning.plan import (
     plan_recording,
     predict_accuracy,
 )

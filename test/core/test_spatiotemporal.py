@@ -8,9 +8,9 @@ Statistical claims by Monte Carlo, fixed seeds.
 from dataclasses import replace
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.covariance import Prior
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import InconsistentDataError
-from coreg_ros.core.pipeline import calibrate_streams
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import PoseStream, UncertainPose
 from coreg_ros.core.uncertainty import pose_error
@@ -317,7 +317,7 @@ def test_prior_refinement_by_monte_carlo():
 
 
 def test_swapped_roles_are_flagged():
-    from coreg_ros.core.verdict import judge
+    from coreg_ros.core.calibration.verdict import judge
     rec = simulate_recording(54, 10.0, 'full_pose')
     a, bs = _streams(rec)
     result, _ = calibrate_streams(a, bs, Settings())

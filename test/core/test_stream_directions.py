@@ -4,14 +4,14 @@ import json
 
 from coreg_ros.cli.main import main
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.settings import Settings
-from coreg_ros.core.so3 import invert_poses
-from coreg_ros.core.stream_directions import (
+from coreg_ros.core.calibration.stream_directions import (
     check_directions,
     DirectionFit,
     DirectionReport,
     MAX_PAIRS,
 )
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording

@@ -13,10 +13,10 @@ import dataclasses
 
 from coreg_ros.core import estimator as est
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.initialize import initialize
 from coreg_ros.core.estimator import lm, ols, pair_algebra, tls, whitening
 from coreg_ros.core.estimator import normal_equations as structured
 from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
-from coreg_ros.core.initialize import initialize
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.so3 import skew
 from coreg_ros.sim import simulate_pairs, Truth
@@ -288,7 +288,7 @@ def test_posterior_is_undamped_when_a_is_far_noisier_than_b(model, monkeypatch):
 
 
 def test_infinite_input_weights_are_refused():
-    from coreg_ros.core.calibrate import calibrate
+    from coreg_ros.core.calibration.calibrate import calibrate
     from coreg_ros.core.errors import InputError
     from coreg_ros.core.settings import Settings
     noisy, _, _ = simulate_pairs(np.random.default_rng(9), 200, 'full_pose')

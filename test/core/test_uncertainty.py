@@ -355,7 +355,7 @@ def test_display_geometry():
 
 def test_fusing_a_through_a_real_calibration_with_b_beats_both():
     """Hoff's experiment in small (bench/hoff_experiment.py runs it at full size)."""
-    from coreg_ros.core.calibrate import calibrate
+    from coreg_ros.core.calibration.calibrate import calibrate
     from coreg_ros.core.estimator import noise_covariance
     from coreg_ros.core.settings import Settings
     from coreg_ros.sim import simulate_pairs

@@ -1,12 +1,11 @@
 """The watchdog: false-alarm design, detection and attribution of T0, T1, clock, noise changes."""
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import ConfigError
-from coreg_ros.core.guidance import PairFeed
-from coreg_ros.core.pipeline import calibrate_streams, pair_for
-from coreg_ros.core.settings import Settings
-from coreg_ros.core.types import Pairs, PoseStream
-from coreg_ros.core.watchdog import (
+from coreg_ros.core.live.guidance import PairFeed
+from coreg_ros.core.live.watchdog import (
     Calibration,
     cusum_threshold,
     DESIGN_INFLATION,
@@ -21,6 +20,8 @@ from coreg_ros.core.watchdog import (
     WARN,
     Watchdog,
 )
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import Pairs, PoseStream
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.changes import apply_change, apply_changes, parse_change
 import numpy as np

@@ -1,8 +1,8 @@
 """Tests of coreg_ros.files.bag: real rosbag2 recordings written and read back in tmp_path."""
 
 
+from coreg_ros.core.calibration.pairing import pair_streams
 from coreg_ros.core.errors import BagError, InputError
-from coreg_ros.core.pairing import pair_streams
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag import list_topics, POSE_STAMPED, read_pose_bag, write_pose_bag
 import numpy as np

@@ -12,7 +12,7 @@ import subprocess
 import sys
 import time
 
-from coreg_ros.core.pipeline import calibrate_streams
+from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.files.results import result_to_dict

@@ -8,8 +8,8 @@ Recordings played into coreg_node
 import subprocess
 import time
 
-from coreg_ros.core import guidance as gd
-from coreg_ros.core import watchdog as wd
+from coreg_ros.core.live import guidance as gd
+from coreg_ros.core.live import watchdog as wd
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.ros.interface import LATCHED_QOS

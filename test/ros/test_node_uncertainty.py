@@ -9,8 +9,8 @@ import math
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core import uncertainty as unc
-from coreg_ros.core.fusion_stream import fused_stream, FusionCalibration
-from coreg_ros.core.pairing import pair_streams
+from coreg_ros.core.calibration.pairing import pair_streams
+from coreg_ros.core.live.fusion import fused_stream, FusionCalibration
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import TimeOffset
 from coreg_ros.files.results import pose_from_dict

@@ -20,12 +20,13 @@ from coreg_ros.cli.dashboard import (  # noqa: E402
     sigma_rows,
     Status,
 )
-from coreg_ros.core import guidance as g  # noqa: E402
-from coreg_ros.core import watchdog as w  # noqa: E402
-from coreg_ros.core.guidance import batch_from_pairs, Estimate, GuidanceAccumulator  # noqa: E402
-from coreg_ros.core.pipeline import calibrate_streams, pair_for  # noqa: E402
+from coreg_ros.core.calibration.pairing import pair_for  # noqa: E402
+from coreg_ros.core.calibration.pipeline import calibrate_streams  # noqa: E402
+from coreg_ros.core.live import guidance as g  # noqa: E402
+from coreg_ros.core.live import watchdog as w  # noqa: E402
+from coreg_ros.core.live.guidance import batch_from_pairs, Estimate, GuidanceAccumulator  # noqa: E402
+from coreg_ros.core.live.watchdog import Watchdog  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
-from coreg_ros.core.watchdog import Watchdog  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
 from coreg_ros.sim.changes import apply_changes  # noqa: E402
 

@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.clock.trajectory import Trajectory
 from coreg_ros.core.estimator import noise_covariance, output_covariance
 from coreg_ros.core.models import ModelSpec, SPECS
 from coreg_ros.core.settings import Settings
-from coreg_ros.core.trajectory import Trajectory
 from coreg_ros.core.types import Pairs, PoseStream
 import numpy as np
 
@@ -115,7 +115,7 @@ def prepare(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = N
     Parameters
     ----------
     pairs : Pairs
-        As made by ``pipeline.pair_for`` with ``settings``.
+        As made by ``pairing.pair_for`` with ``settings``.
     settings : Settings
         Model and stated noise; ``time_offset`` is the offset the pairs were made with.
     stream_a : PoseStream, optional

@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
@@ -94,7 +94,7 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
     Parameters
     ----------
     pairs : Pairs
-        Paired samples (``pipeline.pair_for``).
+        Paired samples (``pairing.pair_for``).
     settings : Settings
         Model, method and stated noise (``sigma_a``, ``sigma_b``).
     stream_a : PoseStream, optional

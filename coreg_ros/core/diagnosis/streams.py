@@ -11,13 +11,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Optional, Union
 
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.clock.timing import coarse_offsets
 from coreg_ros.core.diagnosis.engine import diagnose, Diagnosis
 from coreg_ros.core.diagnosis.options import Options, Progress
 from coreg_ros.core.diagnosis.stamps import stamps_report
-from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
-from coreg_ros.core.timing import coarse_offsets
 from coreg_ros.core.types import Pairs, PoseStream
 import numpy as np
 

@@ -32,13 +32,12 @@ from coreg_ros.core.estimator.problem import (
     Problem,
     whitening,
 )
+from coreg_ros.core.estimator.state import InputState, TlsSums
 from coreg_ros.core.estimator.tls import (
     back_substitute,
     DAMPING_SHARE,
-    InputState,
     solve_tls,
     tls_linearization,
-    TlsSums,
 )
 
 __all__ = [

@@ -3,14 +3,27 @@ A priori estimates as extra residual rows (Ikits B.3, eqs. 55-56).
 
 A prior adds ``(φ̂ - φ)ᵀ W_φ (φ̂ - φ)`` to the objective (eqs. 28 and 39): whitened, a few more
 residual rows and their Jacobian. Both solvers add them to their normal equations (OLS to JᵀJ,
-TLS to the Schur complement); ``covariance.Prior.terms`` makes the terms from a pose prior.
+TLS to the Schur complement); ``Prior.terms`` makes the terms from a pose prior: a previous
+calibration, a CAD drawing, a measured lever (partial: an infinite variance leaves an axis free).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Optional
 
-from coreg_ros.core.models import Parameters
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.errors import InputError
+from coreg_ros.core.models import (
+    error_rotation_jacobian,
+    ModelSpec,
+    Parameters,
+    S0,
+    S1,
+    tangent_of_chart,
+)
+from coreg_ros.core.types import UncertainPose
 import numpy as np
 
 #: A prior term returns whitened residual rows (k,) and their Jacobian (k, P) at φ (Ikits B.3).
@@ -39,3 +52,100 @@ def prior_rows(problem, params: Parameters):
         return np.zeros(0), np.zeros((0, P))
     parts = [term(params) for term in problem.priors]
     return np.concatenate([r for r, _ in parts]), np.concatenate([j for _, j in parts])
+
+
+@dataclass(frozen=True)
+class Prior:
+    """
+    A priori estimates of T0 and/or T1 (Ikits B.3), each with a 6×6 ROS-layout covariance.
+
+    ``joint_cov`` (12×12 over (T0, T1), ROS layout), when given with both poses, replaces the
+    two 6×6 blocks: a previous calibration's T0 and T1 are correlated, and dropping the cross
+    terms would misstate the information the prior carries. For models that do not estimate
+    q1, only the position part of a T1 prior is used; an infinite variance leaves an axis free.
+    """
+
+    base_to_base: Optional[UncertainPose] = None
+    tool_to_marker: Optional[UncertainPose] = None
+    joint_cov: Optional[np.ndarray] = None
+
+    def poses(self) -> list:
+        """(which, pose) for the poses given: 0 for T0, 1 for T1."""
+        return [(w, p) for w, p in ((0, self.base_to_base), (1, self.tool_to_marker))
+                if p is not None]
+
+    def axes(self, spec: ModelSpec) -> np.ndarray:
+        """Constrained components among the 12 of (T0, T1) (``constrained_axes`` of each)."""
+        return np.concatenate([6 * w + constrained_axes(p, spec, w) for w, p in self.poses()])
+
+    def covariance(self) -> np.ndarray:
+        """12×12 covariance of (T0, T1): ``joint_cov`` or the blocks (inf where not given)."""
+        if self.joint_cov is not None and len(self.poses()) == 2:
+            return np.asarray(self.joint_cov, dtype=float).reshape(12, 12)
+        cov = np.diag(np.full(12, np.inf))
+        for w, p in self.poses():
+            if p.covariance is None:
+                raise InputError('a prior needs a covariance; give its 6×6 covariance or '
+                                 'sigma per axis')
+            cov[6 * w:6 * w + 6, 6 * w:6 * w + 6] = np.asarray(p.covariance,
+                                                               dtype=float).reshape(6, 6)
+        return cov
+
+    def terms(self, spec: ModelSpec) -> list:
+        """Prior terms for the estimator: callables φ -> (whitened rows, Jacobian)."""
+        if not self.poses():
+            return []
+        keep = self.axes(spec)
+        cov = self.covariance()[np.ix_(keep, keep)]
+        try:
+            L = np.linalg.inv(np.linalg.cholesky(cov))
+        except np.linalg.LinAlgError as e:
+            raise InputError('prior covariance is not positive definite; fix it') from e
+        rows = [(w, _pose_rows(p, spec, w)) for w, p in self.poses()]
+
+        def term(params: Parameters):
+            e = np.zeros(12)
+            J = np.zeros((12, spec.n_params))
+            for w, fn in rows:
+                e[6 * w:6 * w + 6], J[6 * w:6 * w + 6] = fn(params)
+            return L @ e[keep], L @ J[keep]
+
+        return [term]
+
+
+def constrained_axes(pose: UncertainPose, spec: ModelSpec, which: int) -> np.ndarray:
+    """
+    Return the axes (of 0..5) a prior pose constrains: finite variance, estimated by the model.
+
+    An infinite variance marks an axis the prior says nothing about (a partial prior, e.g. a
+    CAD position of T1 whose orientation is unknown).
+    """
+    if pose.covariance is None:
+        raise InputError('a prior needs a covariance; give its 6×6 covariance or sigma per axis')
+    cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
+    axes = [i for i in range(6) if np.isfinite(cov[i, i]) and cov[i, i] > 0]
+    if which == 1 and not spec.has_q1:
+        axes = [i for i in axes if i < 3]
+    return np.asarray(axes, dtype=int)
+
+
+def _pose_rows(pose: UncertainPose, spec: ModelSpec, which: int):
+    """Unwhitened rows ``[p - p̂; δθ]`` with ``q = Exp(δθ) ⊗ q̂`` and their Jacobian (6, P)."""
+    q_hat = quat.validate_quaternions(pose.quat_wxyz, 'prior orientation')
+    p_slice = slice(0, 3) if which == 0 else spec.marker_slice(0)
+    with_rotation = which == 0 or spec.has_q1
+
+    def rows(params: Parameters):
+        J = np.zeros((6, spec.n_params))
+        e = np.zeros(6)
+        e[0:3] = params.phi[p_slice] - pose.position
+        J[0:3, p_slice] = np.eye(3)
+        if with_rotation:
+            q = params.q0 if which == 0 else params.q1
+            dq = params.dq0 if which == 0 else params.dq1
+            e_rot, de_da = error_rotation_jacobian(q[None], q_hat[None])
+            e[3:6] = 2.0 * e_rot[0]  # ≈ δθ (the metric is half the angle)
+            J[3:6, S0 if which == 0 else S1] = 2.0 * de_da[0] @ tangent_of_chart(q, dq)
+        return e, J
+
+    return rows

@@ -30,7 +30,7 @@ Hoff, W., Vincent, T. (2000). Analysis of head pose accuracy in augmented realit
 
 """
 
-from coreg_ros.core.covariance import UNKNOWN
+from coreg_ros.core.estimator.posterior import UNKNOWN
 from coreg_ros.core.so3 import left_jacobian, skew
 from coreg_ros.core.uncertainty.composition import (
     chain,

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from coreg_ros.core.covariance import UNKNOWN
 from coreg_ros.core.errors import InputError
+from coreg_ros.core.estimator.posterior import UNKNOWN
 from coreg_ros.core.types import UncertainPose
 import numpy as np
 

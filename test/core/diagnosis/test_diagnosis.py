@@ -2,7 +2,8 @@
 
 import json
 
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.diagnosis import diagnose_streams, EFFECT_NAMES
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import prepare, spatial_folds, time_folds, Trajectory
@@ -10,7 +11,6 @@ from coreg_ros.core.diagnosis.detect import detect, ljung_box
 from coreg_ros.core.diagnosis.engine import _params_of
 from coreg_ros.core.diagnosis.fit import Model, start_state
 from coreg_ros.core.diagnosis.summary import effect_estimate
-from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.injected import EFFECT_NAMES as SIM_EFFECT_NAMES

@@ -1,9 +1,9 @@
 """Gap measures a noise model cannot game (issue 11, item 1), outliers versus structure (2)."""
 
+from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import prepare
-from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.injected import parse_effect

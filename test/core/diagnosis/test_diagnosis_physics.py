@@ -103,9 +103,9 @@ def test_real_drift_is_kept_with_its_per_block_trend():
 
 
 def test_noise_source_is_estimated_when_not_at_b_base():
+    from coreg_ros.core.calibration.pairing import pair_for
     from coreg_ros.core.diagnosis import variance as vm
     from coreg_ros.core.diagnosis.data import prepare
-    from coreg_ros.core.pipeline import pair_for
 
     rec = simulate_recording(3, 40.0)
     pairs, _ = pair_for(rec.stream_a, list(rec.streams_b), Settings())

@@ -14,11 +14,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 import numbers
-from typing import Union
+from typing import Optional, Union
 
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.quaternion import slerp, validate_quaternions
-from coreg_ros.core.types import PairingReport, Pairs, PoseStream
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import PairingReport, Pairs, PoseStream, TimeOffset
 import numpy as np
 
 #: Largest position (m) a tracker reading may have: beyond it the unit or the value is wrong.
@@ -339,3 +340,23 @@ def pair_streams(stream_a: PoseStream,
 
 
 __all__ = ['UNPAIRED_REASONS', 'pair_streams', 'validate_stream', 'validated_streams']
+
+
+def stream_list(streams_b: Union[PoseStream, Sequence[PoseStream]]) -> list:
+    """Return device B's streams as a list (one stream, or one per marker)."""
+    return [streams_b] if isinstance(streams_b, PoseStream) else list(streams_b)
+
+
+def pair_for(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
+             settings: Settings, timing: Optional[TimeOffset] = None,
+             validated: bool = False):
+    """
+    Pair the streams with the settings' gap and model; returns (Pairs, report).
+
+    At ``timing`` (offset and drift) when given, else at ``settings.time_offset``.
+    """
+    timing = timing or TimeOffset(settings.time_offset)
+    return pair_streams(stream_a, streams_b, max_gap_ns=settings.max_gap_ns,
+                        offset_ns=timing.offset_ns(), drift=timing.drift,
+                        drift_ref_ns=timing.reference_ns,
+                        with_orientation_b=settings.model == 'full_pose', validated=validated)

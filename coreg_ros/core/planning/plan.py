@@ -2,7 +2,7 @@
 Plan a calibration recording: predict its accuracy and which added motion would improve it most.
 
 The prediction is the Cramér-Rao bound of the calibration in the errors-in-variables model
-(``coreg_ros.core.crlb.cramer_rao_bound``: the inverse Fisher information of ψ with A's true
+(``crlb.cramer_rao_bound``: the inverse Fisher information of ψ with A's true
 poses as nuisance parameters, Ikits 2000 appendix B.2), evaluated at device A's tool motion and
 a calibration (an estimate, or a random truth before any data exist). It is the covariance an
 efficient estimator (TLS) reaches; it needs only the motion, not B's data.
@@ -27,10 +27,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core import observability
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
+from coreg_ros.core.calibration import observability
 from coreg_ros.core.errors import InputError
+from coreg_ros.core.planning.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
 from coreg_ros.core.types import MODELS
 import numpy as np
 

@@ -10,8 +10,10 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Optional
 
-from coreg_ros.core import screening
-from coreg_ros.core.covariance import Prior, result_poses
+from coreg_ros.core.calibration import screening
+from coreg_ros.core.calibration.initialize import initialize
+from coreg_ros.core.calibration.observability import check_motion, check_observability
+from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
@@ -31,11 +33,10 @@ from coreg_ros.core.estimator import (
     TlsSums,
     whitening,
 )
-from coreg_ros.core.initialize import initialize
-from coreg_ros.core.linearized import PairData, reference_squares
+from coreg_ros.core.estimator.linearized import PairData, reference_squares
+from coreg_ros.core.estimator.posterior import result_poses
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
-from coreg_ros.core.observability import check_motion, check_observability
-from coreg_ros.core.pair_input import validated_arrays
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
 import numpy as np

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional
 
-from coreg_ros.core.covariance import Prior
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream

@@ -15,13 +15,12 @@ from dataclasses import dataclass
 from typing import Optional, Union
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibrate import calibrate
+from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.pairing import pair_for, validated_streams
+from coreg_ros.core.clock.timing import coarse_offsets
 from coreg_ros.core.errors import CoregError
-from coreg_ros.core.pairing import validated_streams
-from coreg_ros.core.pipeline import pair_for
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.so3 import invert_poses
-from coreg_ros.core.timing import coarse_offsets
 from coreg_ros.core.types import Pairs, PoseStream, TimeOffset
 import numpy as np
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.crlb import CRLB_DIMENSION
-from coreg_ros.core.guidance import (
+from coreg_ros.core.live.guidance import (
     CHUNK,
     effective_covariance,
     Estimate,
@@ -14,6 +13,7 @@ from coreg_ros.core.guidance import (
     PairBatch,
 )
 from coreg_ros.core.models import Parameters, S0, S1, SPECS, tangent_of_chart
+from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import CalibrationResult
 import numpy as np
 

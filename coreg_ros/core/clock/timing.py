@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.linearized import Chunk, chunks, PairData
+from coreg_ros.core.clock.trajectory import Trajectory
+from coreg_ros.core.estimator.linearized import Chunk, chunks, PairData
 from coreg_ros.core.models import Parameters
-from coreg_ros.core.trajectory import Trajectory
 from coreg_ros.core.types import PoseStream
 import numpy as np
 from scipy import fft

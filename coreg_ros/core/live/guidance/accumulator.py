@@ -5,17 +5,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.crlb import CRLB_DIMENSION
+from coreg_ros.core.calibration.observability import check_motion
 from coreg_ros.core.errors import InputError, UnobservableError
-from coreg_ros.core.guidance.feed import PairBatch
-from coreg_ros.core.guidance.fisher import (
+from coreg_ros.core.live.guidance.feed import PairBatch
+from coreg_ros.core.live.guidance.fisher import (
     _weak_prior,
     device_covariances,
     Estimate,
     information,
     sigma_groups,
 )
-from coreg_ros.core.guidance.keys import (
+from coreg_ros.core.live.guidance.keys import (
     AXES,
     GROUP_TITLES,
     is_rotation_group,
@@ -33,9 +33,9 @@ from coreg_ros.core.guidance.keys import (
     KEY_WORST,
     KEY_WORST_RATIO,
 )
-from coreg_ros.core.guidance.motions import candidate_motions
+from coreg_ros.core.live.guidance.motions import candidate_motions
 from coreg_ros.core.models import SPECS
-from coreg_ros.core.observability import check_motion
+from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import MODELS
 import numpy as np
 

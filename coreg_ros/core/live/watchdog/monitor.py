@@ -6,13 +6,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.guidance import (
+from coreg_ros.core.live.guidance import (
     device_covariances,
     PairBatch,
 )
-from coreg_ros.core.types import CalibrationResult
-from coreg_ros.core.watchdog.attribution import attribute, Attribution
-from coreg_ros.core.watchdog.keys import (
+from coreg_ros.core.live.watchdog.attribution import attribute, Attribution
+from coreg_ros.core.live.watchdog.keys import (
     ERROR,
     KEY_ALARM_STAMP,
     KEY_CHANGE,
@@ -32,13 +31,14 @@ from coreg_ros.core.watchdog.keys import (
     OK,
     WARN,
 )
-from coreg_ros.core.watchdog.residuals import Calibration, linearise
-from coreg_ros.core.watchdog.threshold import (
+from coreg_ros.core.live.watchdog.residuals import Calibration, linearise
+from coreg_ros.core.live.watchdog.threshold import (
     cusum_threshold,
     DESIGN_INFLATION,
     llr_constants,
     TARGET_RUN_LENGTH,
 )
+from coreg_ros.core.types import CalibrationResult
 import numpy as np
 
 #: Fewest pairs after the change point before the attribution is trusted, and the fewest

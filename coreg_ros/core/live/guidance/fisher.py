@@ -6,11 +6,11 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.crlb import CRLB_DIMENSION, model_jacobians
+from coreg_ros.core.calibration.initialize import initialize
 from coreg_ros.core.estimator import noise_covariance
-from coreg_ros.core.guidance.keys import GROUPS, is_rotation_group
-from coreg_ros.core.initialize import initialize
+from coreg_ros.core.live.guidance.keys import GROUPS, is_rotation_group
 from coreg_ros.core.models import Parameters, SPECS
+from coreg_ros.core.planning.crlb import CRLB_DIMENSION, model_jacobians
 from coreg_ros.core.types import CalibrationResult
 import numpy as np
 

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional, Union
 
-from coreg_ros.core.pairing import pair_streams
+from coreg_ros.core.calibration.pairing import pair_streams
 from coreg_ros.core.types import CalibrationResult, Pairs, PoseStream, UncertainPose
 from coreg_ros.core.uncertainty import fuse_arrays, through_calibration_arrays, UNKNOWN
 import numpy as np

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.guidance.keys import AXES
+from coreg_ros.core.live.guidance.keys import AXES
 import numpy as np
 
 #: Recording time each candidate motion adds, s.

@@ -1,39 +1,24 @@
 """
-Streams in, calibration out: pairing by timestamp, the clock offset, the estimator, the verdict.
-
-The live node and the offline ``coreg calibrate`` both call ``calibrate_streams`` on the raw
-samples they hold, so they pair and estimate identically.
+The clock offset estimated jointly with T0 and T1 from the streams (and the fit at a given one).
 
 With ``settings.estimate_time_offset`` the offset τ (and, if asked, the drift κ) is estimated
-jointly with T0 and T1 (``timing``): candidates from the cross-correlation of the devices'
-angular speeds and the given value are each fitted on a subsample of B's samples; the best is
-refined by Gauss-Newton steps on τ with φ eliminated, re-pairing at every step, first on the
-subsample and then on all samples, until a step is below ``LINEAR_STEP_S`` (where the pairs are
-linear in τ to well below the noise); that last step is applied to τ and φ together, and the
-covariance of φ is marginalised over τ.
+jointly with T0 and T1: candidates from the cross-correlation of the devices' angular speeds
+(``clock.timing.coarse_offsets``) and the given value are each fitted on a subsample of B's
+samples; the best is refined by Gauss-Newton steps on τ with φ eliminated
+(``clock.timing.offset_step``), re-pairing at every step, first on the subsample and then on all
+samples, until a step is below ``LINEAR_STEP_S`` (where the pairs are linear in τ to well below
+the noise); that last step is applied to τ and φ together, and the covariance of φ is
+marginalised over τ. Every round's fit is the robust fit of ``calibrate``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Optional, Union
+from typing import Optional
 
-from coreg_ros.core.calibrate import calibrate, MAX_REJECTED_SHARE
-from coreg_ros.core.covariance import Prior, result_poses, tangent_map
-from coreg_ros.core.errors import (
-    ConvergenceError,
-    CoregError,
-    InconsistentDataError,
-    TooFewPairsError,
-    UnobservableError,
-)
-from coreg_ros.core.estimator import noise_covariance, output_covariance
-from coreg_ros.core.linearized import PairData
-from coreg_ros.core.models import Parameters, SPECS
-from coreg_ros.core.pairing import pair_streams, validated_streams
-from coreg_ros.core.settings import Settings
-from coreg_ros.core.timing import (
+from coreg_ros.core.calibration.calibrate import calibrate, MAX_REJECTED_SHARE
+from coreg_ros.core.calibration.pairing import pair_for, validated_streams
+from coreg_ros.core.clock.timing import (
     clock_step,
     coarse_offsets,
     offset_step,
@@ -42,9 +27,15 @@ from coreg_ros.core.timing import (
     query_seconds,
     velocity_noise_cov,
 )
-from coreg_ros.core.trajectory import Trajectory, VELOCITY_HALF_WINDOW
+from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
+from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
+from coreg_ros.core.estimator import noise_covariance, output_covariance
+from coreg_ros.core.estimator.linearized import PairData
+from coreg_ros.core.estimator.posterior import result_poses, tangent_map
+from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.models import Parameters, SPECS
+from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
-from coreg_ros.core.verdict import judge, unit_mismatch
 import numpy as np
 from scipy import stats
 
@@ -65,76 +56,10 @@ STEP_TOLERANCE_S = 0.1
 SAME_CANDIDATE_S = 2e-3
 
 
-def _b_list(streams_b: Union[PoseStream, Sequence[PoseStream]]) -> list:
-    return [streams_b] if isinstance(streams_b, PoseStream) else list(streams_b)
-
-
-def pair_for(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
-             settings: Settings, timing: Optional[TimeOffset] = None,
-             validated: bool = False):
-    """
-    Pair the streams with the settings' gap and model; returns (Pairs, report).
-
-    At ``timing`` (offset and drift) when given, else at ``settings.time_offset``.
-    """
-    timing = timing or TimeOffset(settings.time_offset)
-    return pair_streams(stream_a, streams_b, max_gap_ns=settings.max_gap_ns,
-                        offset_ns=timing.offset_ns(), drift=timing.drift,
-                        drift_ref_ns=timing.reference_ns,
-                        with_orientation_b=settings.model == 'full_pose', validated=validated)
-
-
-def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
-                      settings: Settings, prior: Optional[Prior] = None,
-                      frames: Optional[tuple] = None
-                      ) -> tuple[CalibrationResult, PairingReport]:
-    """
-    Pair device A and device B samples, estimate the clock offset (if asked), calibrate, judge.
-
-    Parameters
-    ----------
-    stream_a : PoseStream
-        Device A: tool pose in A's base frame.
-    streams_b : PoseStream or sequence of PoseStream
-        Device B: marker pose(s) in B's base frame (three streams for ``three_marker``).
-    settings : Settings
-        The configuration (model, method, noise, pairing, robust fit).
-    prior : Prior, optional
-        Prior knowledge of the parameters, added to the fit.
-    frames : (str, str), optional
-        The configured base frames of A and B, to recognise swapped devices from the
-        messages' frame ids when the fit is bad.
-
-    Returns
-    -------
-    result : CalibrationResult
-        With ``time_offset``, ``rejected_stamps``, ``fit_consistent`` and ``verdict``;
-        ``success`` only if the estimator converged and the fit matches the stated noise.
-    report : PairingReport
-
-    Raises
-    ------
-    TooFewPairsError
-        With the pairing counts, so the user sees why samples were not paired.
-
-    """
-    streams_b = _b_list(streams_b)
-    try:
-        if settings.estimate_time_offset:
-            result, report = _spatiotemporal(stream_a, streams_b, settings, prior)
-        else:
-            result, report = _fixed(stream_a, streams_b, settings, prior,
-                                    TimeOffset(settings.time_offset, message='given'))
-    except (UnobservableError, InconsistentDataError, ConvergenceError) as e:
-        # positions in other units make every fit fail somehow: name the cause, not the symptom
-        units = unit_mismatch(stream_a, streams_b[0])
-        if units and 'likely in' not in str(e):
-            raise type(e)(f'{e}; but first: {units}') from e
-        raise
-    return judge(result, stream_a, streams_b, settings, prior, frames), report
-
-
-def _fixed(stream_a, streams_b, settings, prior, timing: TimeOffset):
+def fit_at_offset(stream_a: PoseStream, streams_b: list, settings: Settings,
+                  prior: Optional[Prior], timing: TimeOffset
+                  ) -> tuple[CalibrationResult, PairingReport]:
+    """Pair at the offset ``timing`` (given, not estimated) and run the robust fit there."""
     pairs, report = pair_for(stream_a, streams_b, settings, timing)
     try:
         result = calibrate(pairs, settings, prior)
@@ -283,7 +208,9 @@ def _candidates(ctx: _Context) -> list:
     return out
 
 
-def _spatiotemporal(stream_a, streams_b, settings, prior):
+def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Settings,
+                           prior: Optional[Prior]) -> tuple[CalibrationResult, PairingReport]:
+    """Estimate τ (and κ if asked) jointly with T0 and T1 (the module docstring says how)."""
     ctx = _Context.build(stream_a, streams_b, settings, prior)
     kappa0 = 0.0 if settings.estimate_clock_drift else None
     sub_b = _subsampled(ctx.streams_b, SUBSAMPLE_B)
@@ -312,7 +239,7 @@ def _spatiotemporal(stream_a, streams_b, settings, prior):
     given = float(settings.time_offset)
     if best is None:
         # no candidate fits: the fit at the given offset says why, in its own words
-        result, report = _fixed(stream_a, streams_b, settings, prior, TimeOffset(
+        result, report = fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
             given, message='not estimated: no offset within the overlap gave a fit'))
         return result, report
     try:
@@ -328,7 +255,7 @@ def _spatiotemporal(stream_a, streams_b, settings, prior):
         raise
     ok, why = full.step.determined()
     if not ok:
-        return _fixed(stream_a, streams_b, settings, prior, TimeOffset(
+        return fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
             given, message=f'not estimated ({why}); kept the given {given:g} s'))
     return _final(full, ctx), full.report
 

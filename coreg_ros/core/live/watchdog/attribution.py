@@ -5,14 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.covariance import Prior
-from coreg_ros.core.guidance import (
+from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.live.guidance import (
     Estimate,
 )
+from coreg_ros.core.live.watchdog.keys import KIND_TEXT
+from coreg_ros.core.live.watchdog.residuals import Calibration, Linearised
 from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import CalibrationResult
-from coreg_ros.core.watchdog.keys import KIND_TEXT
-from coreg_ros.core.watchdog.residuals import Calibration, Linearised
 import numpy as np
 from scipy import stats
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.errors import InputError
-from coreg_ros.core.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.types import Pairs
 import numpy as np
 
