@@ -151,7 +151,10 @@ def _diagnosis_outputs(out: dict, quick: bool) -> None:
                 continue
             settings = cr.Settings(model=model)
             diag = _outcome(cr.diagnose_streams, rec.stream_a, list(rec.streams_b), settings)
-            out[f'diagnose/{model}/{name}'] = digest(getattr(diag, 'report', diag))
+            report = getattr(diag, 'report', diag)
+            # the JSON document: a typed report gives it by as_dict() (the same keys)
+            out[f'diagnose/{model}/{name}'] = digest(
+                report.as_dict() if hasattr(report, 'as_dict') else report)
 
 
 def _uncertainty_outputs(out: dict) -> None:
