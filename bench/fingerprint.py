@@ -43,10 +43,12 @@ def _feed(h, obj) -> None:
         h.update(repr(('nd', a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())
     elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        # a field left at None is skipped: adding an optional field changes no hash
         h.update(type(obj).__name__.encode())
         for f in dataclasses.fields(obj):
-            h.update(f.name.encode())
-            _feed(h, getattr(obj, f.name))
+            if getattr(obj, f.name) is not None:
+                h.update(f.name.encode())
+                _feed(h, getattr(obj, f.name))
     elif isinstance(obj, dict):
         h.update(b'{')
         for k in sorted(obj, key=repr):
