@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import sys
-from typing import Any, Optional, TYPE_CHECKING
+from typing import Any
 
 from coreg_ros.cli.argtypes import finite
 from coreg_ros.cli.options import (
@@ -18,14 +18,6 @@ from coreg_ros.cli.options import (
     settings_from_args,
 )
 from coreg_ros.cli.policy import PROG
-from coreg_ros.core.types import PoseStream
-import numpy as np
-
-if TYPE_CHECKING:  # the fit machinery is imported when a fit is checked, not by `coreg --help`
-    from coreg_ros.core.calibration.stream_directions import DirectionReport
-
-#: p-value below which ``coreg calibrate`` checks the stream directions.
-DIRECTION_CHECK_P = 1e-3
 
 
 @dataclass
@@ -75,7 +67,8 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     frames : tuple, optional
         (frame_base_a, frame_base_b) for the swap check (``config_frames``).
     direction_check : bool
-        Check the stream directions after a bad fit (``--no-direction-check`` turns it off).
+        Check the stream directions after a bad fit (``--no-direction-check`` turns it off;
+        the check itself is the pipeline's, ``calibrate_streams``).
 
     Raises
     ------
@@ -85,22 +78,14 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
 
     """
     from coreg_ros.core.calibration.pipeline import calibrate_streams
-    from coreg_ros.core.calibration.stream_directions import check_directions
-    from coreg_ros.core.errors import InconsistentDataError
     from coreg_ros.files.bag.posebag import read_pose_bag
     from coreg_ros.files.results import result_to_dict
 
     streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
     stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
-    try:
-        result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames)
-    except InconsistentDataError as e:
-        # data refused as a whole: a stream given the wrong way round is a cheap explanation
-        check = check_directions(stream_a, streams_b, settings) if direction_check else None
-        if check is not None and check.flagged:
-            raise InconsistentDataError(f'{check.message} ({e})') from e
-        raise
-    check = direction_guard(stream_a, streams_b, settings, result, enabled=direction_check)
+    result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames,
+                                       direction_check=direction_check)
+    check = result.direction_check
     data = result_to_dict(result)
     data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
                        'unpaired': dict(report.unpaired)}
@@ -153,32 +138,6 @@ def cmd_calibrate(args) -> int:
             points_frame=args.points_frame, title=f'{PROG} calibrate {args.bag}')
         print(f'report written to {page}', file=out)
     return run.exit_code
-
-
-def direction_guard(stream_a: PoseStream, streams_b, settings, result,
-                    enabled: bool = True) -> Optional[DirectionReport]:
-    """
-    Check the stream directions after a bad fit, for ``coreg calibrate``.
-
-    Runs ``check_directions`` only when the fit's p-value is below ``DIRECTION_CHECK_P`` (or
-    not a number) and it is ``enabled`` (``--no-direction-check``); good data pay nothing.
-
-    Returns
-    -------
-    DirectionReport or None
-        None when the check did not run. ``report.flagged`` means the data fit more than 10×
-        better with a stream inverted: the caller should refuse the fit (``report.message``
-        names the ``coreg convert`` flag).
-
-    """
-    if not enabled:
-        return None
-    p = float(result.p_value)
-    if np.isfinite(p) and p >= DIRECTION_CHECK_P:
-        return None
-    from coreg_ros.core.calibration.stream_directions import check_directions
-
-    return check_directions(stream_a, streams_b, settings)
 
 
 def register(sub) -> None:

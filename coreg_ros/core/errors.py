@@ -6,9 +6,22 @@ command-line tools and the node can show ``str(error)`` to a person without a tr
 All are ``ValueError`` compatible, as scipy raises ``ValueError`` for bad input.
 """
 
+import copy
+
 
 class CoregError(ValueError):
     """Base class of every error coreg_ros raises on purpose."""
+
+    def with_message(self, message: str) -> 'CoregError':
+        """
+        Return a copy of this error that says ``message``: same class, same attributes.
+
+        A layer that adds what it knows (``'…; but first: positions are in mm'``) keeps what
+        the error carries (``UnobservableError.directions``) instead of building a new one.
+        """
+        out = copy.copy(self)
+        out.args = (message,)
+        return out
 
 
 class InputError(CoregError):

@@ -306,6 +306,9 @@ class CalibrationResult:
         Why the fit is inconsistent and what to do (empty when consistent).
     prior_check : dict, optional
         ``{"chi2", "dof", "p_value", "consistent"}`` of the prior's own residual rows.
+    direction_check : calibration.stream_directions.DirectionReport, optional
+        Which way round the streams fit best, when the pipeline checked it (after a fit the
+        data contradict); a flagged report makes the result not a success.
 
     """
 
@@ -334,6 +337,7 @@ class CalibrationResult:
     fit_consistent: Optional[bool] = None
     verdict: str = ''
     prior_check: Optional[dict] = None
+    direction_check: Optional[object] = None
 
     @property
     def reduced_chi2(self) -> float:

@@ -134,3 +134,54 @@ def test_calibrate_good_recording_runs_no_check(tmp_path, rec, capsys):
     assert main(['calibrate', bag, '--json', str(out)]) == 0
     assert 'direction_check' not in json.loads(out.read_text())
     assert 'direction check' not in capsys.readouterr().out
+
+
+# ------------------------------------------------- the check in the shared pipeline (issue 21)
+
+
+def test_the_front_door_refuses_a_wrongly_directed_stream(rec):
+    """coreg_ros.calibrate runs the pipeline's check: an inverted B is no success, and named."""
+    import coreg_ros as cr
+    a, b = rec.stream_a, inverted(rec.streams_b[0])
+    res = cr.calibrate(a.position, a.quat_wxyz, b.position, b.quat_wxyz, method='ols',
+                       stamps_a=a.stamps, stamps_b=b.stamps,
+                       sigma_a=rec.truth.sigma_a, sigma_b=rec.truth.sigma_b)
+    assert not res.success
+    assert res.direction_check is not None and res.direction_check.flagged
+    assert res.direction_check.best.flags == '--invert-b'
+    assert 'wrong way round' in res.verdict and '--invert-b' in res.verdict
+    # a good recording is not checked at all (good data pay nothing)
+    good = cr.calibrate(a.position, a.quat_wxyz, rec.streams_b[0].position,
+                        rec.streams_b[0].quat_wxyz, stamps_a=a.stamps,
+                        stamps_b=rec.streams_b[0].stamps, sigma_a=rec.truth.sigma_a,
+                        sigma_b=rec.truth.sigma_b)
+    assert good.success and good.direction_check is None
+
+
+def test_pipeline_check_can_be_turned_off(rec):
+    from coreg_ros.core.calibration.pipeline import calibrate_streams
+    settings = Settings(method='ols', sigma_a=rec.truth.sigma_a, sigma_b=rec.truth.sigma_b)
+    b = inverted(rec.streams_b[0])
+    checked, _ = calibrate_streams(rec.stream_a, [b], settings)
+    as_given, _ = calibrate_streams(rec.stream_a, [b], settings, direction_check=False)
+    assert checked.direction_check.flagged and not checked.success
+    assert as_given.direction_check is None and as_given.fit_consistent is False
+    # the check changes no number of the fit, only whether it is accepted
+    assert np.array_equal(checked.params, as_given.params)
+
+
+def test_unobservable_error_keeps_its_directions_through_the_pipeline():
+    """A motion about one axis, B in mm: the units note is added, the directions kept."""
+    import coreg_ros as cr
+    from coreg_ros.core.errors import UnobservableError
+    r = simulate_recording(5, 30.0, motion='single_axis')
+    a, b = r.stream_a, r.streams_b[0]
+    with pytest.raises(UnobservableError) as direct:
+        cr.calibrate(a.position, a.quat_wxyz, b.position, b.quat_wxyz, stamps_a=a.stamps,
+                     stamps_b=b.stamps)
+    assert direct.value.directions
+    with pytest.raises(UnobservableError) as mm:
+        cr.calibrate(a.position, a.quat_wxyz, b.position * 1000.0, b.quat_wxyz,
+                     stamps_a=a.stamps, stamps_b=b.stamps)
+    assert 'but first' in str(mm.value) and 'mm' in str(mm.value)
+    assert mm.value.directions == direct.value.directions

@@ -34,6 +34,9 @@ OFFSET_CANDIDATES = 3
 #: A combination must fit this many times better (chi2/dof) than the data as given to be
 #: reported as the right direction.
 DEFAULT_THRESHOLD = 10.0
+#: The calibration pipeline checks the directions after a fit whose p-value is below this (or
+#: not a number), and when the data are refused as a whole; good data pay nothing.
+CHECK_BELOW_P = 1e-3
 
 
 @dataclass(frozen=True)
