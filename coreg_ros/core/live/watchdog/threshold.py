@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 #: Residual covariance inflation the CUSUM is tuned to (λ: d² ≈ λ χ²_m under the change).
 DESIGN_INFLATION = 2.0
@@ -65,19 +65,14 @@ def run_length(threshold: float, m: int, inflation: float = DESIGN_INFLATION,
 @functools.lru_cache(maxsize=16)
 def cusum_threshold(m: int, target: float = TARGET_RUN_LENGTH,
                     inflation: float = DESIGN_INFLATION) -> float:
-    """Return the threshold h whose in-control mean run length is ``target`` pairs."""
-    lo, hi = 5.0, 25.0
-    f_lo = np.log(run_length(lo, m, inflation)) - np.log(target)
-    f_hi = np.log(run_length(hi, m, inflation)) - np.log(target)
-    h = hi
-    for _ in range(30):
-        # ln ARL is nearly linear in h: regula falsi converges in a few steps
-        h = hi - f_hi * (hi - lo) / (f_hi - f_lo)
-        f = np.log(run_length(h, m, inflation)) - np.log(target)
-        if abs(f) < 1e-3:
-            break
-        if f > 0:
-            hi, f_hi = h, f
-        else:
-            lo, f_lo = h, f
-    return float(h)
+    """
+    Return the threshold h whose in-control mean run length is ``target`` pairs.
+
+    ln ARL(h) is smooth and increasing in h; Brent's method on ``ln ARL(h) - ln target`` over
+    [5, 25] brackets the root and always reaches it (plain regula falsi, used before, could
+    keep one end fixed and stop 2.6 % off the target for m = 3).
+    """
+    def excess(h: float) -> float:
+        return float(np.log(run_length(h, m, inflation)) - np.log(target))
+
+    return float(optimize.brentq(excess, 5.0, 25.0, xtol=1e-9, rtol=1e-12))
