@@ -17,7 +17,7 @@ setup(
     ],
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML',
-                      'ruamel.yaml', 'rich>=13', 'threadpoolctl>=3'],
+                      'rich>=13', 'threadpoolctl>=3'],
     extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib'],
                     # --scheduler ADDRESS (coreg_ros.parallel): an existing Dask cluster
                     'dask': ['dask[distributed]>=2024.1'],

@@ -206,15 +206,51 @@ def test_messages_name_no_tool_a_user_may_lack():
 
 # --- item 14: packaging -----------------------------------------------------------------------
 
+#: Third-party modules the package imports -> (setup.py requirement, package.xml key or None
+#: where rosdep has none: then package.xml says so in a comment).
+THIRD_PARTY = {'numpy': ('numpy', 'python3-numpy'), 'scipy': ('scipy', 'python3-scipy'),
+               'yaml': ('PyYAML', 'python3-yaml'), 'rosbags': ('rosbags', None),
+               'rich': ('rich', None), 'threadpoolctl': ('threadpoolctl', None),
+               'matplotlib': ('matplotlib', 'python3-matplotlib'),
+               'dask': ('dask[distributed]', None), 'distributed': ('dask[distributed]', None)}
+#: Imports that come with ROS (package.xml exec_depend) or the standard library.
+ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'geometry_msgs', 'std_msgs',
+               'std_srvs', 'diagnostic_msgs', 'visualization_msgs', 'launch', 'launch_ros'}
+
+
+def _top_level_imports(folder: Path) -> set:
+    import ast
+    names = set()
+    for path in folder.rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {a.name.split('.')[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                names.add(node.module.split('.')[0])
+    return names
+
+
 def test_package_declares_what_the_code_imports():
     xml = ET.parse(ROOT / 'package.xml').getroot()
     exec_deps = {e.text for e in xml.iter('exec_depend')}
     test_deps = {e.text for e in xml.iter('test_depend')}
-    assert {'rcl_interfaces', 'builtin_interfaces', 'python3-ruamel.yaml'} <= exec_deps
+    assert {'rcl_interfaces', 'builtin_interfaces'} <= exec_deps
     assert 'python3-hypothesis' in test_deps
     setup = (ROOT / 'setup.py').read_text()
-    assert 'tests_require' not in setup and "'ruamel.yaml'" in setup
+    assert 'tests_require' not in setup
     assert "'test': ['pytest', 'hypothesis'" in setup
+    imported = _top_level_imports(ROOT / 'coreg_ros') - set(sys.stdlib_module_names)
+    imported -= {'coreg_ros'} | ROS_MODULES
+    # every third-party import is known here, required by setup.py and resolvable by rosdep
+    # (or named in package.xml's comment as installed from PyPI)
+    assert imported <= set(THIRD_PARTY), imported - set(THIRD_PARTY)
+    xml_text = (ROOT / 'package.xml').read_text()
+    for module in imported:
+        requirement, key = THIRD_PARTY[module]
+        assert f"'{requirement}" in setup, requirement
+        assert (key in exec_deps) if key else (module in xml_text), module
+    # one YAML library (PyYAML: the one rosdep and ROS's own tools use)
+    assert 'ruamel' not in imported and 'yaml' in imported
 
 
 def test_ctrl_c_during_an_extension_import_is_an_interruption(capsys):

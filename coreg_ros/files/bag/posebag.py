@@ -34,7 +34,7 @@ from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, writ
 from coreg_ros.files.bag.per_message import typestore as _typestore
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-from ruamel.yaml import YAML
+import yaml
 
 #: Storage names accepted by ``write_pose_bag`` (the rosbag2 storage identifiers).
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
@@ -99,7 +99,7 @@ class _OpenBag:
 def _open_failure(path: Path, err: Exception) -> str:
     """Say whether the metadata or the storage file of a bag that fails to open is broken."""
     try:
-        info = YAML(typ='safe').load((path / 'metadata.yaml').read_text())
+        info = yaml.safe_load((path / 'metadata.yaml').read_text())
         files = info['rosbag2_bagfile_information']['relative_file_paths']
     except Exception:  # any failure here means the metadata itself is the problem
         return (f'metadata.yaml of bag {str(path)!r} is unreadable ({_describe(err)}); restore '
