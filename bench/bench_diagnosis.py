@@ -127,7 +127,7 @@ def _timed(effect: str, repeats: int, baseline_commit) -> tuple:
     return best, error
 
 
-#: Recordings timed: the one of docs/benchmarks.md (a time offset) and a field distortion (the largest
+#: Recordings timed: a time offset and a field distortion (the largest
 #: candidate model, 89 parameters, refitted on all pairs).
 EFFECTS = ('time_offset=0.012', 'field_distortion=5')
 
