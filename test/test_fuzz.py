@@ -27,9 +27,12 @@ def _report(results, kind):
 
 @pytest.fixture(scope='module')
 def results():
+    # with_ros: coreg_node is started on the parameter files and signals are sent: every test
+    # that uses these results is a ROS test (``make test-fast`` runs none of them)
     return fuzz.run(N_PER_KIND, SEED, with_ros=True, log=lambda line: None)
 
 
+@pytest.mark.ros
 def test_every_kind_was_tried(results):
     for kind in fuzz.KINDS:
         assert results['kinds'][kind]['tried'] == N_PER_KIND
@@ -57,6 +60,7 @@ def _check(results, kind, verdicts=fuzz.VERDICTS):
             for k, n in sorted(row['faults'].items())))
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('kind', ['params', 'csv', 'bag'])
 def test_no_traceback_hang_or_wrong_result(results, kind):
     _check(results, kind)
