@@ -15,6 +15,21 @@ import hypothesis.extra.numpy as hnp
 import hypothesis.strategies as st
 import numpy as np
 
+#: Index of scipy's ``as_quat()`` (x, y, z, w) that gives (w, x, y, z): ``r.as_quat()[..., WXYZ]``.
+WXYZ = [3, 0, 1, 2]
+
+
+def scipy_rotation(q_wxyz):
+    """
+    Return scipy's Rotation of quaternions (w, x, y, z).
+
+    scipy's ``scalar_first`` keyword needs scipy 1.14; the package supports scipy 1.11 (what
+    ROS 2 Jazzy's Ubuntu 24.04 ships), so the tests reorder to scipy's (x, y, z, w) themselves.
+    """
+    from scipy.spatial.transform import Rotation
+    q = np.asarray(q_wxyz, dtype=float)
+    return Rotation.from_quat(q[..., [1, 2, 3, 0]])
+
 
 def unit(v) -> np.ndarray:
     """Return ``v`` scaled to unit length."""

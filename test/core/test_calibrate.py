@@ -26,7 +26,7 @@ from coreg_ros.sim import simulate_pairs, simulate_recording
 import numpy as np
 import pytest
 from scipy import stats
-from scipy.spatial.transform import Rotation
+from strategies import scipy_rotation, WXYZ
 
 MODELS = tuple(SPECS)
 ZERO = (0.0, 0.0)
@@ -158,8 +158,8 @@ def test_converged_calibration_is_not_reported_as_a_misfit():
 
 def independent_output_residuals(result, pairs):
     """Whitened residuals from the result's transforms, with scipy rotations only."""
-    R0 = Rotation.from_quat(result.base_to_base.quat_wxyz, scalar_first=True)
-    Ra = Rotation.from_quat(pairs.quat_a, scalar_first=True)
+    R0 = scipy_rotation(result.base_to_base.quat_wxyz)
+    Ra = scipy_rotation(pairs.quat_a)
     cols = []
     for m in np.atleast_2d(result.markers):
         pred = result.base_to_base.position + R0.apply(pairs.pos_a + Ra.apply(m))
@@ -167,8 +167,7 @@ def independent_output_residuals(result, pairs):
     pos_b = pairs.pos_b if pairs.pos_b.ndim == 3 else pairs.pos_b[:, None, :]
     e = (np.stack(cols, axis=1) - pos_b).reshape(len(pairs), -1) / SIGMA_B[0]
     if result.model == 'full_pose':
-        q_pred = (R0 * Ra * Rotation.from_quat(result.tool_to_marker.quat_wxyz,
-                                               scalar_first=True)).as_quat(scalar_first=True)
+        q_pred = (R0 * Ra * scipy_rotation(result.tool_to_marker.quat_wxyz)).as_quat()[..., WXYZ]
         E = quat.canonical(quat.multiply(q_pred, quat.conjugate(pairs.quat_b)))
         e = np.concatenate([e, E[:, 1:] * 2.0 / SIGMA_B[1]], axis=1)
     return e

@@ -1,9 +1,10 @@
 """
 Tests of coreg_ros.core.quaternion against scipy's Rotation and finite differences.
 
-Quaternions are (w, x, y, z) in the package; scipy's Rotation is used with ``scalar_first=True``
-(scipy >= 1.14). Property tests sample all of SO(3), with extra weight near the identity and
-near 180° (jaxlie style), where conversions are most fragile.
+Quaternions are (w, x, y, z) in the package; scipy's Rotation takes and gives (x, y, z, w)
+(``strategies.scipy_rotation`` and ``WXYZ`` reorder: the package supports scipy 1.11, whose
+Rotation has no ``scalar_first``). Property tests sample all of SO(3), with extra weight near
+the identity and near 180° (jaxlie style), where conversions are most fragile.
 """
 
 from coreg_ros.core import quaternion as quat
@@ -12,14 +13,14 @@ from hypothesis import given, settings
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
-from strategies import quaternions, rotvecs, unit
+from strategies import quaternions, rotvecs, scipy_rotation, unit, WXYZ
 
 PROPERTY = settings(max_examples=60, deadline=None)
 
 
 def rot(q):
     """Scipy rotation of (w, x, y, z) quaternion(s)."""
-    return Rotation.from_quat(np.asarray(q), scalar_first=True)
+    return scipy_rotation(np.asarray(q))
 
 
 def assert_same_rotation(q, r, atol=1e-12):
@@ -36,7 +37,7 @@ def assert_same_rotation(q, r, atol=1e-12):
 @PROPERTY
 @given(quaternions(), quaternions())
 def test_multiply_composes_rotations_like_scipy(p, q):
-    expected = (rot(p) * rot(q)).as_quat(scalar_first=True)
+    expected = (rot(p) * rot(q)).as_quat()[..., WXYZ]
     assert_same_rotation(quat.multiply(p, q), expected, atol=1e-12)
     # Hamilton product, exactly (not only up to sign): R(p ⊗ q) = R(p) R(q).
     np.testing.assert_allclose(quat.to_matrix(quat.multiply(p, q)),
@@ -76,7 +77,7 @@ def test_from_matrix_matches_scipy_and_is_canonical(q):
     assert got[0] >= 0.0
     assert abs(np.linalg.norm(got) - 1.0) < 1e-12
     assert_same_rotation(got, q, atol=1e-9)
-    assert_same_rotation(got, Rotation.from_matrix(R).as_quat(scalar_first=True), atol=1e-9)
+    assert_same_rotation(got, Rotation.from_matrix(R).as_quat()[..., WXYZ], atol=1e-9)
 
 
 @pytest.mark.parametrize('eps', [0.0, 1e-12, 1e-8, 1e-5, 1e-2])
@@ -88,7 +89,7 @@ def test_from_matrix_near_180_degrees(eps):
     got = quat.from_matrix(R)
     assert np.all(got[:, 0] >= 0.0)
     np.testing.assert_allclose(quat.to_matrix(got), R, atol=1e-12)
-    assert_same_rotation(got, Rotation.from_matrix(R).as_quat(scalar_first=True), atol=1e-9)
+    assert_same_rotation(got, Rotation.from_matrix(R).as_quat()[..., WXYZ], atol=1e-9)
 
 
 def test_from_matrix_vectorised_over_leading_axes():
@@ -109,7 +110,7 @@ def test_from_matrix_vectorised_over_leading_axes():
 def test_exp_matches_scipy(v):
     q = quat.exp(v)
     assert abs(np.linalg.norm(q) - 1.0) < 1e-12
-    assert_same_rotation(q, Rotation.from_rotvec(v).as_quat(scalar_first=True), atol=1e-12)
+    assert_same_rotation(q, Rotation.from_rotvec(v).as_quat()[..., WXYZ], atol=1e-12)
 
 
 @PROPERTY
@@ -177,20 +178,20 @@ def test_slerp_endpoints_and_midpoint(q0, q1):
     if total < np.pi - 1e-6:  # at exactly 180° the shorter arc is not unique
         np.testing.assert_allclose(quat.angle_between(q0, mid), total / 2, atol=1e-7)
         np.testing.assert_allclose(quat.angle_between(mid, q1), total / 2, atol=1e-7)
-        ref = Slerp([0.0, 1.0], rot(np.stack([q0, q1])))([0.5]).as_quat(scalar_first=True)[0]
+        ref = Slerp([0.0, 1.0], rot(np.stack([q0, q1])))([0.5]).as_quat()[..., WXYZ][0]
         assert_same_rotation(mid, ref, atol=1e-9)
 
 
 def test_slerp_takes_the_shorter_arc_and_is_vectorised():
     rng = np.random.default_rng(6)
-    q0 = Rotation.random(40, random_state=7).as_quat(scalar_first=True)
-    q1 = Rotation.random(40, random_state=8).as_quat(scalar_first=True)
+    q0 = Rotation.random(40, random_state=7).as_quat()[..., WXYZ]
+    q1 = Rotation.random(40, random_state=8).as_quat()[..., WXYZ]
     t = rng.uniform(0.0, 1.0, 40)
     a = quat.slerp(q0, q1, t)
     b = quat.slerp(q0, -q1, t)  # same endpoints as rotations
     assert_same_rotation(a, b, atol=1e-12)
     ref = np.stack([Slerp([0.0, 1.0], rot(np.stack([q0[i], q1[i]])))([t[i]])
-                    .as_quat(scalar_first=True)[0] for i in range(40)])
+                    .as_quat()[..., WXYZ][0] for i in range(40)])
     assert_same_rotation(a, ref, atol=1e-9)
     # Angle from q0 grows linearly in t along the shorter arc.
     np.testing.assert_allclose(quat.angle_between(q0, a), t * quat.angle_between(q0, q1),
@@ -350,7 +351,7 @@ def test_needs_rechart(k, sign):
 @pytest.mark.parametrize('angle', [1e-8, 1e-5, 1e-3, 1e-2])
 def test_rotation_error_is_minus_half_the_small_rotation(angle):
     rng = np.random.default_rng(40)
-    q_model = Rotation.random(30, random_state=41).as_quat(scalar_first=True)
+    q_model = Rotation.random(30, random_state=41).as_quat()[..., WXYZ]
     d = rng.normal(size=(30, 3))
     dtheta = angle * d / np.linalg.norm(d, axis=1, keepdims=True)
     q_meas = quat.multiply(quat.exp(dtheta), q_model)
@@ -378,7 +379,7 @@ def test_rotation_error_invariant_to_quaternion_sign(q_model, q_meas):
 def test_rotation_error_jacobian_matches_finite_differences():
     rng = np.random.default_rng(42)
     h = 1e-7
-    q_model = Rotation.random(25, random_state=43).as_quat(scalar_first=True)
+    q_model = Rotation.random(25, random_state=43).as_quat()[..., WXYZ]
     q_meas = quat.multiply(quat.exp(rng.normal(scale=0.5, size=(25, 3))), q_model)
     q_meas[::2] *= -1  # either sign of the measurement
     _, de_dq = quat.rotation_error(q_model, q_meas)
@@ -393,5 +394,5 @@ def test_rotation_error_jacobian_matches_finite_differences():
 def test_angle_between_matches_scipy():
     a = Rotation.random(50, random_state=44)
     b = Rotation.random(50, random_state=45)
-    got = quat.angle_between(a.as_quat(scalar_first=True), -b.as_quat(scalar_first=True))
+    got = quat.angle_between(a.as_quat()[..., WXYZ], -b.as_quat()[..., WXYZ])
     np.testing.assert_allclose(got, (a.inv() * b).magnitude(), atol=1e-7)
