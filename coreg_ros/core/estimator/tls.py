@@ -260,7 +260,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return Linearization(S, b, cost, propose, residuals, share, (factors, lam))
+        return Linearization(S, b, cost, propose, residuals, share, factors)
 
     def seeded(sums: TlsSums, dx_of: Callable) -> Linearization:
         phi, x = state
@@ -297,7 +297,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         # Schur complement is the posterior information (relative change of the covariance
         # below DAMPING_SHARE), which saves a pass over the pairs.
         info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
-        sums = TlsSums(last.info, last.rhs, last.cost, lam, last.factors[0])
+        sums = TlsSums(last.info, last.rhs, last.cost, lam, last.factors)
     else:
         last = None
         info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
