@@ -7,7 +7,7 @@ so that both give the same numbers from the same pairs.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Optional
 
 from coreg_ros.core.calibration import screening
@@ -69,25 +69,51 @@ SUBSAMPLE = 100_000
 SUBSAMPLE_TLS = 25_000
 #: First LM damping of a TLS refit that starts at the last fit's inputs.
 WARM_DAMPING = 1e-9
-#: The fast paths, each of which gives the answer of the plain one (to within the stopping
-#: rule; ``test_calibrate_speed_paths.py`` compares them): the start from a subsample
-#: (FAST_START); robust refits from the last fit (FAST_REFIT: TLS from its inputs, or from
-#: its sums less the removed pairs; OLS from its normal equations with 0/1 weights); the
-#: robust statistic in one light pass (FAST_SQUARES, ``screening``); the first robust TLS
-#: fit screened where its second step leads, before the pass that would prove convergence
-#: (FAST_SCREEN, ``reject_outliers``). Switched off only to compare with the plain paths.
-FAST_START = True
-FAST_REFIT = True
-FAST_SQUARES = True
-FAST_SCREEN = True
+
+
+@dataclass(frozen=True)
+class FastPaths:
+    """
+    The fast paths of ``calibrate``, each of which gives the answer of the plain one.
+
+    To within the stopping rule: ``test_calibrate_speed_paths.py`` compares them. Switched off
+    only to compare with the plain paths (``PLAIN``).
+
+    Attributes
+    ----------
+    start : bool
+        The start from a subsample (``_Fitter._start``).
+    refit : bool
+        Robust refits that go on from the last fit (``estimator.refit``): TLS from its inputs,
+        or from its sums less the removed pairs; OLS from its normal equations with 0/1
+        weights.
+    squares : bool
+        The robust statistic in one light pass (``screening``).
+    screen : bool
+        The first robust TLS fit screened where its second step leads, before the pass that
+        would prove it converged (``_Fitter.reject_outliers``).
+
+    """
+
+    start: bool = True
+    refit: bool = True
+    squares: bool = True
+    screen: bool = True
+
+
+#: Every fast path on (the default).
+FAST = FastPaths()
+#: Every fast path off: the plain paths the fast ones are compared with.
+PLAIN = FastPaths(start=False, refit=False, squares=False, screen=False)
 
 
 class _Fitter:
     """One problem's data and noise; fits any subset of the pairs from any start."""
 
     def __init__(self, pairs: Pairs, spec: ModelSpec, settings: Settings,
-                 prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray):
-        self.spec, self.settings = spec, settings
+                 prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray,
+                 paths: FastPaths = FAST):
+        self.spec, self.settings, self.paths = spec, settings, paths
         self.stated = f'sigma_a {_stated(cov_a)}, sigma_b {_stated(cov_b)}'
         (self.pos_a, self.quat_a, self.pos_b, self.quat_b,
          self.scale) = validated_arrays(pairs, spec, settings)
@@ -116,7 +142,7 @@ class _Fitter:
 
         OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) goes to TLS
         directly, its inputs starting at ``inputs`` (``carried``) if given. A fit to be
-        ``screened`` for outliers may pause (FAST_SCREEN, ``reject_outliers``).
+        ``screened`` for outliers may pause (``FastPaths.screen``, ``reject_outliers``).
         """
         settings = self.settings
         n_keep = int(keep.sum())
@@ -137,7 +163,7 @@ class _Fitter:
         if tls:
             # next to the minimum (inputs of nearly the same fit), the first step needs
             # hardly any damping
-            pause = 2 if (screened and FAST_SCREEN and inputs is None
+            pause = 2 if (screened and self.paths.screen and inputs is None
                           and normal_equations.applies(problem)) else None
             sol = solve_tls(problem, start, max_iterations=settings.max_iterations, xtol=XTOL,
                             inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING,
@@ -158,7 +184,7 @@ class _Fitter:
         here: the fit of all pairs checks it.
         """
         size = SUBSAMPLE_TLS if self.settings.method == 'tls' else SUBSAMPLE
-        stride = problem.n // size if FAST_START else 0
+        stride = problem.n // size if self.paths.start else 0
         if stride < 2:
             return initialize(self.spec, problem.pos_a, problem.quat_a, problem.pos_b,
                               problem.quat_b), False
@@ -175,13 +201,13 @@ class _Fitter:
 
     def carried(self, sol: Solution, fitted: np.ndarray, keep: np.ndarray
                 ) -> Optional[InputState]:
-        """Return the inputs of ``sol`` (a fit of ``fitted``) for ``keep`` (FAST_REFIT)."""
-        return carried_inputs(sol, self.everything, fitted, keep) if FAST_REFIT else None
+        """Return the inputs of ``sol`` (a fit of ``fitted``) for ``keep`` (paths.refit)."""
+        return carried_inputs(sol, self.everything, fitted, keep) if self.paths.refit else None
 
     def squares(self, params: Parameters) -> np.ndarray:
         """Every pair's normalised squared residual d² at ``params`` (robust statistic)."""
         tls = self.settings.method == 'tls'
-        if FAST_SQUARES and screening.exact_for(self.everything, tls):
+        if self.paths.squares and screening.exact_for(self.everything, tls):
             return screening.normalised_squares(self.everything, params, tls)
         return reference_squares(params, self.data)
 
@@ -200,15 +226,15 @@ class _Fitter:
         refused (InconsistentDataError). A round that changes nothing ends the loop without
         a refit.
 
-        A paused TLS fit (``estimator.paused``; the first robust fit, FAST_SCREEN) is screened
-        where its step leads (``estimator.heading``), which after the inputs' first move is
-        within ~XTOL σ of its minimum (the 1M-pair steps of ``XTOL``'s comment), and goes on
-        from its sums less the removed pairs: the pass that would have proved the fit of all
-        pairs converged is not made.
+        A paused TLS fit (``estimator.paused``; the first robust fit, ``FastPaths.screen``) is
+        screened where its step leads (``estimator.heading``), which after the inputs' first
+        move is within ~XTOL σ of its minimum (the 1M-pair steps of ``XTOL``'s comment), and
+        goes on from its sums less the removed pairs: the pass that would have proved the fit
+        of all pairs converged is not made.
         """
         keep = np.ones(len(self.pos_a), dtype=bool)
         # OLS of all pairs weighted 0/1: each fit gives every pair's residuals, hence its d²
-        masked = FAST_REFIT and weighable(sol, self.everything)
+        masked = self.paths.refit and weighable(sol, self.everything)
         at = None  # where the last d² was taken
         for _ in range(MAX_ROUNDS):
             if masked:  # OLS residuals of every pair: d² = ‖r‖² (screening, OLS)
@@ -241,8 +267,8 @@ class _Fitter:
         """
         Fit the pairs ``kept`` again after ``sol``, a fit of the pairs ``fitted``.
 
-        Going on from ``sol`` where it can (FAST_REFIT), so that the first step costs no pass
-        over all pairs: OLS (``masked``) from its normal equations with the changed pairs
+        Going on from ``sol`` where it can (``FastPaths.refit``), so that the first step costs
+        no pass over all pairs: OLS (``masked``) from its normal equations with the changed pairs
         weighted in or out (``estimator.reweighted``); TLS that only takes pairs out from its
         last linearisation less theirs (``estimator.without_pairs``; a paused fit goes on so).
         Otherwise a warm fit of ``kept``, its inputs from ``sol``.
@@ -252,7 +278,7 @@ class _Fitter:
             normal = reweighted(sol, self.everything, fitted, kept)
             out = solve_ols(replace(self.everything, weights=kept.astype(float)), sol.params,
                             max_iterations=settings.max_iterations, xtol=XTOL, normal=normal)
-        elif FAST_REFIT and can_take_out(sol, fitted, kept):
+        elif self.paths.refit and can_take_out(sol, fitted, kept):
             seed = without_pairs(sol, self.everything, fitted, kept)
             out = solve_tls(self.problem(kept, with_priors=False), sol.params,
                             max_iterations=settings.max_iterations, xtol=XTOL, seed=seed)
@@ -295,7 +321,8 @@ def _where(rejected: np.ndarray, stamps: np.ndarray) -> str:
 def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional[Prior] = None,
               cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None,
               start: Optional[Parameters] = None, warm: bool = False,
-              max_rejected_share: float = MAX_REJECTED_SHARE) -> CalibrationResult:
+              max_rejected_share: float = MAX_REJECTED_SHARE,
+              paths: FastPaths = FAST) -> CalibrationResult:
     """
     Estimate T0 = T_bbase_abase and T1 = T_atool_bmarker from paired samples.
 
@@ -323,6 +350,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     max_rejected_share : float
         Largest share of rejected pairs before the data are refused (1 never refuses, e.g.
         while comparing candidate time offsets).
+    paths : FastPaths
+        The fast paths taken (all by default; ``PLAIN`` none, to compare with).
 
     Returns
     -------
@@ -338,7 +367,7 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     spec = SPECS[settings.model]
     cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
     cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
-    fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b)
+    fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b, paths)
     check_motion(fitter.quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
     keep = np.ones(len(pairs), dtype=bool)
     # outliers are a property of the data: they are found without the prior, which is then
