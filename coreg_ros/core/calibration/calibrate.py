@@ -374,17 +374,20 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     # tested against the data (verdict.prior_check) instead of pulling pairs out of the fit
     with_priors = not (settings.robust and prior is not None)
     try:
+        # start (closed form, or OLS of a subsample) and fit all pairs: OLS (B.1), TLS (B.2)
         sol = fitter.solve(keep, start, warm and start is not None, with_priors,
                            screened=settings.robust)
         if settings.robust:
+            # reject the pairs far outside the noise, refit the rest (from the last fit)
             keep, sol = fitter.reject_outliers(sol, max_rejected_share)
-            if prior is not None:
+            if prior is not None:  # the prior (B.3) joins the fit of the inliers
                 sol = fitter.solve(keep, sol.params, warm=True,
                                    inputs=fitter.carried(sol, keep, keep))
     except np.linalg.LinAlgError as e:  # e.g. positions of 1e300 m: SVD does not converge
         raise ConvergenceError(
             f'the numbers do not allow a solution ({e}); check the data for absurd values '
             f'(units, a corrupt sample) with coreg diagnose') from e
+    # the verdict's numbers: chi-square (B.4.1), posterior covariance (B.4.2) in ROS layout
     result = _result(sol, spec, settings, len(pairs))
     return replace(result, inliers=keep,
                    rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])
