@@ -108,6 +108,74 @@ def _calibration_outputs(out: dict) -> None:
                         out[key] = digest(_outcome(cr.calibrate_pairs, noisy, settings, pr))
 
 
+def _calibrate_without(pairs, settings, prior=None, off=('start', 'refit', 'squares', 'screen')):
+    """
+    ``calibrate`` with the fast paths ``off`` switched off (the plain paths they are tested on).
+
+    By ``calibrate``'s argument ``paths`` where there is one, else by the module flags
+    ``FAST_*`` of before.
+    """
+    cal = _module('coreg_ros.core.calibration.calibrate')
+    if hasattr(cal, 'FastPaths'):
+        paths = cal.FastPaths(**dict.fromkeys(off, False))
+        return cal.calibrate(pairs, settings, prior, paths=paths)
+    flags = [f'FAST_{name.upper()}' for name in off]
+    saved = {flag: getattr(cal, flag) for flag in flags}
+    try:
+        for flag in flags:
+            setattr(cal, flag, False)
+        return cal.calibrate(pairs, settings, prior)
+    finally:
+        for flag, value in saved.items():
+            setattr(cal, flag, value)
+
+
+def _large_robust_outputs(out: dict) -> None:
+    """
+    Robust fits of many pairs: the fast paths of calibrate at the sizes where they engage.
+
+    The start from a subsample, the paused first TLS fit, and the refits from the last fit's
+    sums (TLS) or normal equations (OLS).
+
+    0.5° rotation noise on A, and gross errors of 2-5 cm in B's positions on 1 % of the pairs
+    (or none: the paused fit then goes on with few or no pairs removed).
+    """
+    import coreg_ros as cr
+    from coreg_ros.sim import simulate_pairs
+
+    sigma_a, sigma_b = (2e-4, np.radians(0.5)), (5e-4, 2e-3)
+    cases = [(model, method, n) for model in ('full_pose', 'position_only')
+             for method, n in (('ols', 220_000), ('tls', 60_000), ('tls', 200_000))]
+    cases += [('three_marker', 'tls', 30_000), ('three_marker', 'ols', 30_000)]
+    for model, method, n in cases:
+        for outliers in (False, True):
+            rng = np.random.default_rng([8000, n, outliers])
+            noisy, _, truth = simulate_pairs(rng, n, model, sigma_a=sigma_a, sigma_b=sigma_b)
+            if outliers:
+                bad = rng.choice(n, size=n // 100, replace=False)
+                shift = (rng.uniform(0.02, 0.05, size=(len(bad), 3))
+                         * rng.choice([-1, 1], (len(bad), 3)))
+                # three markers: the whole marker set moves
+                noisy.pos_b[bad] += shift if noisy.pos_b.ndim == 2 else shift[:, None]
+            settings = cr.Settings(model=model, method=method, robust=True,
+                                   sigma_a=sigma_a, sigma_b=sigma_b)
+            key = f'large_robust/{model}/{method}/{n}/outliers={outliers}'
+            out[key] = digest(_outcome(cr.calibrate_pairs, noisy, settings))
+            prior = None
+            if model == 'full_pose' and outliers and n == 60_000:  # the refit with a prior
+                prior = cr.Prior(base_to_base=cr.UncertainPose(
+                    truth.p0 + 1e-4, truth.q0, np.diag([1e-6] * 3 + [np.inf] * 3)))
+                out[key + '/prior'] = digest(_outcome(cr.calibrate_pairs, noisy, settings,
+                                                      prior))
+            if n == 200_000:
+                continue
+            # the plain paths the fast ones are compared with, and the fit not screened early
+            out[key + '/plain'] = digest(_outcome(_calibrate_without, noisy, settings, prior))
+            if method == 'tls':
+                out[key + '/unscreened'] = digest(_outcome(_calibrate_without, noisy, settings,
+                                                           prior, off=('screen',)))
+
+
 def _stream_outputs(out: dict) -> None:
     import coreg_ros as cr
     from coreg_ros.sim import simulate_recording
@@ -258,8 +326,8 @@ def _live_outputs(out: dict) -> None:
 def fingerprint(quick: bool = False) -> dict:
     """Return {output name: hash} over every part (``quick``: fewer diagnoses)."""
     out: dict = {}
-    for part in (_calibration_outputs, _stream_outputs, _uncertainty_outputs, _cli_outputs,
-                 _live_outputs):
+    for part in (_calibration_outputs, _large_robust_outputs, _stream_outputs,
+                 _uncertainty_outputs, _cli_outputs, _live_outputs):
         t = time.perf_counter()
         part(out)
         print(f'{part.__name__}: {time.perf_counter() - t:.1f} s', file=sys.stderr)

@@ -37,9 +37,7 @@ SIGMA_B = (5e-4, 2e-3)
 
 
 def _plain(monkeypatch):
-    """Switch every fast path off and restore the stopping rule of before."""
-    for flag in ('FAST_START', 'FAST_REFIT', 'FAST_SQUARES', 'FAST_SCREEN'):
-        monkeypatch.setattr(cal, flag, False)
+    """Restore the stopping rule of before (every fast path is switched off by ``cal.PLAIN``)."""
     monkeypatch.setattr(cal, 'XTOL', 1e-5)
 
 
@@ -56,7 +54,7 @@ def _fit_both(monkeypatch, pairs, settings):
     fast = calibrate(pairs, settings)
     with monkeypatch.context() as m:
         _plain(m)
-        plain = calibrate(pairs, settings)
+        plain = calibrate(pairs, settings, paths=cal.PLAIN)
     return fast, plain
 
 
@@ -99,7 +97,7 @@ def test_fast_and_plain_paths_agree_with_a_prior(monkeypatch):
     fast = calibrate(noisy, settings, prior=prior)
     with monkeypatch.context() as m:
         _plain(m)
-        plain = calibrate(noisy, settings, prior=prior)
+        plain = calibrate(noisy, settings, prior=prior, paths=cal.PLAIN)
     np.testing.assert_array_equal(fast.inliers, plain.inliers)
     sd = np.sqrt(np.diag(plain.param_cov))
     assert np.max(np.abs(fast.params - plain.params) / sd) < 0.02
@@ -112,8 +110,9 @@ def test_the_first_robust_tls_fit_is_screened_before_its_last_pass(monkeypatch, 
     """
     Save one pass over all pairs where pairs are rejected, and change nothing where not.
 
-    FAST_SCREEN leaves out the pass that proves the fit of all pairs converged, makes no d²
-    pass more, and when no pair is rejected the paused fit goes on exactly as the plain one.
+    ``FastPaths.screen`` leaves out the pass that proves the fit of all pairs converged, makes
+    no d² pass more, and when no pair is rejected the paused fit goes on exactly as the plain
+    one.
     """
     rng = np.random.default_rng([seed, outliers])
     n = 6000
@@ -127,12 +126,11 @@ def test_the_first_robust_tls_fit_is_screened_before_its_last_pass(monkeypatch, 
         passes, squares = [], []
         schur, normalised = est.normal_equations_tls.tls_schur, screening.normalised_squares
         with monkeypatch.context() as m:
-            m.setattr(cal, 'FAST_SCREEN', screen)
             m.setattr(est.normal_equations_tls, 'tls_schur',
                       lambda problem, *a, **k: passes.append(problem.n) or schur(problem, *a, **k))
             m.setattr(screening, 'normalised_squares',
                       lambda *a, **k: squares.append(1) or normalised(*a, **k))
-            result = calibrate(noisy, settings)
+            result = calibrate(noisy, settings, paths=cal.FastPaths(screen=screen))
         return result, sum(size > n // 2 for size in passes), len(squares)
 
     fast, passes, squares = counted(True)

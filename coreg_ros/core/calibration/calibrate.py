@@ -7,7 +7,7 @@ so that both give the same numbers from the same pairs.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Optional
 
 from coreg_ros.core.calibration import screening
@@ -20,18 +20,22 @@ from coreg_ros.core.errors import (
     TooFewPairsError,
 )
 from coreg_ros.core.estimator import (
-    back_substitute,
+    can_take_out,
+    carried_inputs,
+    heading,
     InputState,
     noise_covariance,
     normal_equations,
     output_covariance,
+    paused,
     Problem,
+    reweighted,
     Solution,
     solve_ols,
     solve_tls,
-    tls_linearization,
-    TlsSums,
+    weighable,
     whitening,
+    without_pairs,
 )
 from coreg_ros.core.estimator.linearized import PairData, reference_squares
 from coreg_ros.core.estimator.posterior import result_poses
@@ -65,25 +69,51 @@ SUBSAMPLE = 100_000
 SUBSAMPLE_TLS = 25_000
 #: First LM damping of a TLS refit that starts at the last fit's inputs.
 WARM_DAMPING = 1e-9
-#: The fast paths, each of which gives the answer of the plain one (to within the stopping
-#: rule; ``test_calibrate_speed_paths.py`` compares them): the start from a subsample
-#: (FAST_START); robust refits from the last fit (FAST_REFIT: TLS from its inputs, or from
-#: its sums less the removed pairs; OLS from its normal equations with 0/1 weights); the
-#: robust statistic in one light pass (FAST_SQUARES, ``screening``); the first robust TLS
-#: fit screened where its second step leads, before the pass that would prove convergence
-#: (FAST_SCREEN, ``reject_outliers``). Switched off only to compare with the plain paths.
-FAST_START = True
-FAST_REFIT = True
-FAST_SQUARES = True
-FAST_SCREEN = True
+
+
+@dataclass(frozen=True)
+class FastPaths:
+    """
+    The fast paths of ``calibrate``, each of which gives the answer of the plain one.
+
+    To within the stopping rule: ``test_calibrate_speed_paths.py`` compares them. Switched off
+    only to compare with the plain paths (``PLAIN``).
+
+    Attributes
+    ----------
+    start : bool
+        The start from a subsample (``_Fitter._start``).
+    refit : bool
+        Robust refits that go on from the last fit (``estimator.refit``): TLS from its inputs,
+        or from its sums less the removed pairs; OLS from its normal equations with 0/1
+        weights.
+    squares : bool
+        The robust statistic in one light pass (``screening``).
+    screen : bool
+        The first robust TLS fit screened where its second step leads, before the pass that
+        would prove it converged (``_Fitter.reject_outliers``).
+
+    """
+
+    start: bool = True
+    refit: bool = True
+    squares: bool = True
+    screen: bool = True
+
+
+#: Every fast path on (the default).
+FAST = FastPaths()
+#: Every fast path off: the plain paths the fast ones are compared with.
+PLAIN = FastPaths(start=False, refit=False, squares=False, screen=False)
 
 
 class _Fitter:
     """One problem's data and noise; fits any subset of the pairs from any start."""
 
     def __init__(self, pairs: Pairs, spec: ModelSpec, settings: Settings,
-                 prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray):
-        self.spec, self.settings = spec, settings
+                 prior: Optional[Prior], cov_a: np.ndarray, cov_b: np.ndarray,
+                 paths: FastPaths = FAST):
+        self.spec, self.settings, self.paths = spec, settings, paths
         self.stated = f'sigma_a {_stated(cov_a)}, sigma_b {_stated(cov_b)}'
         (self.pos_a, self.quat_a, self.pos_b, self.quat_b,
          self.scale) = validated_arrays(pairs, spec, settings)
@@ -98,27 +128,21 @@ class _Fitter:
         # all pairs, for the robust statistic of every pair (rejected ones are tested again)
         self.everything = Problem(spec, self.pos_a, self.quat_a, self.pos_b, self.quat_b,
                                   self.whiten_b, self.whiten_a, self.scale)
-        self.last_inputs = None  # (keep, InputState) of the last TLS fit: a refit's start
 
     def problem(self, keep: np.ndarray, with_priors: bool = True) -> Problem:
         """Return the pairs in ``keep`` as a Problem (the arrays themselves if all are kept)."""
         idx = None if keep.all() else np.flatnonzero(keep)
-
-        def sub(x):  # np.take: a boolean index is 6× slower on (N, 4) arrays
-            return x if x is None or idx is None else np.take(x, idx, axis=0)
-
-        return Problem(self.spec, sub(self.pos_a), sub(self.quat_a), sub(self.pos_b),
-                       sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.scale),
-                       self.priors if with_priors else [])
+        return self.everything.subset(idx, self.priors if with_priors else None)
 
     def solve(self, keep: np.ndarray, start: Optional[Parameters], warm: bool = False,
-              with_priors: bool = True, screened: bool = False) -> Solution:
+              with_priors: bool = True, screened: bool = False,
+              inputs: Optional[InputState] = None) -> Solution:
         """
         Fit the pairs in ``keep`` from ``start`` (closed form when None).
 
         OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) goes to TLS
-        directly, its inputs starting at the last TLS fit's estimates. A fit to be
-        ``screened`` for outliers may pause (FAST_SCREEN, ``reject_outliers``).
+        directly, its inputs starting at ``inputs`` (``carried``) if given. A fit to be
+        ``screened`` for outliers may pause (``FastPaths.screen``, ``reject_outliers``).
         """
         settings = self.settings
         n_keep = int(keep.sum())
@@ -137,16 +161,14 @@ class _Fitter:
             check_observability(sol.info, sol.params, problem.quat_a)
             start = sol.params
         if tls:
-            inputs = self._warm_inputs(keep) if warm else None
             # next to the minimum (inputs of nearly the same fit), the first step needs
             # hardly any damping
-            pause = 2 if (screened and FAST_SCREEN and inputs is None
+            pause = 2 if (screened and self.paths.screen and inputs is None
                           and normal_equations.applies(problem)) else None
             sol = solve_tls(problem, start, max_iterations=settings.max_iterations, xtol=XTOL,
                             inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING,
                             pause_at=pause)
             check_observability(sol.info, sol.params, problem.quat_a)
-            self.last_inputs = (keep, sol.inputs)
         return sol
 
     def _start(self, keep: np.ndarray, problem: Problem) -> tuple[Parameters, bool]:
@@ -162,7 +184,7 @@ class _Fitter:
         here: the fit of all pairs checks it.
         """
         size = SUBSAMPLE_TLS if self.settings.method == 'tls' else SUBSAMPLE
-        stride = problem.n // size if FAST_START else 0
+        stride = problem.n // size if self.paths.start else 0
         if stride < 2:
             return initialize(self.spec, problem.pos_a, problem.quat_a, problem.pos_b,
                               problem.quat_b), False
@@ -177,24 +199,15 @@ class _Fitter:
             pass  # the fit of all pairs starts from what there is, and says what is wrong
         return start, True
 
-    def _warm_inputs(self, keep: np.ndarray) -> Optional[InputState]:
-        """Return the last TLS fit's inputs for the pairs in ``keep`` (others: measured)."""
-        if self.last_inputs is None or not FAST_REFIT:
-            return None
-        old_keep, old = self.last_inputs
-        if np.array_equal(old_keep, keep):
-            return old
-        pos_t = np.ascontiguousarray(self.pos_a.T)
-        quat_t = np.ascontiguousarray(self.quat_a.T)
-        pos_t[:, old_keep] = old.pos_t
-        quat_t[:, old_keep] = old.quat_t
-        idx = np.flatnonzero(keep)
-        return InputState._pair_last(np.take(pos_t, idx, axis=1), np.take(quat_t, idx, axis=1))
+    def carried(self, sol: Solution, fitted: np.ndarray, keep: np.ndarray
+                ) -> Optional[InputState]:
+        """Return the inputs of ``sol`` (a fit of ``fitted``) for ``keep`` (paths.refit)."""
+        return carried_inputs(sol, self.everything, fitted, keep) if self.paths.refit else None
 
     def squares(self, params: Parameters) -> np.ndarray:
         """Every pair's normalised squared residual d² at ``params`` (robust statistic)."""
         tls = self.settings.method == 'tls'
-        if FAST_SQUARES and screening.exact_for(self.everything, tls):
+        if self.paths.squares and screening.exact_for(self.everything, tls):
             return screening.normalised_squares(self.everything, params, tls)
         return reference_squares(params, self.data)
 
@@ -213,32 +226,27 @@ class _Fitter:
         refused (InconsistentDataError). A round that changes nothing ends the loop without
         a refit.
 
-        A paused TLS fit (``sol.step``; the first robust fit, FAST_SCREEN) is screened where
-        its step leads, which after the inputs' first move is within ~XTOL σ of its minimum
-        (the 1M-pair steps of ``XTOL``'s comment), and goes on from its sums less the removed
-        pairs: the pass that would have proved the fit of all pairs converged is not made.
+        A paused TLS fit (``estimator.paused``; the first robust fit, ``FastPaths.screen``) is
+        screened where its step leads (``estimator.heading``), which after the inputs' first
+        move is within ~XTOL σ of its minimum (the 1M-pair steps of ``XTOL``'s comment), and
+        goes on from its sums less the removed pairs: the pass that would have proved the fit
+        of all pairs converged is not made.
         """
         keep = np.ones(len(self.pos_a), dtype=bool)
-        masked = (FAST_REFIT and self.settings.method == 'ols'
-                  and normal_equations.applies(self.everything, inputs=False)
-                  and sol.residuals.shape[0] == keep.size and sol.gradient is not None)
+        # OLS of all pairs weighted 0/1: each fit gives every pair's residuals, hence its d²
+        masked = self.paths.refit and weighable(sol, self.everything)
         at = None  # where the last d² was taken
         for _ in range(MAX_ROUNDS):
             if masked:  # OLS residuals of every pair: d² = ‖r‖² (screening, OLS)
                 d2 = np.einsum('ij,ij->i', sol.residuals, sol.residuals)
             elif at is None or not at.same_as(sol.params):  # else d² is the last one
-                at = sol.params if sol.step is None else sol.params.stepped(sol.step).recharted()
+                at = heading(sol)
                 d2 = self.squares(at)
             new = self._inliers(d2, keep)
-            if np.array_equal(new, keep) and sol.step is None:
+            if np.array_equal(new, keep) and not paused(sol):
                 break
             self._refuse_if_mostly_outside(~new, max_share)
-            if masked:
-                sol = self._refit_ols(sol, keep, new)
-            elif self._downdatable(sol, keep, new):
-                sol = self._refit_tls(sol, keep, new)
-            else:
-                sol = self.solve(new, sol.params, warm=True, with_priors=False)
+            sol = self.refit(sol, keep, new, masked)
             keep = new
         if masked:
             # the residuals are stored pair-last (m, N): gather along the contiguous rows
@@ -254,69 +262,31 @@ class _Fitter:
         scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
         return d2 <= scale * limit
 
-    def _downdatable(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> bool:
-        """Tell whether a TLS refit can start from ``sol``'s sums (pairs only removed)."""
-        return (FAST_REFIT and self.settings.method == 'tls' and sol.sums is not None
-                and sol.inputs is not None and sol.inputs.pos_t.shape[1] == int(keep.sum())
-                and not (new & ~keep).any())
-
-    def _refit_tls(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> Solution:
+    def refit(self, sol: Solution, fitted: np.ndarray, kept: np.ndarray,
+              masked: bool) -> Solution:
         """
-        TLS of the pairs in ``new`` (a subset of ``keep``) from ``sol``, a fit of ``keep``.
+        Fit the pairs ``kept`` again after ``sol``, a fit of the pairs ``fitted``.
 
-        The reduced system of ``new`` at ``sol``'s state is ``sol``'s less the removed pairs'
-        terms (a linearisation of those few pairs), and the kept pairs' factors give the first
-        input step, so the refit's first step costs no pass over all pairs.
+        Going on from ``sol`` where it can (``FastPaths.refit``), so that the first step costs
+        no pass over all pairs: OLS (``masked``) from its normal equations with the changed pairs
+        weighted in or out (``estimator.reweighted``); TLS that only takes pairs out from its
+        last linearisation less theirs (``estimator.without_pairs``; a paused fit goes on so).
+        Otherwise a warm fit of ``kept``, its inputs from ``sol``.
         """
-        gone = np.flatnonzero(keep & ~new)
-        x, sums = sol.inputs, sol.sums
-        factors, n_fit = sums.factors, x.pos_t.shape[1]
-        stay_idx = None  # all stay (a paused fit whose screening removed nothing goes on)
-        if gone.size:
-            stay = new[keep]           # among the pairs of the last fit
-            removed = Problem(self.spec, self.pos_a[gone], self.quat_a[gone], self.pos_b[gone],
-                              None if self.quat_b is None else self.quat_b[gone], self.whiten_b,
-                              self.whiten_a, None if self.scale is None else self.scale[gone])
-            x_gone = InputState._pair_last(x.pos_t[:, ~stay], x.quat_t[:, ~stay])
-            S, b, cost, _, _, _ = tls_linearization(removed, sol.params, x_gone, sums.lam)
-            sums = TlsSums(sums.S - S, sums.b - b, sums.cost - cost, sums.lam, factors)
-            stay_idx = np.flatnonzero(stay)
-            x = InputState._pair_last(np.take(x.pos_t, stay_idx, axis=1),
-                                      np.take(x.quat_t, stay_idx, axis=1))
-
-        def dx(delta):
-            step = back_substitute(n_fit, factors, delta)
-            return step if stay_idx is None else np.take(step, stay_idx, axis=1)
-
-        problem = self.problem(new, with_priors=False)
-        out = solve_tls(problem, sol.params, max_iterations=self.settings.max_iterations,
-                        xtol=XTOL, inputs=x, damping=sums.lam, seed=(sums, dx))
-        check_observability(out.info, out.params, problem.quat_a)
-        self.last_inputs = (new, out.inputs)
-        return out
-
-    def _refit_ols(self, sol: Solution, keep: np.ndarray, new: np.ndarray) -> Solution:
-        """
-        OLS of the pairs in ``new`` from ``sol`` (a fit of ``keep``), all pairs weighted 0/1.
-
-        The normal equations of ``new`` at ``sol.params`` are those of ``keep`` plus the
-        pairs let back in less the pairs left out (a pass over the changed pairs only), so
-        the refit's first step costs no pass over all pairs; each linearisation gives every
-        pair's residuals, hence the next round's d² without a pass of its own.
-        """
-        changed = new != keep
-        idx = np.flatnonzero(changed)
-        diff = Problem(self.spec, self.pos_a[idx], self.quat_a[idx], self.pos_b[idx],
-                       None if self.quat_b is None else self.quat_b[idx], self.whiten_b,
-                       self.whiten_a, weights=np.where(new[idx], 1.0, -1.0))
-        H, g, cost = normal_equations.ols_normal(diff, sol.params)
-        problem = replace(self.everything, weights=new.astype(float))
-        out = solve_ols(problem, sol.params, max_iterations=self.settings.max_iterations,
-                        xtol=XTOL,
-                        normal=(sol.info + H, sol.gradient + g, sol.chi2 + cost,
-                                sol.residuals))
+        settings = self.settings
+        if masked:
+            normal = reweighted(sol, self.everything, fitted, kept)
+            out = solve_ols(replace(self.everything, weights=kept.astype(float)), sol.params,
+                            max_iterations=settings.max_iterations, xtol=XTOL, normal=normal)
+        elif self.paths.refit and can_take_out(sol, fitted, kept):
+            seed = without_pairs(sol, self.everything, fitted, kept)
+            out = solve_tls(self.problem(kept, with_priors=False), sol.params,
+                            max_iterations=settings.max_iterations, xtol=XTOL, seed=seed)
+        else:
+            return self.solve(kept, sol.params, warm=True, with_priors=False,
+                              inputs=self.carried(sol, fitted, kept))
         check_observability(out.info, out.params,
-                            np.take(self.quat_a, np.flatnonzero(new), axis=0))
+                            np.take(self.quat_a, np.flatnonzero(kept), axis=0))
         return out
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
@@ -351,7 +321,8 @@ def _where(rejected: np.ndarray, stamps: np.ndarray) -> str:
 def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional[Prior] = None,
               cov_a: Optional[np.ndarray] = None, cov_b: Optional[np.ndarray] = None,
               start: Optional[Parameters] = None, warm: bool = False,
-              max_rejected_share: float = MAX_REJECTED_SHARE) -> CalibrationResult:
+              max_rejected_share: float = MAX_REJECTED_SHARE,
+              paths: FastPaths = FAST) -> CalibrationResult:
     """
     Estimate T0 = T_bbase_abase and T1 = T_atool_bmarker from paired samples.
 
@@ -379,6 +350,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     max_rejected_share : float
         Largest share of rejected pairs before the data are refused (1 never refuses, e.g.
         while comparing candidate time offsets).
+    paths : FastPaths
+        The fast paths taken (all by default; ``PLAIN`` none, to compare with).
 
     Returns
     -------
@@ -394,23 +367,27 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     spec = SPECS[settings.model]
     cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
     cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
-    fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b)
+    fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b, paths)
     check_motion(fitter.quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
     keep = np.ones(len(pairs), dtype=bool)
     # outliers are a property of the data: they are found without the prior, which is then
     # tested against the data (verdict.prior_check) instead of pulling pairs out of the fit
     with_priors = not (settings.robust and prior is not None)
     try:
+        # start (closed form, or OLS of a subsample) and fit all pairs: OLS (B.1), TLS (B.2)
         sol = fitter.solve(keep, start, warm and start is not None, with_priors,
                            screened=settings.robust)
         if settings.robust:
+            # reject the pairs far outside the noise, refit the rest (from the last fit)
             keep, sol = fitter.reject_outliers(sol, max_rejected_share)
-            if prior is not None:
-                sol = fitter.solve(keep, sol.params, warm=True)
+            if prior is not None:  # the prior (B.3) joins the fit of the inliers
+                sol = fitter.solve(keep, sol.params, warm=True,
+                                   inputs=fitter.carried(sol, keep, keep))
     except np.linalg.LinAlgError as e:  # e.g. positions of 1e300 m: SVD does not converge
         raise ConvergenceError(
             f'the numbers do not allow a solution ({e}); check the data for absurd values '
             f'(units, a corrupt sample) with coreg diagnose') from e
+    # the verdict's numbers: chi-square (B.4.1), posterior covariance (B.4.2) in ROS layout
     result = _result(sol, spec, settings, len(pairs))
     return replace(result, inliers=keep,
                    rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])

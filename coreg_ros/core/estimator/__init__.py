@@ -13,6 +13,9 @@ module                what it holds
                       closed form (OLS and TLS), used by ``ols`` and ``tls`` where they apply
 ``priors``            a priori estimates as residual rows, B.3 (eqs. 55-56)
 ``posterior``         the solution and its covariance, B.4.2 (eq. 58)
+``state``             what a fit carries beyond φ: TLS inputs, how to go on from it (resume)
+``refit``             refits that go on from the last fit: pairs taken out (TLS), reweighted
+                      0/1 (OLS), a paused fit's heading
 ``batched``           Cholesky factors and solves of stacks of small SPD blocks (generic TLS)
 ====================  ===========================================================================
 
@@ -32,7 +35,23 @@ from coreg_ros.core.estimator.problem import (
     Problem,
     whitening,
 )
-from coreg_ros.core.estimator.state import InputState, TlsSums
+from coreg_ros.core.estimator.refit import (
+    can_take_out,
+    carried_inputs,
+    heading,
+    paused,
+    reweighted,
+    weighable,
+    without_pairs,
+)
+from coreg_ros.core.estimator.state import (
+    InputState,
+    NormalEquations,
+    Resume,
+    TlsResume,
+    TlsSeed,
+    TlsSums,
+)
 from coreg_ros.core.estimator.tls import (
     back_substitute,
     DAMPING_SHARE,
@@ -42,20 +61,31 @@ from coreg_ros.core.estimator.tls import (
 
 __all__ = [
     'back_substitute',
+    'can_take_out',
+    'carried_inputs',
     'CHUNK',
     'DAMPING_SHARE',
+    'heading',
     'InputState',
     'MESSAGES',
     'metric_covariance',
     'noise_covariance',
+    'NormalEquations',
     'output_covariance',
+    'paused',
     'PriorTerm',
     'Problem',
+    'Resume',
+    'reweighted',
     'Solution',
     'solve_ols',
     'solve_tls',
     'tls_linearization',
+    'TlsResume',
+    'TlsSeed',
     'TlsSums',
+    'weighable',
     'whitening',
+    'without_pairs',
     'XTOL',
 ]

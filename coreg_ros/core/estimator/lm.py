@@ -11,10 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, TYPE_CHECKING, Union
 
 from coreg_ros.core.estimator.posterior import covariance
 import numpy as np
+
+if TYPE_CHECKING:
+    from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
 
 #: Default convergence tolerance: stop when the next step would move every parameter by at
 #: most this many of its posterior standard deviations. 1e-5 σ is far below anything a
@@ -56,6 +59,11 @@ class Linearization:
     returns the trial state, its cost and the linearisation at the trial made with damping λ'
     (or None): when the trial is accepted that linearisation is the next one, so evaluating a
     trial and linearising there is one pass over the pairs, not two.
+
+    ``factors`` (TLS only) are this linearisation's per-pair factors, from which
+    ``tls.back_substitute`` gives the inputs' step of a parameter step: per-chunk Cholesky
+    factors ``(L, Z)`` on the generic path, ``normal_equations_tls.TlsFactors`` on the
+    structured one. A fit keeps the structured ones with its sums, for a refit's first step.
     """
 
     info: np.ndarray
@@ -64,7 +72,7 @@ class Linearization:
     propose: Callable
     residuals: Optional[tuple] = None
     damping_share: float = 0.0  # largest λ·V_jj / info_jj: how far info is from undamped
-    factors: object = None      # TLS: the per-pair factors (for a refit's first step)
+    factors: Union[list, TlsFactors, None] = None
     step: Optional[np.ndarray] = None  # set by the driver when it pauses before this step
 
 

@@ -21,6 +21,7 @@ from coreg_ros.core.estimator.lm import (
 from coreg_ros.core.estimator.posterior import covariance, Solution
 from coreg_ros.core.estimator.priors import prior_rows
 from coreg_ros.core.estimator.problem import pair_last, Problem
+from coreg_ros.core.estimator.state import NormalEquations
 from coreg_ros.core.models import linearize, Parameters
 import numpy as np
 
@@ -61,7 +62,7 @@ def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.nda
 
 def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
-              normal: Optional[tuple] = None) -> Solution:
+              normal: Optional[NormalEquations] = None) -> Solution:
     """
     Weighted OLS by Levenberg-Marquardt with Marquardt's diagonal scaling.
 
@@ -77,20 +78,22 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
         Stop when every |δφ_j| <= xtol · σ_j (default ``XTOL``).
     ftol : float
         Stop when the relative cost decrease is below ftol.
-    normal : tuple, optional
-        (H, g, cost, residuals) of this problem at ``params``, when the caller has them
-        (e.g. a robust refit: the last fit's sums less the pairs it now leaves out), which
-        saves the first pass over the pairs.
+    normal : NormalEquations, optional
+        The normal equations of this problem at ``params``, when the caller has them (e.g. a
+        robust refit: the last fit's less the pairs it now leaves out, ``refit.reweighted``),
+        which saves the first pass over the pairs.
 
     Returns
     -------
     Solution
-        With ``problem.weights``, ``residuals`` holds every pair's residuals.
+        With ``problem.weights``, ``residuals`` holds every pair's residuals. Its resume
+        state is the normal equations at the solution.
 
     """
     xtol = XTOL if xtol is None else xtol
     # (state, H, g, cost, residuals) of the current state and the last trial
-    normals = [] if normal is None else [(params, *normal)]
+    normals = [] if normal is None else [(params, normal.info, normal.gradient, normal.cost,
+                                          normal.residuals)]
 
     def normal_at(state: Parameters):
         for entry in normals:
@@ -124,4 +127,5 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
     n_prior = len(prior_rows(problem, params)[0])
     return Solution(params, covariance(H), H, cost,
                     problem.n_fitted * problem.spec.n_res + n_prior,
-                    res, None, it, status, status_message(status, it, xtol), gradient=g)
+                    res, None, it, status, status_message(status, it, xtol),
+                    NormalEquations(H, g, cost, res))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.estimator.state import InputState, TlsSums
+from coreg_ros.core.estimator.state import Resume
 from coreg_ros.core.models import Parameters, S0, S1, tangent_of_chart
 from coreg_ros.core.types import UncertainPose
 import numpy as np
@@ -68,17 +68,11 @@ class Solution:
     status : int
         How the iterations ended (``lm.MESSAGES``): 1 step small, 2 cost change small,
         0 iteration limit, -1 no acceptable step; ``lm.PAUSED`` (3) a fit stopped before
-        its step ``step``, to be continued by the caller.
+        its step (``TlsResume.step``), to be continued by the caller.
     message : str
-    inputs : InputState or None
-        TLS: the estimated inputs at the solution (a warm start for a refit of nearly the
-        same pairs).
-    gradient : ndarray, shape (P,) or None
-        OLS: Jᵀr at the solution (with ``info`` and ``chi2``, the normal equations there).
-    sums : TlsSums or None
-        TLS on the structured path: the last linearisation, for a refit of fewer pairs.
-    step : ndarray, shape (P,) or None
-        A paused fit: the step its last linearisation gives (where the fit goes next).
+    resume : NormalEquations or TlsResume
+        How to go on from this fit (``state.Resume``, ``refit``): OLS, the normal equations
+        at the solution; TLS, the estimated inputs and the last linearisation.
 
     """
 
@@ -92,10 +86,7 @@ class Solution:
     iterations: int
     status: int
     message: str
-    inputs: Optional[InputState] = None
-    gradient: Optional[np.ndarray] = None
-    sums: Optional[TlsSums] = None
-    step: Optional[np.ndarray] = None
+    resume: Resume
 
 
 #: Diagonal value that marks a component as not estimated (sensor_msgs' "unknown" convention).

@@ -169,6 +169,29 @@ class Problem:
         """Measured output of the pairs in ``sl``."""
         return self.pos_b[sl], None if self.quat_b is None else self.quat_b[sl]
 
+    def subset(self, idx: Optional[np.ndarray], priors: Optional[list] = None,
+               weights: Optional[np.ndarray] = None) -> Problem:
+        """
+        Return the problem of the pairs ``idx`` alone, with the same noise.
+
+        Parameters
+        ----------
+        idx : ndarray of int, shape (K,), or None
+            Indices of the pairs (None: all, the arrays themselves, not copied).
+        priors : list of PriorTerm, optional
+            The subset's priors (default none: a part of the data, e.g. pairs to take out).
+        weights : ndarray, shape (K,), optional
+            The subset's pair weights (OLS on the structured path); this problem's are not
+            carried over.
+
+        """
+        def sub(x):  # np.take: a boolean index is 6× slower on (N, 4) arrays
+            return x if x is None or idx is None else np.take(x, idx, axis=0)
+
+        return Problem(self.spec, sub(self.pos_a), sub(self.quat_a), sub(self.pos_b),
+                       sub(self.quat_b), self.whiten_b, self.whiten_a, sub(self.a_scale),
+                       [] if priors is None else priors, weights)
+
 
 def _diagonal_or_none(L: np.ndarray):
     """Return the diagonal of L if L is diagonal, else None."""

@@ -1,16 +1,24 @@
 """
-The state a TLS fit carries beyond φ: its input estimates and a linearisation to go on from.
+What a fit carries beyond φ: the TLS input estimates, and how to go on from the fit.
 
-``InputState`` holds the estimated inputs of Ikits' eq. 42 (A's poses as parameters);
-``TlsSums`` a linearisation (the damped reduced system of the Schur complement), from which a
-refit of fewer pairs starts without a pass over all of them.
+``InputState`` holds the estimated inputs of Ikits' eq. 42 (A's poses as parameters). A
+``Solution`` carries one resume state (``Resume``), from which a refit of nearly the same pairs
+starts next to the last minimum instead of from scratch (``refit``):
+
+- OLS: ``NormalEquations``, the normal equations at the solution (eqs. 32-36) with every
+  pair's residuals; a refit with other pairs weighted in or out adds the changed pairs' terms.
+- TLS: ``TlsResume``, the input estimates and, on the structured path, the last linearisation
+  (``TlsSums``, the damped reduced system of the Schur complement, with its per-pair factors);
+  a refit of fewer pairs starts from those sums less the removed pairs' terms (``TlsSeed``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional, Union
 
 from coreg_ros.core.estimator import pair_algebra
+from coreg_ros.core.estimator.normal_equations_tls import TlsFactors
 import numpy as np
 
 
@@ -38,31 +46,138 @@ class InputState:
         """Input orientations, (N, 4) view."""
         return self.quat_t.T
 
+    @property
+    def n(self) -> int:
+        """Return the number of pairs N."""
+        return self.pos_t.shape[1]
+
     @classmethod
-    def _pair_last(cls, pos_t: np.ndarray, quat_t: np.ndarray) -> InputState:
-        """Wrap pair-last arrays (3, N) and (4, N) without copying them."""
+    def of_pair_last(cls, pos_t: np.ndarray, quat_t: np.ndarray) -> InputState:
+        """Wrap pair-last arrays (3, N) m and (4, N) unit quaternions without copying them."""
         out = cls.__new__(cls)
         out.pos_t, out.quat_t = pos_t, quat_t
         return out
 
+    def take(self, idx: np.ndarray) -> InputState:
+        """Return the inputs of the pairs ``idx`` (indices into the N pairs), a copy."""
+        return InputState.of_pair_last(np.take(self.pos_t, idx, axis=1),
+                                       np.take(self.quat_t, idx, axis=1))
+
     def stepped(self, dx: np.ndarray) -> InputState:
-        """Return the state after the step dx (6, N) = (δp, δθ), pair-last."""
-        return InputState._pair_last(self.pos_t + dx[0:3],
-                                     pair_algebra.rotated(self.quat_t, dx[3:6]))
+        """Return the state after the step dx (6, N) = (δp m, δθ rad), pair-last."""
+        return InputState.of_pair_last(self.pos_t + dx[0:3],
+                                       pair_algebra.rotated(self.quat_t, dx[3:6]))
+
+
+@dataclass(frozen=True)
+class NormalEquations:
+    """
+    OLS normal equations at φ (Ikits eqs. 32-36), priors included: an OLS fit's resume state.
+
+    Attributes
+    ----------
+    info : ndarray, shape (P, P)
+        JᵀJ.
+    gradient : ndarray, shape (P,)
+        Jᵀr.
+    cost : float
+        Σ r² (the chi-square, eq. 57).
+    residuals : ndarray, shape (N, m)
+        Whitened output residuals of every pair of the problem, those of weight 0 too.
+
+    """
+
+    info: np.ndarray
+    gradient: np.ndarray
+    cost: float
+    residuals: np.ndarray
 
 
 @dataclass(frozen=True)
 class TlsSums:
     """
-    A TLS linearisation kept for a refit: the damped reduced system, the cost, the damping.
+    The damped reduced system ``S δφ = b`` of a TLS linearisation (eqs. 42-49) and its cost.
 
-    The sums are over pairs; a refit of the same pairs less a few starts from these sums less
-    the removed pairs' terms (``solve_tls(seed=...)``), with the kept pairs' factors for its
-    first input step, instead of a pass over all pairs.
+    Sums over pairs (priors included), so the sums of fewer pairs are these less the others'
+    terms (``less``).
+
+    Attributes
+    ----------
+    S : ndarray, shape (P, P)
+        Damped Schur complement (undamped when ``lam`` is 0: the posterior information).
+    b : ndarray, shape (P,)
+        Right-hand side.
+    cost : float
+        Σ r² over the output and input residuals at the linearisation point.
+    lam : float
+        The damping λ the system was made with.
+
     """
 
     S: np.ndarray
     b: np.ndarray
     cost: float
     lam: float
-    factors: object   # normal_equations_tls.TlsFactors over the fit's pairs
+
+    def less(self, S: np.ndarray, b: np.ndarray, cost: float) -> TlsSums:
+        """Return these sums less the terms (S, b, cost) of some of their pairs (same λ)."""
+        return TlsSums(self.S - S, self.b - b, self.cost - cost, self.lam)
+
+
+@dataclass(frozen=True)
+class TlsResume:
+    """
+    A TLS fit's resume state: its input estimates and, where kept, its last linearisation.
+
+    Attributes
+    ----------
+    inputs : InputState
+        The estimated inputs of the fit's N pairs at the solution (eq. 42): the start of a
+        refit of nearly the same pairs.
+    sums : TlsSums or None
+        The last linearisation, at (φ, ``inputs``): kept on the structured path while its
+        factors are intact (a rejected last trial spends them), else None.
+    factors : TlsFactors or None
+        That linearisation's per-pair factors (None exactly when ``sums`` is).
+    step : ndarray, shape (P,) or None
+        A paused fit (``lm.PAUSED``): the step its sums give, where the fit goes next.
+
+    """
+
+    inputs: InputState
+    sums: Optional[TlsSums]
+    factors: Optional[TlsFactors]
+    step: Optional[np.ndarray] = None
+
+
+@dataclass(frozen=True)
+class TlsSeed:
+    """
+    The first linearisation of a TLS refit, made without a pass over its pairs.
+
+    Attributes
+    ----------
+    sums : TlsSums
+        The reduced system of exactly the refit's pairs at (φ, ``inputs``) with damping
+        ``sums.lam`` (e.g. a fit's sums less the removed pairs' terms).
+    inputs : InputState
+        The refit's pairs' inputs.
+    factors : TlsFactors
+        The per-pair factors of the fit the sums come from (``n_factored`` pairs), which give
+        the first input step; spent (cleared) by it.
+    n_factored : int
+        The number of pairs of ``factors``.
+    kept : ndarray of int or None
+        Indices of the refit's pairs among those ``n_factored`` (None: the same pairs).
+
+    """
+
+    sums: TlsSums
+    inputs: InputState
+    factors: TlsFactors
+    n_factored: int
+    kept: Optional[np.ndarray] = None
+
+
+#: How to go on from a fit (``Solution.resume``).
+Resume = Union[NormalEquations, TlsResume]

@@ -15,7 +15,6 @@ applies; both give the same reduced system.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Optional
 
 from coreg_ros.core.estimator import (
@@ -33,7 +32,7 @@ from coreg_ros.core.estimator.lm import (
 from coreg_ros.core.estimator.posterior import covariance, Solution
 from coreg_ros.core.estimator.priors import prior_rows
 from coreg_ros.core.estimator.problem import chunk_slices, pair_last, Problem
-from coreg_ros.core.estimator.state import InputState, TlsSums
+from coreg_ros.core.estimator.state import InputState, TlsResume, TlsSeed, TlsSums
 from coreg_ros.core.models import error_rotation_jacobian, linearize, Parameters
 import numpy as np
 
@@ -205,7 +204,7 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
               inputs: Optional[InputState] = None, damping: float = 1e-6,
-              seed: Optional[tuple] = None, pause_at: Optional[int] = None) -> Solution:
+              seed: Optional[TlsSeed] = None, pause_at: Optional[int] = None) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -225,26 +224,26 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         As in ``solve_ols``.
     inputs : InputState, optional
         Where the input estimates start (default: the measured inputs). The inputs of a fit
-        of nearly the same pairs (``Solution.inputs``) start a refit next to its solution;
-        the minimum and the stopping rule are the same from any start.
+        of nearly the same pairs (``refit.carried_inputs``) start a refit next to its
+        solution; the minimum and the stopping rule are the same from any start.
     damping : float
         First λ. A start next to the minimum (a refit) needs little: with λ small the
         linearisation at the solution is also the posterior information (``DAMPING_SHARE``)
         instead of needing one more pass at λ = 0.
-    seed : tuple, optional
-        ``(sums, dx)``: the linearisation at (``params``, ``inputs``) with damping ``damping``
-        (a ``TlsSums`` of exactly this problem's pairs, e.g. a fit's sums less the removed
-        pairs' terms; its factors, if any, are released after the first step) and ``dx(δφ)``
-        giving the inputs' step (6, N) from it. The first step then needs no pass over the
-        pairs.
+    seed : TlsSeed, optional
+        The linearisation at ``params`` (e.g. a fit's sums less the removed pairs' terms,
+        ``refit.without_pairs``): the fit starts from its inputs with its damping (instead of
+        ``inputs`` and ``damping``), and its first step needs no pass over the pairs.
     pause_at : int, optional
         Stop before trying the step of this iteration (``lm.levenberg_marquardt``): the
-        Solution has status ``lm.PAUSED``, that step in ``step`` and the linearisation in
-        ``sums``, from which a refit (``seed``) goes on without a new pass.
+        Solution has status ``lm.PAUSED`` and that step and the linearisation in its resume
+        state, from which a refit (``seed``) goes on without a new pass.
 
     Returns
     -------
     Solution
+        Its resume state (``TlsResume``) holds the estimated inputs and, on the structured
+        path, the last linearisation with its factors.
 
     """
     def linearize(state, lam: float) -> Linearization:
@@ -260,24 +259,30 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return Linearization(S, b, cost, propose, residuals, share, (factors, lam))
+        return Linearization(S, b, cost, propose, residuals, share, factors)
 
-    def seeded(sums: TlsSums, dx_of: Callable) -> Linearization:
+    def seeded(seed: TlsSeed) -> Linearization:
         phi, x = state
 
         def propose(delta, lam_next):
             trial = phi.stepped(delta)
             if not trial.valid:
                 return state, np.inf, None
-            trial = (trial.recharted(), x.stepped(dx_of(delta)))
-            if sums.factors is not None:
-                sums.factors.clear()  # spent: free them before the trial's are made
+            step = back_substitute(seed.n_factored, seed.factors, delta)
+            if seed.kept is not None:
+                step = np.take(step, seed.kept, axis=1)
+            trial = (trial.recharted(), x.stepped(step))
+            seed.factors.clear()  # spent: free them before the trial's are made
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
         # residuals None: if this very state is returned, the posterior is made afresh
-        return Linearization(sums.S, sums.b, sums.cost, propose)
+        return Linearization(seed.sums.S, seed.sums.b, seed.sums.cost, propose)
 
+    if seed is not None:
+        if inputs is not None:
+            raise ValueError('a seed brings its own inputs')
+        inputs, damping = seed.inputs, seed.sums.lam
     cold = inputs is None  # inputs at their measured values: they must move at least once
     if cold:
         inputs = InputState(problem.pos_a, problem.quat_a)
@@ -285,7 +290,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         raise ValueError(f'inputs for {inputs.pos_t.shape[1]} pairs, problem has {problem.n}')
     state = (params, inputs)
     xtol = XTOL if xtol is None else xtol
-    first = None if seed is None else seeded(*seed)
+    first = None if seed is None else seeded(seed)
     (params, x), status, it, last, lam = levenberg_marquardt(
         state, linearize, max_iterations, xtol, ftol, damping, first, min_steps=int(cold),
         pause_at=pause_at)
@@ -297,17 +302,17 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         # Schur complement is the posterior information (relative change of the covariance
         # below DAMPING_SHARE), which saves a pass over the pairs.
         info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
-        sums = TlsSums(last.info, last.rhs, last.cost, lam, last.factors[0])
+        sums, factors = TlsSums(last.info, last.rhs, last.cost, lam), last.factors
     else:
         last = None
         info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
-        sums = TlsSums(info, b, chi2, 0.0, factors)
-    if not (isinstance(sums.factors, normal_equations_tls.TlsFactors) and sums.factors.chunks):
+        sums = TlsSums(info, b, chi2, 0.0)
+    if not (isinstance(factors, normal_equations_tls.TlsFactors) and factors.chunks):
         # a refit from sums needs the structured factors (back-substitution by n), intact
         # (a rejected last trial spent them)
-        sums = None
+        sums = factors = None
     n_prior = len(prior_rows(problem, params)[0])
     return Solution(params, covariance(info), info, chi2,
                     problem.n * problem.spec.n_res + n_prior, res_y, res_x, it, status,
-                    status_message(status, it, xtol), x, sums=sums,
-                    step=last.step if paused else None)
+                    status_message(status, it, xtol),
+                    TlsResume(x, sums, factors, last.step if paused else None))
