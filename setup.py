@@ -18,7 +18,8 @@ setup(
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML',
                       'rich>=13', 'threadpoolctl>=3'],
-    extras_require={'test': ['pytest', 'hypothesis', 'ruff'], 'report': ['matplotlib'],
+    extras_require={'test': ['pytest', 'hypothesis', 'ruff', 'pytest-xdist'],
+                    'report': ['matplotlib'],
                     # --scheduler ADDRESS (coreg_ros.parallel): an existing Dask cluster
                     'dask': ['dask[distributed]>=2024.1'],
                     # plugins ament_flake8 / ament_pep257 need (their wheels do not pull them)

@@ -1,6 +1,5 @@
 """
-Layout rules (docs/architecture.md): no import cycle, inward layers, the core's levels, modules
-of one idea, no copies.
+Layout rules (docs/architecture.md): no cycle, inward layers, core levels, one idea, no copies.
 
 The import graph is read from the source: every ``import``, at module level, inside a function
 or under ``if TYPE_CHECKING:`` (two modules that need each other even for annotations cannot be
