@@ -321,9 +321,18 @@ def chordal_mean(q: np.ndarray) -> np.ndarray:
 
 
 def angle_between(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
-    """Rotation angle (rad, in [0, π]) between two orientations, shape (...)."""
-    d = np.abs(np.sum(np.asarray(q0) * np.asarray(q1), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    """
+    Rotation angle (rad, in [0, π]) between two orientations, shape (...).
+
+    ``2 atan2(|v|, |w|)`` of the relative rotation ``q0* ⊗ q1 = (w, v)``: full precision at any
+    angle and for quaternions whose norm is 1 only to rounding (``2 arccos(|q0 · q1|)`` loses
+    half the digits near 0: 41 % off at 1e-6 rad for a norm off by 1e-13).
+    """
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    w = np.sum(q0 * q1, axis=-1)
+    v = q0[..., :1] * q1[..., 1:] - q1[..., :1] * q0[..., 1:] - np.cross(q0[..., 1:], q1[..., 1:])
+    return 2.0 * np.arctan2(np.linalg.norm(v, axis=-1), np.abs(w))
 
 
 def rotation_error(q_model: np.ndarray, q_meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
