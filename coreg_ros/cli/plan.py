@@ -14,8 +14,6 @@ from coreg_ros.cli.argtypes import positive
 from coreg_ros.core.types import MODELS
 import numpy as np
 
-PRESETS = ('diverse', 'single_axis', 'no_rotation', 'static')
-
 
 def register(subparsers) -> None:
     """Add the ``plan`` subcommand to the ``coreg`` subparsers."""
@@ -31,7 +29,8 @@ def register(subparsers) -> None:
     src.add_argument('--bag', help='a recording whose device A motion is used')
     src.add_argument('--duration', type=positive, metavar='S',
                      help='simulate a recording of this length (with --motion)')
-    p.add_argument('--motion', choices=PRESETS, default='diverse',
+    from coreg_ros.sim.motion import MOTION_PRESETS
+    p.add_argument('--motion', choices=MOTION_PRESETS, default='diverse',
                    help='motion preset simulated with --duration (default diverse)')
     p.add_argument('--model', choices=MODELS, default='full_pose')
     p.add_argument('--rate-b', type=positive, metavar='HZ',

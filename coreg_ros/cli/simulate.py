@@ -54,8 +54,10 @@ def register(sub) -> None:
     p.add_argument('--duration', type=positive, required=True, metavar='SECONDS')
     p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
     p.add_argument('--model', choices=MODELS, default='full_pose')
-    p.add_argument('--motion', default='diverse',
-                   choices=('diverse', 'single_axis', 'no_rotation', 'static'))
+    from coreg_ros.sim.motion import MOTION_PRESETS
+    p.add_argument('--motion', default='diverse', choices=MOTION_PRESETS,
+                   help='what device A can do (default diverse); scara, planar, gantry and '
+                        'turntable are rigs that cannot move in every direction')
     p.add_argument('--rate-a', type=positive, default=100.0, help='Hz (default 100)')
     p.add_argument('--rate-b', type=positive, default=50.0, help='Hz (default 50)')
     p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'))

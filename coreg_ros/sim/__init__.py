@@ -21,12 +21,19 @@ from coreg_ros.sim.devices import (
 )
 from coreg_ros.sim.injected import EFFECT_NAMES, EFFECT_UNITS, make_effect, parse_effect
 from coreg_ros.sim.injection import apply_effects, Effect, EffectContext
-from coreg_ros.sim.motion import make_motion, Motion, MOTION_PRESETS, random_rotation
+from coreg_ros.sim.motion import (
+    make_motion,
+    Motion,
+    MOTION_PRESETS,
+    random_rotation,
+    RESTRICTED_PRESETS,
+)
 from coreg_ros.sim.truth import random_truth, Truth, validate_sigma
 
 __all__ = [
     'DEFAULT_SIGMA_A', 'DEFAULT_SIGMA_B', 'DEFAULT_START_NS', 'EFFECT_NAMES', 'EFFECT_UNITS',
-    'Effect', 'EffectContext', 'FRAME_A', 'FRAME_B', 'MOTION_PRESETS', 'Motion', 'SimRecording',
+    'Effect', 'EffectContext', 'FRAME_A', 'FRAME_B', 'MOTION_PRESETS', 'Motion',
+    'RESTRICTED_PRESETS', 'SimRecording',
     'Truth', 'add_pose_noise', 'apply_effects', 'check_allocation', 'make_effect',
     'make_motion', 'parse_effect', 'random_rotation', 'random_truth', 'simulate_pairs',
     'simulate_recording', 'validate_sigma',

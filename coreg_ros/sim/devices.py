@@ -262,8 +262,9 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
     sigma_a, sigma_b : tuple of float
         Noise standard deviations (position m, rotation rad) of A and B; zero means none.
     motion : str or Motion
-        A preset of ``make_motion`` (``'diverse'``, ``'single_axis'``, ``'no_rotation'``,
-        ``'static'``) or a ``Motion``.
+        A preset of ``make_motion`` (``MOTION_PRESETS``: ``'diverse'``, the restricted rigs
+        ``'scara'``, ``'planar'``, ``'gantry'``, ``'turntable'``, and ``'single_axis'``,
+        ``'no_rotation'``, ``'static'``) or a ``Motion``.
     truth : Truth, optional
         The calibration to simulate (its model must equal ``model``; its sigmas are replaced
         by ``sigma_a``, ``sigma_b``). Drawn by ``random_truth`` when None.

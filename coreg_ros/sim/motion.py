@@ -14,13 +14,19 @@ the default device noise (``coreg_ros.core.settings``: 0.2-0.5 mm, 0.5-2 mrad).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
 import numpy as np
 
-#: Names of the motion presets of ``make_motion``.
-MOTION_PRESETS = ('diverse', 'single_axis', 'no_rotation', 'static')
+#: Names of the motion presets of ``make_motion``: free motion, the motions of rigs that cannot
+#: move in every direction (a SCARA arm, a mobile robot on a floor, a Cartesian gantry, a
+#: turntable), and the degenerate ones.
+MOTION_PRESETS = ('diverse', 'scara', 'planar', 'gantry', 'turntable', 'single_axis',
+                  'no_rotation', 'static')
+#: Presets whose motion leaves part of the calibration unobservable (what they can show).
+RESTRICTED_PRESETS = ('scara', 'planar', 'gantry', 'turntable', 'single_axis', 'no_rotation')
 
 #: Range of the per-axis position amplitude (sum of the sinusoids' amplitudes), m.
 POSITION_AMPLITUDE = (0.10, 0.15)
@@ -61,6 +67,10 @@ class Motion:
         frequency Hz, phase rad.
     preset : str
         Name of the preset that made it, or ``'custom'``.
+    pivot : ndarray, shape (3,), optional
+        A point of A's base frame the tool turns about (a turntable): the tool's rotation
+        relative to ``q_mean`` also carries ``centre`` about ``pivot``; the position sinusoids
+        add to that. None: positions are the sinusoids alone.
 
     """
 
@@ -73,6 +83,7 @@ class Motion:
     rot_freq: np.ndarray
     rot_phase: np.ndarray
     preset: str = 'custom'
+    pivot: Optional[np.ndarray] = None
 
     def __post_init__(self):
         kp = np.shape(self.pos_amp)[-1] if np.ndim(self.pos_amp) == 2 else -1
@@ -85,6 +96,8 @@ class Motion:
         q = q / np.linalg.norm(q)
         q.setflags(write=False)
         object.__setattr__(self, 'q_mean', q)
+        if self.pivot is not None:
+            object.__setattr__(self, 'pivot', _frozen(self.pivot, (3,)))
 
     @staticmethod
     def _sines(t: np.ndarray, amp: np.ndarray, freq: np.ndarray, phase: np.ndarray) -> np.ndarray:
@@ -121,6 +134,12 @@ class Motion:
         t = np.atleast_1d(np.asarray(t_seconds, dtype=float))
         position = self.centre + self._sines(t, self.pos_amp, self.pos_freq, self.pos_phase)
         q = quat.multiply(self.q_mean, quat.exp(self.rotvec(t)))
+        if self.pivot is not None:
+            # the tool's rotation relative to q_mean, in A's base frame, turns the lever from
+            # the pivot to the centre
+            turn = quat.to_matrix(quat.multiply(q, quat.conjugate(self.q_mean)))
+            position += np.einsum('nij,j->ni', turn, self.centre - self.pivot) - (
+                self.centre - self.pivot)
         return position, quat.canonical(q)
 
     def as_dict(self) -> dict:
@@ -135,6 +154,7 @@ class Motion:
             'rot_amp': self.rot_amp.tolist(),
             'rot_freq': self.rot_freq.tolist(),
             'rot_phase': self.rot_phase.tolist(),
+            'pivot': None if self.pivot is None else self.pivot.tolist(),
         }
 
 
@@ -188,6 +208,15 @@ def make_motion(rng: np.random.Generator, preset: str = 'diverse') -> Motion:
           amplitude 0.10-0.15 m); orientation = ``q_mean ⊗ Exp(r(t))`` with 2-3 sinusoids per
           rotation axis (0.03-0.2 Hz, per-axis amplitude 0.6-0.9 rad), so the relative
           rotations span all three axes.
+        - ``'scara'``: a SCARA arm: translation as ``'diverse'``, rotation about A's base z axis
+          only (the tool's yaw); T1's offset along that axis is unobservable.
+        - ``'planar'``: a mobile robot on a floor: yaw about A's base z axis and translation in
+          A's base x and y only (z constant); as ``'scara'``, one direction is unobservable.
+        - ``'gantry'``: a Cartesian gantry: translation as ``'diverse'``, constant orientation;
+          T1's position is unobservable against T0's translation (three directions).
+        - ``'turntable'``: the tool on a turntable: it turns about A's base z axis through a
+          fixed point 0.2-0.4 m away, nothing else; T1's offset along the axis and the split
+          of the rotation about it between T0 and T1 are unobservable.
         - ``'single_axis'``: translation as ``'diverse'``; rotation about one fixed random axis
           only (r(t) = u s(t)), which leaves part of the hand-eye problem unobservable.
         - ``'no_rotation'``: translation as ``'diverse'``, constant orientation ``q_mean``.
@@ -216,15 +245,28 @@ def make_motion(rng: np.random.Generator, preset: str = 'diverse') -> Motion:
     single_total = rng.uniform(*ROTATION_AMPLITUDE) * np.sqrt(3.0)
     pos_amp, pos_freq, pos_phase = pos
     rot_amp, rot_freq, rot_phase = rot
-    if preset == 'single_axis':
+    pivot = None
+    if preset in ('scara', 'planar', 'turntable'):
+        # about A's base z axis: in the tool frame of q_mean that is R(q_mean)ᵀ e_z
+        axis = quat.to_matrix(q_mean).T @ np.array([0.0, 0.0, 1.0])
+        preset_axis = 'single_axis'
+    else:
+        preset_axis = preset
+    if preset_axis == 'single_axis':
         # r(t) = axis · s(t), s a sum of sinusoids: the same (freq, phase) on every axis.
         rot_amp = axis[:, None] * (single_total * rot_amp[0] / np.sum(rot_amp[0]))
         rot_freq = np.broadcast_to(rot_freq[0], (3, n_rot))
         rot_phase = np.broadcast_to(rot_phase[0], (3, n_rot))
-    if preset in ('no_rotation', 'static'):
+    if preset in ('no_rotation', 'gantry', 'static'):
         rot_amp = np.zeros_like(rot_amp)
-    if preset == 'static':
+    if preset == 'planar':
+        pos_amp = pos_amp * np.array([1.0, 1.0, 0.0])[:, None]
+    if preset in ('static', 'turntable'):
         pos_amp = np.zeros_like(pos_amp)
+    if preset == 'turntable':
+        # the pivot drawn after every shared draw, so the other presets keep their motion
+        radius, angle = rng.uniform(0.2, 0.4), rng.uniform(0.0, 2.0 * np.pi)
+        pivot = centre - radius * np.array([np.cos(angle), np.sin(angle), 0.0])
     return Motion(centre=centre, pos_amp=pos_amp, pos_freq=pos_freq, pos_phase=pos_phase,
                   q_mean=q_mean, rot_amp=rot_amp, rot_freq=rot_freq, rot_phase=rot_phase,
-                  preset=preset)
+                  preset=preset, pivot=pivot)

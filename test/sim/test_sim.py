@@ -275,9 +275,40 @@ def test_no_rotation_and_static():
 
 
 def test_presets_and_unknown_preset():
-    assert MOTION_PRESETS == ('diverse', 'single_axis', 'no_rotation', 'static')
+    assert MOTION_PRESETS == ('diverse', 'scara', 'planar', 'gantry', 'turntable',
+                              'single_axis', 'no_rotation', 'static')
     with pytest.raises(ConfigError, match='preset'):
         make_motion(np.random.default_rng(0), 'wobble')
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_restricted_rigs_move_as_their_machines_do(seed):
+    """SCARA, mobile robot, gantry, turntable: what each rig's tool can and cannot do."""
+    t = np.linspace(0.0, 120.0, 2000)
+
+    def moved(preset):
+        m = make_motion(np.random.default_rng(seed), preset)
+        pos, q = m.pose(t)
+        # rotation vectors of the tool relative to its mean orientation, in A's base frame
+        rot = quat.log(quat.multiply(q, quat.conjugate(m.q_mean)))
+        return m, pos, rot
+
+    for preset in ('scara', 'planar', 'turntable'):
+        m, pos, rot = moved(preset)
+        assert np.abs(rot[:, :2]).max() < 1e-12 and rot[:, 2].std() > 0.3  # yaw only
+        if preset == 'scara':
+            assert (pos.std(axis=0) > 0.02).all()
+        if preset == 'planar':
+            assert np.ptp(pos[:, 2]) < 1e-12 and (pos[:, :2].std(axis=0) > 0.02).all()
+        if preset == 'turntable':  # on a circle about a vertical axis through the pivot
+            lever = pos - m.pivot
+            assert np.ptp(np.linalg.norm(lever[:, :2], axis=1)) < 1e-12
+            assert np.ptp(lever[:, 2]) < 1e-12 and 0.2 <= np.linalg.norm(lever[0, :2]) <= 0.4
+    m, pos, rot = moved('gantry')
+    assert np.abs(rot).max() < 1e-12 and (pos.std(axis=0) > 0.02).all()
+    # the shared draws: every preset keeps the centre and mean orientation of the seed
+    diverse = make_motion(np.random.default_rng(seed))
+    assert np.array_equal(m.centre, diverse.centre) and np.array_equal(m.q_mean, diverse.q_mean)
 
 
 def test_diverse_motion_ranges():
