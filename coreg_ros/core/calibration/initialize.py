@@ -5,7 +5,10 @@ All solves are O(N) accumulations into small matrices followed by an SVD:
 
 - full pose: rotations from ``R0 R_Ai = R_Bi R1ᵀ``, a bilinear problem whose relaxed solution
   is the top singular pair of a 9×9 matrix (the Kronecker form of the rotation equations),
-  each factor projected onto SO(3); then p0, p1 by linear least squares;
+  each factor projected onto SO(3); then p0, p1 by linear least squares. When the tool turns
+  about one axis or not at all (a SCARA arm, a gantry), the rotations alone leave R0 open
+  along a family (the top singular value is not unique): R0 then comes from the positions,
+  as for position only, and R1 from the rotations given R0;
 - position only: a linear lifting ``p_B = p0 + R0 p_A + G vec(R_A)`` with G = R0 ⊗ p1ᵀ
   (13 regressors per axis), R0 projected onto SO(3), then p0, p1 by linear least squares;
 - three markers: the lifting per marker, the R0 estimates averaged on SO(3), then p0 and the
@@ -26,7 +29,14 @@ def project_to_so3(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
-def rotations_from_pairs(Ra: np.ndarray, Rb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+#: The rotations alone determine R0 and R1 unless the second singular value of the Kronecker
+#: matrix is this close to the first (1 within rounding for rotation about one axis or none;
+#: 0.84-0.92 for motion about every axis).
+DEGENERATE_RATIO = 0.995
+
+
+def rotations_from_pairs(Ra: np.ndarray, Rb: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, float]:
     """
     R0, R1 minimising Σ ‖R0 R_Ai - R_Bi R1ᵀ‖², relaxed to a rank-one problem.
 
@@ -41,17 +51,20 @@ def rotations_from_pairs(Ra: np.ndarray, Rb: np.ndarray) -> tuple[np.ndarray, np
     Returns
     -------
     R0, R1 : ndarray, shape (3, 3)
+    ratio : float
+        Second over first singular value: near 1 the rotations do not determine the pair.
 
     """
     n = len(Ra)
     # P[(k, j), (l, m)] = Σ_i Ra[i, k, j] Rb[i, l, m]; K[(l, k), (m, j)] = P[k, j, l, m].
     P = (Ra.reshape(n, 9).T @ Rb.reshape(n, 9)).reshape(3, 3, 3, 3)
     K = P.transpose(2, 0, 3, 1).reshape(9, 9)
-    U, _, Vt = np.linalg.svd(K)
+    U, sv, Vt = np.linalg.svd(K)
     X, Z = U[:, 0].reshape(3, 3), Vt[0].reshape(3, 3)
     if np.linalg.det(X) < 0:  # the singular pair's joint sign is arbitrary
         X, Z = -X, -Z
-    return project_to_so3(X), project_to_so3(Z).T
+    ratio = float(sv[1] / sv[0]) if sv[0] > 0 else 1.0
+    return project_to_so3(X), project_to_so3(Z).T, ratio
 
 
 def _translations(R0: np.ndarray, Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray):
@@ -127,7 +140,11 @@ def initialize(spec: ModelSpec, pos_a, quat_a, pos_b, quat_b=None) -> Parameters
     pos_b3 = pos_b if pos_b.ndim == 3 else pos_b[:, None, :]
     q1 = None
     if spec.has_q1:
-        R0, R1 = rotations_from_pairs(Ra, quat.to_matrix(quat_b))
+        Rb = quat.to_matrix(quat_b)
+        R0, R1, ratio = rotations_from_pairs(Ra, Rb)
+        if ratio > DEGENERATE_RATIO:  # rotation about one axis or none: R0 from the positions
+            R0 = _lifted_rotation(Ra, pos_a, pos_b3[:, 0, :])
+            R1 = project_to_so3(np.einsum('nji,njk->ik', R0 @ Ra, Rb))  # Σ (R0 R_A)ᵀ R_B
         q1 = quat.from_matrix(R1)
     else:
         rotations = [_lifted_rotation(Ra, pos_a, pos_b3[:, j, :]) for j in range(pos_b3.shape[1])]
