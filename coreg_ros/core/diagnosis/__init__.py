@@ -5,7 +5,7 @@ Pure: numpy and scipy only. ``diagnose(pairs, settings)`` returns a ``Diagnosis`
 ``report`` is the JSON document of ``coreg diagnose``.
 """
 
-from coreg_ros.core.diagnosis.candidates import EFFECT_NAMES
+from coreg_ros.core.diagnosis.effects.registry import EFFECT_NAMES
 from coreg_ros.core.diagnosis.engine import diagnose, Diagnosis
 from coreg_ros.core.diagnosis.options import Options
 from coreg_ros.core.diagnosis.streams import diagnose_streams

@@ -23,13 +23,14 @@ with the ten candidate effects of ``candidates.py``:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 from coreg_ros.core.calibration.calibrate import calibrate
-from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
+from coreg_ros.core.diagnosis.effects.base import FitReading
+from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.findings import (
     noise_excess,
     stamp_rows,
@@ -40,7 +41,7 @@ from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model, start_state
 from coreg_ros.core.diagnosis.options import Options, Progress
 from coreg_ros.core.diagnosis.residuals import base_errors, detect_locate
 from coreg_ros.core.diagnosis.selection import select_effects, Selector
-from coreg_ros.core.diagnosis.summary import effect_estimate, gap_measures, transforms
+from coreg_ros.core.diagnosis.summary import gap_measures, transforms
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
@@ -150,7 +151,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     shift = float(context.get('coarse_shift_s', 0.0))
 
     progress(0.85, 'final fit on all pairs')
-    forced_offset = shift != 0.0 and not any(a in fx.TIME_EFFECTS for a in accepted)
+    forced_offset = shift != 0.0 and not any(CANDIDATES[a].acts_on == 'time' for a in accepted)
     if forced_offset:
         # the coarse search moved the pairing: that offset is an effect found, refined here
         accepted = ('time_offset',) + accepted
@@ -160,7 +161,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     else:
         final = Model(data, accepted).fit(ref[0].state, None, folds, K)
     gap_folds, blocks_kind = folds, 'time blocks'
-    if any(a in fx.SPATIAL_EFFECTS and a in fx.MEAN_EFFECTS for a in accepted):
+    if any(CANDIDATES[a].spatial and CANDIDATES[a].acts_on == 'mean' for a in accepted):
         # a field is tested where it can be: on unseen cells of the workspace, between seen
         # ones (a time block may hold a region nothing else visits)
         gap_folds = spatial_folds(data.b_points[:, 0, :], K, seed=opts.seed)
@@ -194,18 +195,21 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     gap_before['share_of_excess_explained'] = 0.0
     n_res = len(idx) * data.m
     effect_rows = []
-    final_cov = final.mean_cov()
-    var_cov = final.var_cov() if final.model.var_names else None
+    reading = FitReading.of(final)
+
+    def sized(name):
+        est = CANDIDATES[name].size(reading)
+        return est.shifted(shift) if shift else est
+
     if forced_offset:
-        est = effect_estimate('time_offset', final, final_cov, var_cov)
-        est['coarse_s'] = shift
+        est = replace(sized('time_offset'), coarse_s=shift).as_dict()
         effect_rows.append({'name': 'time_offset', 'kind': 'structured', 'estimate': est,
                             'source': 'coarse search', 'held_out_gain': 0.0,
                             'held_out_gain_per_residual': 0.0, 'blocks_improved': 0,
                             'blocks': 0})
     for cand, not_sep in chosen:
-        est = effect_estimate(cand.name, final, final_cov, var_cov)
-        row = {'name': cand.name, 'kind': fx.effect_kind(cand.name), 'estimate': est,
+        est = sized(cand.name).as_dict()
+        row = {'name': cand.name, 'kind': CANDIDATES[cand.name].kind, 'estimate': est,
                'held_out_gain': float(cand.gain),
                'held_out_gain_per_residual': float(cand.gain / n_res),
                'blocks_improved': int(np.sum(cand.fold_gains > 0)),
@@ -215,14 +219,6 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         if not_sep:
             row['not_separable_with'] = list(not_sep)
         effect_rows.append(row)
-    for row in effect_rows:
-        est = row['estimate']
-        if shift and 'tau_s' in est:
-            est['tau_s'] += shift
-            est['text'] = f'{est["tau_s"] * 1e3:.2f} ± {est["sigma_s"] * 1e3:.2f} ms'
-        if shift and 'offset_at_start_s' in est:
-            est['offset_at_start_s'] += shift
-            est['offset_at_end_s'] += shift
     if drift_checks:
         row = next((r for r in effect_rows if r['name'] == 'clock_drift'), None)
         if row is not None:

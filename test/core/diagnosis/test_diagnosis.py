@@ -8,9 +8,9 @@ from coreg_ros.core.diagnosis import diagnose_streams, EFFECT_NAMES
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import prepare, spatial_folds, time_folds, Trajectory
 from coreg_ros.core.diagnosis.detect import detect, ljung_box
+from coreg_ros.core.diagnosis.effects import CANDIDATES, FitReading
 from coreg_ros.core.diagnosis.engine import _params_of
 from coreg_ros.core.diagnosis.fit import Model, start_state
-from coreg_ros.core.diagnosis.summary import effect_estimate
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.injected import EFFECT_NAMES as SIM_EFFECT_NAMES
@@ -89,8 +89,7 @@ def test_effect_model_recovers_injected_parameter(spec, name, get, truth):
         data = prepare(pairs, settings, rec.stream_a)
         base = Model(data, ()).fit(start_state(_params_of(res, data.spec)))
         fit = Model(data, (name,)).fit(base.state)
-        est = effect_estimate(name, fit, fit.mean_cov(),
-                              fit.var_cov() if fit.model.var_names else None)
+        est = CANDIDATES[name].size(FitReading.of(fit)).as_dict()
     value, sigma = get(est)
     assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
     # within the reported uncertainty (3σ), plus the model's approximation where the

@@ -1,0 +1,54 @@
+"""
+The base of the diagnosis report's records: frozen dataclasses whose ``as_dict()`` is JSON.
+
+A record's fields are the keys of its part of the document, in the document's order. A field
+made by ``optional()`` is left out while it is None (a key only some reports carry); ``key=``
+names a key that is no Python name (``from``). Values are kept as computed (Python or NumPy
+scalars, lists): ``as_dict()`` only turns records into dicts and tuples into lists.
+"""
+
+from __future__ import annotations
+
+from dataclasses import field, fields
+from typing import Any, Optional
+
+
+def optional(key: Optional[str] = None) -> Any:
+    """
+    Return a field for a key that only some documents carry (None: left out).
+
+    Parameters
+    ----------
+    key : str, optional
+        The document's key when it is not the field's name.
+
+    """
+    metadata = {'optional': True}
+    if key is not None:
+        metadata['key'] = key
+    return field(default=None, metadata=metadata)
+
+
+class Record:
+    """Base of the report's records: ``as_dict()`` gives the fields as keys, in their order."""
+
+    def as_dict(self) -> dict:
+        """Return the record as the JSON document's dict (plain types, keys in order)."""
+        doc = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None and f.metadata.get('optional'):
+                continue
+            doc[f.metadata.get('key', f.name)] = plain(value)
+        return doc
+
+
+def plain(value: Any) -> Any:
+    """Return the JSON form of a value: records as dicts and tuples as lists, at any depth."""
+    if isinstance(value, Record):
+        return value.as_dict()
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    return value
