@@ -30,12 +30,13 @@ from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.effects.base import FitReading
+from coreg_ros.core.diagnosis.effects.finding import COARSE_SEARCH, Finding
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.findings import (
     noise_excess,
-    stamp_rows,
     structure_checks,
     verdict,
+    with_stamps,
 )
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model, start_state
 from coreg_ros.core.diagnosis.options import Options, Progress
@@ -194,53 +195,43 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     gap_after['rms_moved'] = gp.rms_moved(gap_before, gap_after)
     gap_before['share_of_excess_explained'] = 0.0
     n_res = len(idx) * data.m
-    effect_rows = []
     reading = FitReading.of(final)
 
     def sized(name):
         est = CANDIDATES[name].size(reading)
         return est.shifted(shift) if shift else est
 
+    findings = []
     if forced_offset:
-        est = replace(sized('time_offset'), coarse_s=shift).as_dict()
-        effect_rows.append({'name': 'time_offset', 'kind': 'structured', 'estimate': est,
-                            'source': 'coarse search', 'held_out_gain': 0.0,
-                            'held_out_gain_per_residual': 0.0, 'blocks_improved': 0,
-                            'blocks': 0})
+        findings.append(Finding.of(replace(sized('time_offset'), coarse_s=shift),
+                                   source=COARSE_SEARCH))
     for cand, not_sep in chosen:
-        est = sized(cand.name).as_dict()
-        row = {'name': cand.name, 'kind': CANDIDATES[cand.name].kind, 'estimate': est,
-               'held_out_gain': float(cand.gain),
-               'held_out_gain_per_residual': float(cand.gain / n_res),
-               'blocks_improved': int(np.sum(cand.fold_gains > 0)),
-               'blocks': int(len(cand.fold_gains))}
-        if cand.spatial_gain is not None:
-            row['spatial_held_out_gain'] = float(cand.spatial_gain)
-        if not_sep:
-            row['not_separable_with'] = list(not_sep)
-        effect_rows.append(row)
-    if drift_checks:
-        row = next((r for r in effect_rows if r['name'] == 'clock_drift'), None)
-        if row is not None:
-            row['per_block_offsets'] = drift_checks[-1]
+        trend = drift_checks[-1] if drift_checks and CANDIDATES[cand.name].trend_checked else None
+        findings.append(Finding.of(
+            sized(cand.name), held_out_gain=float(cand.gain),
+            held_out_gain_per_residual=float(cand.gain / n_res),
+            blocks_improved=int(np.sum(cand.fold_gains > 0)), blocks=int(len(cand.fold_gains)),
+            spatial_held_out_gain=(None if cand.spatial_gain is None
+                                   else float(cand.spatial_gain)),
+            not_separable_with=list(not_sep) if not_sep else None, per_block_offsets=trend))
     stamps = context.get('stamps')
     if stamps is not None:
-        stamp_rows(stamps, effect_rows)
-    structure = structure_checks(data, final, after, counted, effect_rows, gap_after)
-    excess = noise_excess(data, final, after, counted, effect_rows, gap_after)
-    gap_detected = bool(detection['gap'] or effect_rows)
+        findings = with_stamps(stamps, findings)
+    structure, findings = structure_checks(data, final, after, counted, findings, gap_after)
+    excess = noise_excess(data, final, after, counted, findings, gap_after)
+    gap_detected = bool(detection['gap'] or findings)
     if stamps is not None and stamps['issues']:
         gap_detected = True
     report = {
         'gap_detected': gap_detected,
-        'effects': effect_rows,
+        'effects': [f.as_dict() for f in findings],
         'not_separable': not_separable,
         'gap_before': gap_before,
         'gap_after': gap_after,
         'noise_excess': excess,
         'excess_left': structure,
         'location': location,
-        'verdict': verdict(gap_detected, effect_rows, not_separable, gap_before, gap_after,
+        'verdict': verdict(gap_detected, findings, not_separable, gap_before, gap_after,
                            detection, location, excess),
         'detection': detection,
         'candidates': [[c.row(n_res) for c in sorted(cs, key=lambda c: -c.gain)]
@@ -252,7 +243,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     }
     if stamps is not None:
         report['stamps'] = stamps
-        if stamps['issues'] and not effect_rows:
+        if stamps['issues'] and not findings:
             report['verdict'] = ('timing issues in the stamps, residuals fit the model: '
                                  + '; '.join(f'{d["device"]}: {d["text"]}'
                                              for d in stamps['devices']))

@@ -3,8 +3,9 @@ The base of the diagnosis report's records: frozen dataclasses whose ``as_dict()
 
 A record's fields are the keys of its part of the document, in the document's order. A field
 made by ``optional()`` is left out while it is None (a key only some reports carry); ``key=``
-names a key that is no Python name (``from``). Values are kept as computed (Python or NumPy
-scalars, lists): ``as_dict()`` only turns records into dicts and tuples into lists.
+names a key that is no Python name (``from``); a field made by ``apart()`` is placed by the
+record's own ``as_dict``. Values are kept as computed (Python or NumPy scalars, lists):
+``as_dict()`` only turns records into dicts and tuples into lists.
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ def optional(key: Optional[str] = None) -> Any:
     return field(default=None, metadata=metadata)
 
 
+def apart() -> Any:
+    """Return a field (default None) that the record's own ``as_dict`` places, not the base's."""
+    return field(default=None, metadata={'apart': True})
+
+
 class Record:
     """Base of the report's records: ``as_dict()`` gives the fields as keys, in their order."""
 
@@ -37,7 +43,7 @@ class Record:
         doc = {}
         for f in fields(self):
             value = getattr(self, f.name)
-            if value is None and f.metadata.get('optional'):
+            if f.metadata.get('apart') or (value is None and f.metadata.get('optional')):
                 continue
             doc[f.metadata.get('key', f.name)] = plain(value)
         return doc

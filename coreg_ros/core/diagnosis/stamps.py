@@ -12,8 +12,12 @@ devices) is still named from the stamps.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.diagnosis.effects.finding import Finding, STAMPS
+from coreg_ros.core.diagnosis.effects.noise import TimestampJitterCandidate
+from coreg_ros.core.diagnosis.record import Record
 from coreg_ros.core.types import PoseStream
 import numpy as np
 
@@ -206,8 +210,35 @@ def stamps_report(stream_a: PoseStream, streams_b) -> dict:
     return {'devices': devices, 'jittered': jittered, 'issues': bool(issues)}
 
 
-def jitter_row(report: dict) -> Optional[dict]:
-    """Return an effect row ``timestamp_jitter`` read from the stamps (None: none scatter)."""
+@dataclass(frozen=True, kw_only=True)
+class StampJitter(Record):
+    """
+    Stamp jitter read from the stamps of the device that scatters most.
+
+    Attributes
+    ----------
+    sigma_s, sigma_sigma_s : float
+        Per-stamp σ and its standard uncertainty, s.
+    device : str
+        ``'A'`` or ``'B'``.
+    dropped : int
+        Samples the device dropped.
+    gaps : list of [float, float]
+        Its gaps: start and length, s.
+    text : str
+
+    """
+
+    sigma_s: float
+    sigma_sigma_s: float
+    device: str
+    dropped: int
+    gaps: list
+    text: str
+
+
+def jitter_finding(report: dict) -> Optional[Finding]:
+    """Return the ``timestamp_jitter`` the stamps show (None: no device's stamps scatter)."""
     devs = [d for d in report['devices'] if d['jittered']]
     if not devs:
         return None
@@ -219,9 +250,8 @@ def jitter_row(report: dict) -> Optional[dict]:
             f'{worst["interval_scatter_s"] * 1e3:.3f} ms)')
     if extra:
         text += '; ' + '; '.join(extra)
-    return {'name': 'timestamp_jitter', 'kind': 'noise', 'source': 'stamps',
-            'estimate': {'sigma_s': sig, 'sigma_sigma_s': sig / np.sqrt(2.0 * max(
-                worst['n'] - 1, 1)), 'device': worst['device'],
-                'dropped': worst['dropped'], 'gaps': worst['gaps'], 'text': text},
-            'held_out_gain': 0.0, 'held_out_gain_per_residual': 0.0, 'blocks_improved': 0,
-            'blocks': 0}
+    estimate = StampJitter(sigma_s=sig, sigma_sigma_s=sig / np.sqrt(2.0 * max(worst['n'] - 1, 1)),
+                           device=worst['device'], dropped=worst['dropped'], gaps=worst['gaps'],
+                           text=text)
+    return Finding(name=TimestampJitterCandidate.name, kind=TimestampJitterCandidate.kind,
+                   source=STAMPS, estimate=estimate)
