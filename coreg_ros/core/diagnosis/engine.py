@@ -169,7 +169,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         blocks_kind = 'workspace cells'
     before = base.heldout(gap_folds, K)
     after = final.heldout(gap_folds, K) if accepted else before
-    gap_after = gap_measures(data, final, after)
+    held_after = gap_measures(data, final, after)
     sd = errors[1]
     everyone = np.ones(n, dtype=bool)
     counted = after.p_in > 0.5 if final.state.var.eps > 0 else everyone
@@ -182,18 +182,22 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         b_res = calibrate(b_pairs, b_settings.updated(robust=False), cov_a=cov_a, cov_b=cov_b)
         b_fit = Model(b_data, ()).fit(start_state(_params_of(b_res, spec)), None, b_folds, K)
         b_held = b_fit.heldout(b_folds, K)
-        gap_before = gap_measures(b_data, b_fit, b_held)
-        gap_before.update(gp.stated_measures(b_data, b_held.quad_stated, b_held.e,
-                                             base_errors(b_data, b_fit)[1],
-                                             np.ones(b_data.n, dtype=bool)))
+        held_before = gap_measures(b_data, b_fit, b_held)
+        stated_before = gp.stated_measures(b_data, b_held.quad_stated, b_held.e,
+                                           base_errors(b_data, b_fit)[1],
+                                           np.ones(b_data.n, dtype=bool))
     else:
-        gap_before = gap_measures(data, base, before)
-        gap_before.update(gp.stated_measures(data, before.quad_stated, before.e, sd, everyone))
-    gap_after.update(gp.stated_measures(data, after.quad_stated, after.e, sd, counted))
-    gap_after['share_of_excess_explained'] = gp.share_explained(gap_before, gap_after)
-    gap_before['held_out_on'] = gap_after['held_out_on'] = blocks_kind
-    gap_after['rms_moved'] = gp.rms_moved(gap_before, gap_after)
-    gap_before['share_of_excess_explained'] = 0.0
+        held_before = gap_measures(data, base, before)
+        stated_before = gp.stated_measures(data, before.quad_stated, before.e, sd, everyone)
+    stated_after = gp.stated_measures(data, after.quad_stated, after.e, sd, counted)
+    gap_before = gp.GapBefore(held_out=held_before, stated=stated_before,
+                              held_out_on=blocks_kind)
+    gap_after = gp.GapAfter(
+        held_out=held_after, stated=stated_after,
+        share_of_excess_explained=gp.share_explained(stated_before.counted, stated_after.counted,
+                                                     stated_after.excluded_pairs.share),
+        held_out_on=blocks_kind, rms_moved=gp.rms_moved(stated_before.counted,
+                                                        stated_after.counted))
     n_res = len(idx) * data.m
     reading = FitReading.of(final)
 
@@ -218,7 +222,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     if stamps is not None:
         findings = with_stamps(stamps, findings)
     structure, findings = structure_checks(data, final, after, counted, findings, gap_after)
-    excess = noise_excess(data, final, after, counted, findings, gap_after)
+    excess = noise_excess(data, after, counted, findings, gap_after)
     gap_detected = bool(detection['gap'] or findings)
     if stamps is not None and stamps['issues']:
         gap_detected = True
@@ -226,10 +230,10 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         'gap_detected': gap_detected,
         'effects': [f.as_dict() for f in findings],
         'not_separable': not_separable,
-        'gap_before': gap_before,
-        'gap_after': gap_after,
-        'noise_excess': excess,
-        'excess_left': structure,
+        'gap_before': gap_before.as_dict(),
+        'gap_after': gap_after.as_dict(),
+        'noise_excess': None if excess is None else excess.as_dict(),
+        'excess_left': structure.as_dict(),
         'location': location,
         'verdict': verdict(gap_detected, findings, not_separable, gap_before, gap_after,
                            detection, location, excess),

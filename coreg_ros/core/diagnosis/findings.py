@@ -8,10 +8,10 @@ excess left in some blocks only) and write the one-sentence verdict.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Optional
 
-from coreg_ros.core.diagnosis import gap as gp
+from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.effects.finding import Finding
 from coreg_ros.core.diagnosis.effects.local import (
@@ -21,8 +21,59 @@ from coreg_ros.core.diagnosis.effects.local import (
 )
 from coreg_ros.core.diagnosis.effects.noise import OutliersCandidate
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
+from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
+from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.stamps import jitter_finding
 import numpy as np
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExcessLeft(Record):
+    """
+    The excess left after the accepted effects, and whether the flagged pairs cluster.
+
+    Attributes
+    ----------
+    map : excess.ExcessMap
+        Where it lies, under the final model's noise.
+    flagged_pairs : excess.FlaggedPairs, optional
+        Whether the pairs the outlier model set aside cluster (with an outlier model).
+
+    """
+
+    map: ex.ExcessMap
+    flagged_pairs: Optional[ex.FlaggedPairs] = optional()
+
+
+@dataclass(frozen=True, kw_only=True)
+class NoiseExcess(Record):
+    """
+    The noise left larger (or smaller) than stated: a description, not a gap closed.
+
+    Attributes
+    ----------
+    factor : float
+        √(χ²/dof) at the stated noise: the residual noise over the stated.
+    effects : list of str
+        The noise effects found.
+    largest_in_time_s : list of float
+        The time block where the excess is largest: from, to, s.
+    largest_in_workspace_m : list of float
+        The centre of the cell where it is largest (B's base frame), m.
+    concentrated : bool
+        Some blocks or cells carry most of it.
+    where : str
+    text : str
+
+    """
+
+    factor: float
+    effects: list
+    largest_in_time_s: list
+    largest_in_workspace_m: list
+    concentrated: bool
+    where: str
+    text: str
 
 
 def _replaced(findings: list, old: Finding, new: Finding) -> list:
@@ -62,7 +113,8 @@ def with_stamps(stamps: dict, findings: list) -> list:
     return [found] + findings
 
 
-def structure_checks(data, final, after, counted, findings: list, gap_after: dict) -> tuple:
+def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter
+                     ) -> tuple:
     """
     Outliers versus structure, and an excess left in some blocks or cells only.
 
@@ -75,88 +127,76 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: dic
 
     Returns
     -------
-    excess_left : dict
-        ``map`` (``gap.excess_map`` under the fitted noise model) and, with an outlier
-        model, ``flagged_pairs`` (``gap.flagged_clustering``).
+    excess_left : ExcessLeft
     findings : list of Finding
 
     """
-    out = {}
     flagged = ~counted
     # under the fitted noise model: a noise that grows with range is stationary, not local
-    emap = gp.excess_map(data, after.quad, counted)
-    out['map'] = emap
+    emap = ex.excess_map(data, after.quad, counted)
 
     def sized(estimate, hot: np.ndarray):
         # how large the local error is where it acts (held-out errors, noise taken off)
-        size = gp.local_error_size(data, after.e, hot)
-        if not size:
-            return estimate
-        return estimate.sized(size['max_mm'], size['rms_mm'], size['from_s'], size['to_s'])
+        size = ex.local_error_size(data, after.e, hot)
+        return estimate if size is None else estimate.sized(size)
 
-    hot_t = gp.hot_time_mask(data, emap)
+    hot_t = ex.hot_time_mask(data, emap)
     found = next((f for f in findings if f.name == OutliersCandidate.name), None)
+    cl = None
     if found is not None:
-        cl = gp.flagged_clustering(data, flagged)
-        out['flagged_pairs'] = cl
+        cl = ex.flagged_clustering(data, flagged)
         at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
-        if cl['clustered'] or at_cap:
+        if cl.clustered or at_cap:
             # the flagged pairs are where it acts (the excess map counts them out)
-            estimate = sized(ClusteredOutliers.of(cl['count'], cl['share'], cl['where'],
-                                                  at_cap), flagged)
+            estimate = sized(ClusteredOutliers.of(cl.count, cl.share, cl.where, at_cap),
+                             flagged)
             named = replace(found, name=estimate.name, kind=estimate.kind, estimate=estimate,
                             renamed_from=found.name)
         else:
             named = replace(found, estimate=found.estimate.capped(at_cap))
         findings = _replaced(findings, found, named)
     ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
-    stated_excess = gap_after['chi2_per_dof_at_stated_noise'] - 1.0
+    stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
     local = NonStationaryCandidate.name
-    if (emap['concentrated_in_time'] and ex_after > 0.02 and stated_excess > 0.02
+    if (emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
             and not any(f.name == local for f in findings)):
-        estimate = LocalExcess.of(emap['text'], emap['share_in_time_blocks'],
-                                  emap['share_in_cells'], ex_after)
+        estimate = LocalExcess.of(emap.text, emap.share_in_time_blocks, emap.share_in_cells,
+                                  ex_after)
         findings = findings + [Finding.of(sized(estimate, hot_t))]
     ns = next((f for f in findings if f.name == local), None)
     if ns is not None and CANDIDATES[findings[0].name].sets_noise_level:
         # a local structured error goes before noise descriptions of it (a noise effect
         # never explains the gap)
         findings = [ns] + [f for f in findings if f is not ns]
-    return out, findings
+    return ExcessLeft(map=emap, flagged_pairs=cl), findings
 
 
-def noise_excess(data, final, after, counted, findings: list, gap_after: dict
-                 ) -> Optional[dict]:
+def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
+                 ) -> Optional[NoiseExcess]:
     """
     Describe the noise left larger (or smaller) than stated: a description, not a gap closed.
 
     Returns None when the held-out χ²/dof at the stated noise is within 5 % of one and no
     noise effect was accepted.
     """
-    chi = gap_after['chi2_per_dof_at_stated_noise']
-    noisy = [f for f in findings if f.kind == 'noise']
+    chi = gap_after.stated.counted.chi2_per_dof_at_stated_noise
+    noisy = [f.name for f in findings if f.kind == 'noise']
     if abs(chi - 1.0) < 0.05 and not noisy:
         return None
-    emap = gp.excess_map(data, after.quad_stated, counted)
-    worst_t = max(emap['time_blocks'], key=lambda b: b['excess'])
-    worst_c = max(emap['cells'], key=lambda c: c['excess'])
-    out = {'factor': float(np.sqrt(max(chi, 0.0))),
-           'effects': [f.name for f in noisy],
-           'largest_in_time_s': [worst_t['from_s'], worst_t['to_s']],
-           'largest_in_workspace_m': worst_c['centre_m'],
-           'concentrated': emap['concentrated'], 'where': emap['text']}
-    var = final.state.var
-    if 'distance_noise' in final.model.var_names:
-        out['distance_exponent'] = float(var.k)
-    if 'noise_scale' in final.model.var_names:
-        out['noise_scale'] = float(np.exp(0.5 * var.log_s2))
-    out['text'] = (f'the residual noise is x {out["factor"]:.2f} the stated'
-                   + (f' ({", ".join(out["effects"])})' if out['effects'] else ''))
-    return out
+    emap = ex.excess_map(data, after.quad_stated, counted)
+    worst_t = max(emap.time_blocks, key=lambda b: b.excess)
+    worst_c = max(emap.cells, key=lambda c: c.excess)
+    factor = float(np.sqrt(max(chi, 0.0)))
+    return NoiseExcess(factor=factor, effects=noisy,
+                       largest_in_time_s=[worst_t.from_s, worst_t.to_s],
+                       largest_in_workspace_m=worst_c.centre_m,
+                       concentrated=emap.concentrated, where=emap.text,
+                       text=(f'the residual noise is x {factor:.2f} the stated'
+                             + (f' ({", ".join(noisy)})' if noisy else '')))
 
 
-def verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
-            detection: dict, location: dict, noise_excess: Optional[dict] = None) -> str:
+def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
+            detection: dict, location: dict, noise_excess: Optional[NoiseExcess] = None) -> str:
     """
     One sentence: no gap, a gap nothing explains, noise described, or the gap explained.
 
@@ -168,11 +208,11 @@ def verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
         The effects found.
     not_sep : list
         Pairs of effects not separable.
-    before, after : dict
-        The gap measures before and after the accepted effects.
+    before, after : GapBefore, GapAfter
+        The gap before and after the accepted effects.
     detection, location : dict
         ``detect.detect`` and ``detect.locate`` of the base fit.
-    noise_excess : dict, optional
+    noise_excess : NoiseExcess, optional
         ``noise_excess`` of the final fit.
 
     Returns
@@ -195,26 +235,28 @@ def verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
             text += f' (not separable from {", ".join(found.not_separable_with)})'
         parts.append(text)
     structured = [f for f in effects if f.kind == 'structured']
-    share = after['share_of_excess_explained']
+    share = after.share_of_excess_explained
+    b, a = before.stated.counted, after.stated.counted
     numbers = (f'held-out chi2/dof at the stated noise '
-               f'{before["chi2_per_dof_at_stated_noise"]:.2f} -> '
-               f'{after["chi2_per_dof_at_stated_noise"]:.2f}, position RMS '
-               f'{before["rms_position_mm"]:.3f} -> {after["rms_position_mm"]:.3f} mm '
-               f'(stated floor {after["stated_floor_position_mm"]:.3f} mm)')
-    if 'rms_rotation_deg' in after:
-        numbers += (f', rotation RMS {before["rms_rotation_deg"]:.3f} -> '
-                    f'{after["rms_rotation_deg"]:.3f} deg (stated floor '
-                    f'{after["stated_floor_rotation_deg"]:.3f} deg)')
-    excl = after['excluded_pairs']
-    if excl['count']:
-        numbers += f'; {excl["count"]} pairs set aside, counted as unexplained'
+               f'{b.chi2_per_dof_at_stated_noise:.2f} -> '
+               f'{a.chi2_per_dof_at_stated_noise:.2f}, position RMS '
+               f'{b.rms_position_mm:.3f} -> {a.rms_position_mm:.3f} mm '
+               f'(stated floor {a.stated_floor_position_mm:.3f} mm)')
+    if a.rms_rotation_deg is not None:
+        numbers += (f', rotation RMS {b.rms_rotation_deg:.3f} -> '
+                    f'{a.rms_rotation_deg:.3f} deg (stated floor '
+                    f'{a.stated_floor_rotation_deg:.3f} deg)')
+    excluded = after.stated.excluded_pairs.count
+    if excluded:
+        numbers += f'; {excluded} pairs set aside, counted as unexplained'
     if not structured:
+        larger = noise_excess is None or noise_excess.factor >= 1
         return (f'no structured effect: the residuals are noise '
-                f'{"larger" if (noise_excess or {}).get("factor", 1) >= 1 else "smaller"} '
+                f'{"larger" if larger else "smaller"} '
                 f'than stated ({"; ".join(parts)}); nothing is explained, the noise is '
                 f'described: {numbers}')
     verb = 'gap explained by' if share >= 0.5 else 'gap partly explained by'
-    if before['chi2_per_dof_at_stated_noise'] < 1.05:
+    if b.chi2_per_dof_at_stated_noise < 1.05:
         # nothing in excess of the stated noise: an effect can be real without a gap
         return (f'found {"; ".join(parts)}; the recording is within the stated noise, so '
                 f'there is no excess to explain: {numbers}')

@@ -3,7 +3,8 @@ The base of the diagnosis report's records: frozen dataclasses whose ``as_dict()
 
 A record's fields are the keys of its part of the document, in the document's order. A field
 made by ``optional()`` is left out while it is None (a key only some reports carry); ``key=``
-names a key that is no Python name (``from``); a field made by ``apart()`` is placed by the
+names a key that is no Python name (``from``); a field made by ``inline()`` holds a record
+whose keys are the parent's own (with a suffix); a field made by ``apart()`` is placed by the
 record's own ``as_dict``. Values are kept as computed (Python or NumPy scalars, lists):
 ``as_dict()`` only turns records into dicts and tuples into lists.
 """
@@ -30,6 +31,11 @@ def optional(key: Optional[str] = None) -> Any:
     return field(default=None, metadata=metadata)
 
 
+def inline(suffix: str = '') -> Any:
+    """Return a field of a record whose keys (each with ``suffix``) stand in the parent's."""
+    return field(metadata={'inline': suffix})
+
+
 def apart() -> Any:
     """Return a field (default None) that the record's own ``as_dict`` places, not the base's."""
     return field(default=None, metadata={'apart': True})
@@ -44,6 +50,10 @@ class Record:
         for f in fields(self):
             value = getattr(self, f.name)
             if f.metadata.get('apart') or (value is None and f.metadata.get('optional')):
+                continue
+            if 'inline' in f.metadata:
+                suffix = f.metadata['inline']
+                doc.update((k + suffix, v) for k, v in value.as_dict().items())
                 continue
             doc[f.metadata.get('key', f.name)] = plain(value)
         return doc

@@ -7,24 +7,59 @@ effect's size with its uncertainty is its class's ``size`` (``effects/``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Optional
+
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.diagnosis.record import optional, Record
 import numpy as np
 
 
-def gap_measures(data, fit, heldout) -> dict:
+@dataclass(frozen=True, kw_only=True)
+class HeldOutGap(Record):
     """
-    Measure the gap of a fitted model on held-out blocks.
+    The gap of a fitted model on held-out blocks, under its own noise model (inliers).
 
-    Returns
-    -------
-    dict
-        ``chi2_per_dof`` (under the fitted noise model, inliers), ``chi2_per_dof_stated_noise``,
-        ``position_rms_m`` (per axis, inliers), ``rotation_rms_rad`` (full pose),
-        ``noise_floor_position_m`` / ``noise_floor_rotation_rad`` (RMS expected from the noise
-        model), their ratios, ``log_likelihood_per_residual``, ``outlier_pairs``.
+    Attributes
+    ----------
+    chi2_per_dof : float
+        Under the fitted noise model.
+    chi2_per_dof_stated_noise : float
+        Under the stated noise.
+    position_rms_m : float
+        Per axis, m.
+    noise_floor_position_m, stated_noise_floor_position_m : float
+        The RMS the fitted (the stated) noise model expects, m.
+    position_rms_to_floor : float
+        The RMS over the fitted noise model's floor.
+    log_likelihood_per_residual : float
+    outlier_pairs : int
+        Pairs more likely outliers than not.
+    n_pairs : int
+    rotation_rms_rad, noise_floor_rotation_rad, stated_noise_floor_rotation_rad : float, optional
+        The same for rotation, rad (full pose).
+    rotation_rms_to_floor : float, optional
 
     """
+
+    chi2_per_dof: float
+    chi2_per_dof_stated_noise: float
+    position_rms_m: float
+    noise_floor_position_m: float
+    stated_noise_floor_position_m: float
+    position_rms_to_floor: float
+    log_likelihood_per_residual: float
+    outlier_pairs: int
+    n_pairs: int
+    rotation_rms_rad: Optional[float] = optional()
+    noise_floor_rotation_rad: Optional[float] = optional()
+    stated_noise_floor_rotation_rad: Optional[float] = optional()
+    rotation_rms_to_floor: Optional[float] = optional()
+
+
+def gap_measures(data, fit, heldout) -> HeldOutGap:
+    """Measure the gap of a fitted model on held-out blocks (``heldout.Heldout``)."""
     m = data.m
     inl = heldout.p_in > 0.5
     if not inl.any():
@@ -47,25 +82,25 @@ def gap_measures(data, fit, heldout) -> dict:
     e = heldout.e[inl]
     pos_rms = float(np.sqrt(np.mean(e[:, pos_rows] ** 2)))
     floor_pos_stated = float(np.sqrt(np.mean(sd[:, pos_rows] ** 2)))
-    out = {
-        'chi2_per_dof': float(np.mean(heldout.quad[inl]) / m),
-        'chi2_per_dof_stated_noise': float(np.mean(heldout.quad_stated[inl]) / m),
-        'position_rms_m': pos_rms,
-        'noise_floor_position_m': floor_pos_stated * np.sqrt(ratio),
-        'stated_noise_floor_position_m': floor_pos_stated,
-        'position_rms_to_floor': pos_rms / (floor_pos_stated * np.sqrt(ratio)),
-        'log_likelihood_per_residual': float(np.mean(heldout.ll) / m),
-        'outlier_pairs': int(np.sum(~inl)),
-        'n_pairs': int(len(heldout.ll)),
-    }
+    rotation = {}
     if data.spec.has_q1:
         rot_rms = float(2.0 * np.sqrt(np.mean(e[:, 3:6] ** 2)))
         floor_rot = float(2.0 * np.sqrt(np.mean(sd[:, 3:6] ** 2)))
-        out.update({'rotation_rms_rad': rot_rms,
+        rotation = {'rotation_rms_rad': rot_rms,
                     'noise_floor_rotation_rad': floor_rot * np.sqrt(ratio),
                     'stated_noise_floor_rotation_rad': floor_rot,
-                    'rotation_rms_to_floor': rot_rms / (floor_rot * np.sqrt(ratio))})
-    return out
+                    'rotation_rms_to_floor': rot_rms / (floor_rot * np.sqrt(ratio))}
+    return HeldOutGap(
+        chi2_per_dof=float(np.mean(heldout.quad[inl]) / m),
+        chi2_per_dof_stated_noise=float(np.mean(heldout.quad_stated[inl]) / m),
+        position_rms_m=pos_rms,
+        noise_floor_position_m=floor_pos_stated * np.sqrt(ratio),
+        stated_noise_floor_position_m=floor_pos_stated,
+        position_rms_to_floor=pos_rms / (floor_pos_stated * np.sqrt(ratio)),
+        log_likelihood_per_residual=float(np.mean(heldout.ll) / m),
+        outlier_pairs=int(np.sum(~inl)),
+        n_pairs=int(len(heldout.ll)),
+        **rotation)
 
 
 def _cached(model, ch) -> bool:

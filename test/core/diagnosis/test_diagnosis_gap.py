@@ -1,7 +1,10 @@
 """Gap measures a noise model cannot game (issue 11, item 1), outliers versus structure (2)."""
 
+from dataclasses import replace
+
 from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.diagnosis import diagnose_streams
+from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import prepare
 from coreg_ros.core.settings import Settings
@@ -74,12 +77,13 @@ def test_set_aside_pairs_are_counted_as_unexplained():
 
 
 def test_share_explained_rules():
-    before = {'chi2_per_dof_at_stated_noise': 3.0, 'rms_position_mm': 1.0}
-    after = {'chi2_per_dof_at_stated_noise': 1.0, 'rms_position_mm': 0.6,
-             'excluded_pairs': {'share': 0.25}}
-    assert gp.share_explained(before, after) == pytest.approx(0.75)
-    after['rms_position_mm'] = 0.995            # χ² fell but the RMS did not move
-    assert gp.share_explained(before, after) == 0.0
+    before = gp.StatedBlock(chi2_per_dof_at_stated_noise=3.0, rms_position_mm=1.0,
+                            stated_floor_position_mm=0.5)
+    after = gp.StatedBlock(chi2_per_dof_at_stated_noise=1.0, rms_position_mm=0.6,
+                           stated_floor_position_mm=0.5)
+    assert gp.share_explained(before, after, excluded_share=0.25) == pytest.approx(0.75)
+    after = replace(after, rms_position_mm=0.995)  # χ² fell but the RMS did not move
+    assert gp.share_explained(before, after, excluded_share=0.25) == 0.0
 
 
 def test_flagged_pairs_in_one_time_block_are_structure_not_outliers():
@@ -88,11 +92,11 @@ def test_flagged_pairs_in_one_time_block_are_structure_not_outliers():
     data = prepare(pairs, Settings(), rec.stream_a)
     rng = np.random.default_rng(0)
     scattered = rng.random(data.n) < 0.04
-    assert gp.flagged_clustering(data, scattered)['clustered'] is False
+    assert ex.flagged_clustering(data, scattered).clustered is False
     burst = np.zeros(data.n, dtype=bool)
     burst[(data.t > 10) & (data.t < 13)] = True
-    cl = gp.flagged_clustering(data, burst)
-    assert cl['clustered'] and cl['in_time'] and '8-12 s' in cl['where'] + '12-16 s'
+    cl = ex.flagged_clustering(data, burst)
+    assert cl.clustered and cl.in_time and '8-12 s' in cl.where + '12-16 s'
 
 
 def test_a_local_error_is_sized_where_it_acts_with_the_noise_taken_off():
@@ -104,9 +108,9 @@ def test_a_local_error_is_sized_where_it_acts_with_the_noise_taken_off():
     hot = (data.t > 10) & (data.t < 16)
     bump = np.exp(-0.5 * ((data.t - 13.0) / 1.0) ** 2) * 4e-3
     e[:, 0] += np.where(hot, bump, 0.0)
-    size = gp.local_error_size(data, e, hot)
-    assert size['max_mm'] == pytest.approx(4.0, rel=0.2)
-    assert 9.5 < size['from_s'] < size['to_s'] < 16.5
+    size = ex.local_error_size(data, e, hot)
+    assert size.max_mm == pytest.approx(4.0, rel=0.2)
+    assert 9.5 < size.from_s < size.to_s < 16.5
     # noise alone is small
-    assert gp.local_error_size(data, rng.normal(scale=5e-4, size=e.shape),
-                               hot)['max_mm'] < 0.8
+    assert ex.local_error_size(data, rng.normal(scale=5e-4, size=e.shape),
+                               hot).max_mm < 0.8

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 from coreg_ros.core.diagnosis.effects.base import CandidateEffect
+from coreg_ros.core.diagnosis.excess import LocalSize
 from coreg_ros.core.diagnosis.record import optional
 
 
@@ -21,21 +22,12 @@ class NonStationaryCandidate(CandidateEffect):
 
     name = 'non_stationary'
 
-    def sized(self, max_mm: float, rms_mm: float, from_s: float, to_s: float):
-        """
-        Return the estimate with the error's size where it acts.
-
-        Parameters
-        ----------
-        max_mm, rms_mm : float
-            The largest and the RMS held-out position error there, noise taken off, mm.
-        from_s, to_s : float
-            When it acts, s from the first pair.
-
-        """
-        return replace(self, max_mm=max_mm, rms_mm=rms_mm, window_s=[from_s, to_s],
-                       text=f'{self.text}; up to {max_mm:.2f} mm (RMS {rms_mm:.2f} mm) in '
-                            f'{from_s:.0f}-{to_s:.0f} s')
+    def sized(self, size: LocalSize):
+        """Return the estimate with the error's size where it acts (``excess.LocalSize``)."""
+        return replace(self, max_mm=size.max_mm, rms_mm=size.rms_mm,
+                       window_s=[size.from_s, size.to_s],
+                       text=f'{self.text}; up to {size.max_mm:.2f} mm (RMS {size.rms_mm:.2f} '
+                            f'mm) in {size.from_s:.0f}-{size.to_s:.0f} s')
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -87,7 +79,7 @@ class LocalExcess(NonStationaryCandidate):
     Attributes
     ----------
     where : str
-        The blocks and cells (``gap.ExcessMap.text``).
+        The blocks and cells (``excess.ExcessMap.text``).
     share_in_time_blocks, share_in_cells : float
         The share of the excess they hold.
     excess_after : float
