@@ -223,7 +223,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         findings = with_stamps(stamps, findings)
     structure, findings = structure_checks(data, final, after, counted, findings, gap_after)
     excess = noise_excess(data, after, counted, findings, gap_after)
-    gap_detected = bool(detection['gap'] or findings)
+    gap_detected = bool(detection.gap or findings)
     if stamps is not None and stamps['issues']:
         gap_detected = True
     report = {
@@ -234,10 +234,10 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         'gap_after': gap_after.as_dict(),
         'noise_excess': None if excess is None else excess.as_dict(),
         'excess_left': structure.as_dict(),
-        'location': location,
+        'location': location.as_dict(),
         'verdict': verdict(gap_detected, findings, not_separable, gap_before, gap_after,
                            detection, location, excess),
-        'detection': detection,
+        'detection': detection.as_dict(),
         'candidates': [[c.row(n_res) for c in sorted(cs, key=lambda c: -c.gain)]
                        for cs in rounds],
         'calibration': {'before': transforms(base), 'after': transforms(final)},

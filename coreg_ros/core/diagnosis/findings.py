@@ -13,6 +13,7 @@ from typing import Optional
 
 from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.diagnosis.detect import Detection
 from coreg_ros.core.diagnosis.effects.finding import Finding
 from coreg_ros.core.diagnosis.effects.local import (
     ClusteredOutliers,
@@ -22,6 +23,7 @@ from coreg_ros.core.diagnosis.effects.local import (
 from coreg_ros.core.diagnosis.effects.noise import OutliersCandidate
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
+from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.stamps import jitter_finding
 import numpy as np
@@ -196,7 +198,8 @@ def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
 
 
 def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
-            detection: dict, location: dict, noise_excess: Optional[NoiseExcess] = None) -> str:
+            detection: Detection, location: Location,
+            noise_excess: Optional[NoiseExcess] = None) -> str:
     """
     One sentence: no gap, a gap nothing explains, noise described, or the gap explained.
 
@@ -210,8 +213,8 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         Pairs of effects not separable.
     before, after : GapBefore, GapAfter
         The gap before and after the accepted effects.
-    detection, location : dict
-        ``detect.detect`` and ``detect.locate`` of the base fit.
+    detection, location : Detection, Location
+        ``detect.detect`` and ``locate.locate`` of the base fit.
     noise_excess : NoiseExcess, optional
         ``noise_excess`` of the final fit.
 
@@ -222,10 +225,10 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
     """
     if not gap:
         return (f'no gap: the recording fits the model with the stated noise '
-                f'(chi2/dof {detection["chi2_per_dof"]:.3f}, p = {detection["p_value"]:.2g})')
+                f'(chi2/dof {detection.chi2_per_dof:.3f}, p = {detection.p_value:.2g})')
     if not effects:
-        return (f'gap detected (chi2/dof {detection["chi2_per_dof"]:.2f}) but none of the '
-                f'candidate effects explains it; largest in {location["largest"]}')
+        return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}) but none of the '
+                f'candidate effects explains it; largest in {location.largest}')
     parts = []
     for found in effects:
         text = found.name

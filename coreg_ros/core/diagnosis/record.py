@@ -1,12 +1,16 @@
 """
 The base of the diagnosis report's records: frozen dataclasses whose ``as_dict()`` is JSON.
 
-A record's fields are the keys of its part of the document, in the document's order. A field
-made by ``optional()`` is left out while it is None (a key only some reports carry); ``key=``
-names a key that is no Python name (``from``); a field made by ``inline()`` holds a record
-whose keys are the parent's own (with a suffix); a field made by ``apart()`` is placed by the
-record's own ``as_dict``. Values are kept as computed (Python or NumPy scalars, lists):
-``as_dict()`` only turns records into dicts and tuples into lists.
+A record's fields are the keys of its part of the document, in the document's order. Fields
+made by
+
+- ``optional()`` are left out while None (keys only some reports carry);
+- ``keyed()`` (or ``optional(key=)``) are written under a key that is no Python name (``from``);
+- ``inline()`` hold a record whose keys stand in the parent's own (with a suffix);
+- ``apart()`` are placed by the record's own ``as_dict``.
+
+Values are kept as computed (Python or NumPy scalars, lists): ``as_dict()`` only turns records
+into dicts and tuples into lists.
 """
 
 from __future__ import annotations
@@ -29,6 +33,11 @@ def optional(key: Optional[str] = None) -> Any:
     if key is not None:
         metadata['key'] = key
     return field(default=None, metadata=metadata)
+
+
+def keyed(key: str) -> Any:
+    """Return a field written under ``key`` (a document key that is no Python name)."""
+    return field(metadata={'key': key})
 
 
 def inline(suffix: str = '') -> Any:

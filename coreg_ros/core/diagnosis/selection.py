@@ -17,12 +17,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.diagnosis import detect as dt
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.drift import drift_check
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES, EFFECT_NAMES
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model
+from coreg_ros.core.diagnosis.locate import STATIC_ANGULAR_SPEED, STATIC_SPEED
 from coreg_ros.core.diagnosis.options import Options, Progress
 import numpy as np
 
@@ -63,7 +63,7 @@ class Candidate:
 
 def has_motion(data: DiagData) -> bool:
     """Whether the tool moves in more than a tenth of the pairs (motion effects can show)."""
-    moving = (data.speed > dt.STATIC_SPEED) | (data.angular_speed > dt.STATIC_ANGULAR_SPEED)
+    moving = (data.speed > STATIC_SPEED) | (data.angular_speed > STATIC_ANGULAR_SPEED)
     return bool(np.mean(moving) > 0.1)
 
 

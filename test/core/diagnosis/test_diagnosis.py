@@ -141,10 +141,10 @@ def test_ljung_box_and_detect():
     assert p_ar < 1e-6 and abs(rho[0] - 0.5) < 0.05
     z = rng.standard_normal((3000, 6))
     d = detect(np.sum(z ** 2, axis=1), z, 6, 12)
-    assert d['gap'] is False
+    assert d.gap is False
     z[::50] *= 30.0
     d = detect(np.sum(z ** 2, axis=1), z, 6, 12)
-    assert d['flags']['heavy_tails'] and d['flags']['chi2_high']
+    assert d.flags.heavy_tails and d.flags.chi2_high
 
 
 def test_variance_fits():
