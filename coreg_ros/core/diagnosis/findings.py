@@ -25,7 +25,7 @@ from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import optional, Record
-from coreg_ros.core.diagnosis.stamps import jitter_finding
+from coreg_ros.core.diagnosis.stamps import jitter_finding, StampReport
 import numpy as np
 
 
@@ -83,7 +83,7 @@ def _replaced(findings: list, old: Finding, new: Finding) -> list:
     return [new if f is old else f for f in findings]
 
 
-def with_stamps(stamps: dict, findings: list) -> list:
+def with_stamps(stamps: StampReport, findings: list) -> list:
     """
     Name jitter from the stamps when the residuals did not; add drops and gaps to any finding.
 
@@ -92,7 +92,7 @@ def with_stamps(stamps: dict, findings: list) -> list:
 
     Parameters
     ----------
-    stamps : dict
+    stamps : StampReport
         ``stamps.stamps_report`` of the recording.
     findings : list of Finding
         The effects found so far.
@@ -199,9 +199,10 @@ def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
 
 def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
             detection: Detection, location: Location,
-            noise_excess: Optional[NoiseExcess] = None) -> str:
+            noise_excess: Optional[NoiseExcess] = None,
+            stamps: Optional[StampReport] = None) -> str:
     """
-    One sentence: no gap, a gap nothing explains, noise described, or the gap explained.
+    One sentence: no gap, timing issues, a gap nothing explains, noise, or the gap explained.
 
     Parameters
     ----------
@@ -217,6 +218,8 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         ``detect.detect`` and ``locate.locate`` of the base fit.
     noise_excess : NoiseExcess, optional
         ``noise_excess`` of the final fit.
+    stamps : StampReport, optional
+        What the stamps say (from the streams).
 
     Returns
     -------
@@ -226,6 +229,9 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
     if not gap:
         return (f'no gap: the recording fits the model with the stated noise '
                 f'(chi2/dof {detection.chi2_per_dof:.3f}, p = {detection.p_value:.2g})')
+    if not effects and stamps is not None and stamps.issues:
+        return ('timing issues in the stamps, residuals fit the model: '
+                + '; '.join(f'{d.device}: {d.text}' for d in stamps.devices))
     if not effects:
         return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}) but none of the '
                 f'candidate effects explains it; largest in {location.largest}')

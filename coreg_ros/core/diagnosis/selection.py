@@ -24,7 +24,57 @@ from coreg_ros.core.diagnosis.effects.registry import CANDIDATES, EFFECT_NAMES
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model
 from coreg_ros.core.diagnosis.locate import STATIC_ANGULAR_SPEED, STATIC_SPEED
 from coreg_ros.core.diagnosis.options import Options, Progress
+from coreg_ros.core.diagnosis.record import optional, Record
 import numpy as np
+
+
+@dataclass(frozen=True, kw_only=True)
+class CandidateScore(Record):
+    """
+    One candidate's line in the report's ranking.
+
+    Attributes
+    ----------
+    name : str
+    held_out_gain, held_out_gain_per_residual : float or None
+        Over the accepted ones, nats (None when screened: not refitted).
+    blocks_improved, blocks : int
+    accepted_test : bool
+        It passes the tests (gain, blocks).
+    reason : str
+    spatial_held_out_gain : float, optional
+        On unseen cells of the workspace (spatial effects).
+    predicted_in_sample_gain : float, optional
+        A screened candidate's predicted in-sample gain, nats (written after ``screened``).
+
+    """
+
+    name: str
+    held_out_gain: Optional[float]
+    held_out_gain_per_residual: Optional[float]
+    blocks_improved: int
+    blocks: int
+    accepted_test: bool
+    reason: str
+    spatial_held_out_gain: Optional[float] = optional()
+    predicted_in_sample_gain: Optional[float] = optional()
+
+    @property
+    def screened(self) -> bool:
+        """Whether it was screened out by its predicted gain (not refitted)."""
+        return self.predicted_in_sample_gain is not None
+
+    def as_dict(self) -> dict:
+        """Return the line's JSON dict: a screened candidate's gains after its test."""
+        doc = super().as_dict()
+        if not self.screened:
+            return doc
+        # not refitted: the gain is the predicted in-sample one, not a held-out one
+        doc.pop('predicted_in_sample_gain')
+        doc['screened'] = True
+        doc['predicted_in_sample_gain'] = self.predicted_in_sample_gain
+        doc['held_out_gain'] = doc.pop('held_out_gain')
+        return doc
 
 
 @dataclass
@@ -43,22 +93,17 @@ class Candidate:
     screened: bool = False
     behind: bool = False
 
-    def row(self, n_res: int) -> dict:
-        """JSON row of the candidate ranking."""
-        row = {'name': self.name, 'held_out_gain': float(self.gain),
-               'held_out_gain_per_residual': float(self.gain / max(n_res, 1)),
-               'blocks_improved': int(np.sum(self.fold_gains > 0)),
-               'blocks': int(len(self.fold_gains)), 'accepted_test': bool(self.passes),
-               'reason': self.reason}
-        if self.spatial_gain is not None:
-            row['spatial_held_out_gain'] = float(self.spatial_gain)
-        if self.screened:
-            # not refitted: the gain is the predicted in-sample one, not a held-out one
-            row['screened'] = True
-            row['predicted_in_sample_gain'] = row.pop('held_out_gain')
-            row['held_out_gain'] = None
-            row['held_out_gain_per_residual'] = None
-        return row
+    def score(self, n_res: int) -> CandidateScore:
+        """Return the candidate's line in the ranking (``n_res``: residuals of the pairs)."""
+        # a screened candidate was not refitted: its gain is the predicted in-sample one
+        held_out = None if self.screened else float(self.gain)
+        return CandidateScore(
+            name=self.name, held_out_gain=held_out,
+            held_out_gain_per_residual=None if self.screened else float(self.gain / max(n_res, 1)),
+            blocks_improved=int(np.sum(self.fold_gains > 0)), blocks=int(len(self.fold_gains)),
+            accepted_test=bool(self.passes), reason=self.reason,
+            spatial_held_out_gain=None if self.spatial_gain is None else float(self.spatial_gain),
+            predicted_in_sample_gain=float(self.gain) if self.screened else None)
 
 
 def has_motion(data: DiagData) -> bool:
@@ -322,7 +367,7 @@ class Selection:
         The accepted effect and each such rival.
     rounds : list of list of Candidate
         The candidates scored in each round.
-    drift_checks : list of dict
+    drift_checks : list of DriftCheck
         ``drift.drift_check`` of each round that picked a clock drift.
     ref : tuple
         ``Selector.score`` of the accepted model (fit, time held-out, spatial held-out).
@@ -370,9 +415,9 @@ def select_effects(sel: Selector, start) -> Selection:
         if best is not None and CANDIDATES[best.name].trend_checked:
             check = drift_check(data, sel, best, cands)
             drift_checks.append(check)
-            if not check['accepted']:
+            if not check.accepted:
                 best.passes = False
-                best.reason = check['reason']
+                best.reason = check.reason
                 alt = [c for c in cands if c.passes and c.name != best.name]
                 best = max(alt, key=lambda c: c.gain) if alt else None
                 not_sep = []

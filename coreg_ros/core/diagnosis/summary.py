@@ -108,7 +108,45 @@ def _cached(model, ch) -> bool:
     return key in model.data.cache.get('decorrelation', {})
 
 
-def transforms(fit) -> dict:
+@dataclass(frozen=True)
+class FrameEstimate(Record):
+    """
+    A transform of a fit.
+
+    Attributes
+    ----------
+    position, sigma_position : list of float
+        Its translation and the standard deviations, m.
+    quat_wxyz : list of float
+        Its rotation (w, x, y, z).
+
+    """
+
+    position: list
+    sigma_position: list
+    quat_wxyz: list
+
+
+@dataclass(frozen=True, kw_only=True)
+class Transforms(Record):
+    """
+    The calibration of a fit: T0, T1 and, with several markers, every marker's position.
+
+    Attributes
+    ----------
+    base_to_base, tool_to_marker : FrameEstimate
+        T0 (A's base in B's) and T1 (the first marker on A's tool).
+    markers : list of list of float, optional
+        The markers' positions on the tool, m (more than one marker).
+
+    """
+
+    base_to_base: FrameEstimate
+    tool_to_marker: FrameEstimate
+    markers: Optional[list] = optional()
+
+
+def transforms(fit) -> Transforms:
     """
     T0 and T1 of a fit: positions (m) with standard deviations, quaternions (w, x, y, z).
 
@@ -122,10 +160,8 @@ def transforms(fit) -> dict:
         infl = vm.inflation(fit.state.var, fit.stats)
         sd0 = np.sqrt(np.clip(np.diag(cov)[0:3], 0, None) * infl).tolist()
         sd1 = np.sqrt(np.clip(np.diag(cov)[6:9], 0, None) * infl).tolist()
-    out = {'base_to_base': {'position': p.p0.tolist(), 'sigma_position': sd0,
-                            'quat_wxyz': quat.canonical(p.q0).tolist()},
-           'tool_to_marker': {'position': p.markers[0].tolist(), 'sigma_position': sd1,
-                              'quat_wxyz': quat.canonical(p.q1).tolist()}}
-    if p.spec.n_markers > 1:
-        out['markers'] = p.markers.tolist()
-    return out
+    return Transforms(
+        base_to_base=FrameEstimate(p.p0.tolist(), sd0, quat.canonical(p.q0).tolist()),
+        tool_to_marker=FrameEstimate(p.markers[0].tolist(), sd1,
+                                     quat.canonical(p.q1).tolist()),
+        markers=p.markers.tolist() if p.spec.n_markers > 1 else None)

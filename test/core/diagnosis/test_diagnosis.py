@@ -36,7 +36,7 @@ def test_effect_names_match_the_simulator():
 def test_clean_recording_has_no_gap_and_exact_keys():
     rec, settings = _recording(None, seed=21, duration=30.0)
     diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings)
-    r = diag.report
+    r = diag.report.as_dict()
     assert REPORT_KEYS <= set(r)
     assert r['gap_detected'] is False
     assert r['effects'] == []
@@ -48,7 +48,7 @@ def test_clean_recording_has_no_gap_and_exact_keys():
 
 def test_time_offset_named_with_estimate_and_gap_closed():
     rec, settings = _recording('time_offset=0.012', seed=5, duration=30.0)
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report.as_dict()
     assert r['gap_detected'] is True
     assert r['effects'][0]['name'] == 'time_offset'
     est = r['effects'][0]['estimate']
@@ -193,6 +193,6 @@ def test_one_blas_thread_holds_blas_at_one_thread_and_restores_it():
 
 def test_position_only_model_diagnosis():
     rec, settings = _recording('outliers=0.03', seed=6, duration=30.0, model='position_only')
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report.as_dict()
     assert r['effects'] and r['effects'][0]['name'] == 'outliers'
     assert 'rotation_rms_rad' not in r['gap_after']

@@ -27,7 +27,7 @@ def _diag(specs, seed=5, duration=40.0, model='full_pose'):
 @pytest.mark.parametrize('spec,factor', [('noise_scale=1.8', 1.8), ('distance_noise=4', None)])
 def test_a_noise_effect_never_shrinks_the_gap(spec, factor, tmp_path):
     diag = _diag([spec])
-    r = diag.report
+    r = diag.report.as_dict()
     assert r['effects'] and r['effects'][0]['kind'] == 'noise'
     b, a = r['gap_before'], r['gap_after']
     assert (NEW_KEYS | OLD_KEYS) <= set(a)
@@ -48,14 +48,14 @@ def test_a_noise_effect_never_shrinks_the_gap(spec, factor, tmp_path):
 
 def test_distance_noise_exponent_is_never_negative():
     # noise shrinking away from the source is physically backwards: never reported
-    r = _diag(['distance_noise=-3']).report
+    r = _diag(['distance_noise=-3']).report.as_dict()
     for e in r['effects']:
         if e['name'] == 'distance_noise':
             assert e['estimate']['exponent'] >= 0.0
 
 
 def test_structured_effect_moves_the_rms_and_keeps_old_keys():
-    r = _diag(['scale=0.01,-0.008,0.006']).report
+    r = _diag(['scale=0.01,-0.008,0.006']).report.as_dict()
     assert r['effects'][0]['name'] == 'scale' and r['effects'][0]['kind'] == 'structured'
     b, a = r['gap_before'], r['gap_after']
     assert a['rms_position_mm'] < 0.8 * b['rms_position_mm']
@@ -65,7 +65,7 @@ def test_structured_effect_moves_the_rms_and_keeps_old_keys():
 
 
 def test_set_aside_pairs_are_counted_as_unexplained():
-    r = _diag(['outliers=0.03']).report
+    r = _diag(['outliers=0.03']).report.as_dict()
     a = r['gap_after']
     excl = a['excluded_pairs']
     assert excl['count'] > 0 and excl['counted_as'] == 'unexplained'

@@ -16,7 +16,8 @@ import pytest
 
 def _report(effects, seed=5, duration=40.0, model='full_pose'):
     rec = simulate_recording(seed, duration, model, effects=effects)
-    return rec, diagnose_streams(rec.stream_a, list(rec.streams_b), Settings(model=model)).report
+    diag = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings(model=model))
+    return rec, diag.report.as_dict()
 
 
 @pytest.mark.parametrize('seed', [5, 12])
