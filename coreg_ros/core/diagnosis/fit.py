@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from coreg_ros.core.diagnosis import variance as vm
-from coreg_ros.core.diagnosis.candidates import Context
 from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.heldout import Heldout, Pass, predict_blocks, solve_psd
+from coreg_ros.core.diagnosis.terms import Context
 from coreg_ros.core.models import linearize, Parameters
 import numpy as np
 

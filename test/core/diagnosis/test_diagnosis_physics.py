@@ -65,7 +65,7 @@ def test_non_stationary_distortion_says_when_and_that_nothing_stationary_explain
 
 
 def test_field_linear_terms_are_symmetric_trace_free_and_not_rigid():
-    from coreg_ros.core.diagnosis.candidates import FieldDistortion as Field
+    from coreg_ros.core.diagnosis.terms import FieldDistortion as Field
     from coreg_ros.core.rigid import rigid_part
 
     eff = Field()

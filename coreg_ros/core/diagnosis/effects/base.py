@@ -34,7 +34,7 @@ class CandidateEffect(Record):
         term added to the output error), ``'variance'`` (the noise model); None for an effect
         named from what the fitted ones leave (not a candidate of the selection).
     term : type or None
-        The model term (``candidates.py``) of a time or mean effect.
+        The model term (``terms.py``) of a time or mean effect.
     var_params : tuple of str
         The noise parameters (``variance.VarState``) a variance effect fits.
     spatial : bool

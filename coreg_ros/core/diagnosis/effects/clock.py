@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Optional
 
-from coreg_ros.core.diagnosis.candidates import DriftShift, OffsetShift
 from coreg_ros.core.diagnosis.effects.base import CandidateEffect, ms_text
 from coreg_ros.core.diagnosis.record import optional
+from coreg_ros.core.diagnosis.terms import DriftShift, OffsetShift
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.diagnosis.candidates import Backlash, LinkFlex
 from coreg_ros.core.diagnosis.effects.base import CandidateEffect
 from coreg_ros.core.diagnosis.record import optional
+from coreg_ros.core.diagnosis.terms import Backlash, LinkFlex
 import numpy as np
 
 

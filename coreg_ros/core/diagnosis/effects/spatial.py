@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from coreg_ros.core.diagnosis.candidates import FieldDistortion, Scale
 from coreg_ros.core.diagnosis.effects.base import CandidateEffect
+from coreg_ros.core.diagnosis.terms import FieldDistortion, Scale
 from coreg_ros.core.rigid import rigid_part
 import numpy as np
 
