@@ -24,7 +24,7 @@ from coreg_ros.core.diagnosis.effects.noise import OutliersCandidate
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
-from coreg_ros.core.diagnosis.record import optional, Record
+from coreg_ros.core.diagnosis.record import keyed, optional, Record
 from coreg_ros.core.diagnosis.stamps import jitter_finding, StampReport
 import numpy as np
 
@@ -36,14 +36,14 @@ class ExcessLeft(Record):
 
     Attributes
     ----------
-    map : excess.ExcessMap
-        Where it lies, under the final model's noise.
+    excess_map : excess.ExcessMap
+        Where it lies, under the final model's noise (key ``map``).
     flagged_pairs : excess.FlaggedPairs, optional
         Whether the pairs the outlier model set aside cluster (with an outlier model).
 
     """
 
-    map: ex.ExcessMap
+    excess_map: ex.ExcessMap = keyed('map')
     flagged_pairs: Optional[ex.FlaggedPairs] = optional()
 
 
@@ -170,7 +170,7 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
         # a local structured error goes before noise descriptions of it (a noise effect
         # never explains the gap)
         findings = [ns] + [f for f in findings if f is not ns]
-    return ExcessLeft(map=emap, flagged_pairs=cl), findings
+    return ExcessLeft(excess_map=emap, flagged_pairs=cl), findings
 
 
 def noise_excess(data, after, counted, findings: list, gap_after: GapAfter

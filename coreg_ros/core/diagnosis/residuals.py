@@ -76,7 +76,7 @@ def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple[Detection, 
     fw = np.concatenate(fw) / sd
     step = float(np.median(np.diff(data.t))) if data.n > 1 else 0.0
     location = locate(t=data.t, quad=quad, e_std=e / sd, m=data.m,
-                         has_rotation=data.spec.has_q1, points=data.b_points[:, 0, :],
-                         speed=data.speed, angular_speed=data.angular_speed, fdot_v=fv,
-                         fdot_w=fw, dt=step)
+                      has_rotation=data.spec.has_q1, points=data.b_points[:, 0, :],
+                      speed=data.speed, angular_speed=data.angular_speed, fdot_v=fv,
+                      fdot_w=fw, dt=step)
     return detection, location

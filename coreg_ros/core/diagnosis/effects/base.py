@@ -127,12 +127,12 @@ class FitReading:
 
     @property
     def model(self):
-        """The fitted model (``fit.Model``)."""
+        """Return the fitted ``fit.Model``."""
         return self.fit.model
 
     @property
     def var(self):
-        """The fitted noise parameters (``variance.VarState``)."""
+        """Return the fitted noise parameters (``variance.VarState``)."""
         return self.fit.state.var
 
     def theta(self, name: str) -> np.ndarray:
