@@ -41,7 +41,7 @@ def base_errors(data: DiagData, fit: Fit) -> tuple:
 
 def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple[Detection, Location]:
     """
-    Detect the gap in the base fit's errors and locate it (``detect.detect``, ``detect.locate``).
+    Detect the gap in the base fit's errors and locate it (``detect.detect``, ``locate.locate``).
 
     Parameters
     ----------
