@@ -54,7 +54,7 @@ def time_large(n_pairs: int = N_PAIRS, seed: int = 7, effect: str = 'time_offset
     t0 = time.perf_counter()
     diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings)
     seconds = time.perf_counter() - t0
-    r = diag.report
+    r = diag.report.as_dict()  # the JSON document
     return {'n_pairs': r['n_pairs'], 'effect': effect, 'seconds': seconds,
             'goal_seconds': GOAL_SECONDS, 'within_goal': seconds <= GOAL_SECONDS,
             'named': [e['name'] for e in r['effects']],

@@ -63,8 +63,8 @@ def diagnose_bag(bag, settings, progress=None):
     Returns
     -------
     (Diagnosis, dict)
-        The diagnosis (for the HTML report) and its JSON document (``report`` with the settings
-        and the bag path added).
+        The diagnosis (for the text and the HTML report) and its JSON document
+        (``report.as_dict()`` with the settings and the bag path added).
 
     """
     from coreg_ros.core.diagnosis import diagnose_streams
@@ -76,10 +76,10 @@ def diagnose_bag(bag, settings, progress=None):
         diag = diagnose_streams(streams[settings.topic_a],
                                 [streams[t] for t in settings.topic_b], settings,
                                 progress=progress)
-    report = diag.report
-    report['settings'] = settings.as_dict()
-    report['bag'] = str(bag)
-    return diag, report
+    document = diag.report.as_dict()
+    document['settings'] = settings.as_dict()
+    document['bag'] = str(bag)
+    return diag, document
 
 
 def cmd_diagnose(args) -> int:
@@ -90,12 +90,13 @@ def cmd_diagnose(args) -> int:
 
     settings = settings_from_args(args)
     progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
-    diag, report = diagnose_bag(args.bag, settings, progress)
-    print(f'{PROG} diagnose: {args.bag} ({report["n_pairs"]} pairs, '
-          f'{report["duration_s"]:.1f} s, model {report["model"]})')
+    diag, document = diagnose_bag(args.bag, settings, progress)
+    report = diag.report
+    print(f'{PROG} diagnose: {args.bag} ({report.n_pairs} pairs, '
+          f'{report.duration_s:.1f} s, model {report.model})')
     print(format_diagnosis(report))
     if args.json:
-        write_json(args.json, report)
+        write_json(args.json, document)
         print(f'diagnosis written to {args.json}')
     if args.report:
         from coreg_ros.report.html import write_report

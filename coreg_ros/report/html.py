@@ -82,10 +82,10 @@ def _plot_qq(plt, before, after, out):
 
 
 def _plot_xcorr(plt, loc, out):
-    xc = loc['velocity_xcorr']
+    xc = loc.velocity_xcorr
     fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.plot(np.array(xc['lag_s']) * 1e3, xc['linear'], label='linear velocity')
-    ax.plot(np.array(xc['lag_s']) * 1e3, xc['angular'], label='angular velocity')
+    ax.plot(np.array(xc.lag_s) * 1e3, xc.linear, label='linear velocity')
+    ax.plot(np.array(xc.lag_s) * 1e3, xc.angular, label='angular velocity')
     ax.axhline(0, color='k', lw=0.6)
     ax.set_xlabel('lag (ms)')
     ax.set_ylabel('correlation with the residual')
@@ -150,17 +150,17 @@ def _plot_map(plt, d, quad_before, out):
 
 
 def _plot_candidates(plt, report, out):
-    rounds = report.get('candidates') or []
+    rounds = report.candidates
     if not rounds:
         return None
     rows = rounds[0]
-    accepted = {e['name'] for e in report['effects']}
+    accepted = {e.name for e in report.effects}
     fig, ax = plt.subplots(figsize=(6, 0.35 * len(rows) + 1.2))
     # a screened candidate was not refitted (its predicted gain was too small): drawn at 0
-    names = [r['name'] + (' (screened)' if r.get('screened') else '') for r in rows][::-1]
-    gains = [r['held_out_gain_per_residual'] or 0.0 for r in rows][::-1]
+    names = [r.name + (' (screened)' if r.screened else '') for r in rows][::-1]
+    gains = [r.held_out_gain_per_residual or 0.0 for r in rows][::-1]
     colors = ['tab:green' if n.split(' ')[0] in accepted
-              else ('tab:blue' if r['accepted_test'] else 'tab:gray')
+              else ('tab:blue' if r.accepted_test else 'tab:gray')
               for n, r in zip(names, rows[::-1], strict=True)]
     ax.barh(names, gains, color=colors)
     ax.axvline(0, color='k', lw=0.6)
@@ -176,14 +176,14 @@ def _plot_before_after(plt, report, out):
     The "after" bar is green only where the measure fell by more than 2 %; otherwise it is
     grey and labelled unchanged, so a relabelled noise never looks like an explanation.
     """
-    b, a = report['gap_before'], report['gap_after']
-    items = [('chi2/dof at the stated noise', b['chi2_per_dof_at_stated_noise'],
-              a['chi2_per_dof_at_stated_noise'], 1.0),
-             ('position RMS (mm)', b['rms_position_mm'], a['rms_position_mm'],
-              a['stated_floor_position_mm'])]
-    if 'rms_rotation_deg' in a:
-        items.append(('rotation RMS (deg)', b['rms_rotation_deg'], a['rms_rotation_deg'],
-                      a['stated_floor_rotation_deg']))
+    b, a = report.gap_before.stated.counted, report.gap_after.stated.counted
+    items = [('chi2/dof at the stated noise', b.chi2_per_dof_at_stated_noise,
+              a.chi2_per_dof_at_stated_noise, 1.0),
+             ('position RMS (mm)', b.rms_position_mm, a.rms_position_mm,
+              a.stated_floor_position_mm)]
+    if a.rms_rotation_deg is not None:
+        items.append(('rotation RMS (deg)', b.rms_rotation_deg, a.rms_rotation_deg,
+                      a.stated_floor_rotation_deg))
     fig, axes = plt.subplots(1, len(items), figsize=(3.2 * len(items), 3.2))
     for ax, (label, vb, va, floor) in zip(np.atleast_1d(axes), items, strict=True):
         moved = va < 0.98 * vb
@@ -192,8 +192,8 @@ def _plot_before_after(plt, report, out):
         ax.axhline(floor, color='k', ls='--', lw=0.8, label='stated noise floor')
         ax.set_title(label, fontsize=9)
         ax.legend(fontsize=7)
-    share = a.get('share_of_excess_explained', 0.0)
-    excl = a.get('excluded_pairs', {}).get('count', 0)
+    share = report.gap_after.share_of_excess_explained
+    excl = report.gap_after.stated.excluded_pairs.count
     fig.suptitle(f'gap on held-out blocks at the stated noise: {share * 100:.0f} % of the '
                  f'excess explained' + (f' ({excl} pairs set aside, counted as unexplained)'
                                         if excl else ''), fontsize=9)
@@ -228,7 +228,7 @@ def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
     figures = [
         ('Normalized residuals over time (±3σ)', _plot_time(plt, d, before, after, out)),
         ('QQ plot of the standardized residuals', _plot_qq(plt, before, after, out)),
-        ('Residual-velocity cross-correlation', _plot_xcorr(plt, report['location'], out)),
+        ('Residual-velocity cross-correlation', _plot_xcorr(plt, report.location, out)),
         ('Residual against speed and against distance',
          _plot_speed_range(plt, d, quad_before, diag, out)),
         ('Workspace map of the excess', _plot_map(plt, d, quad_before, out)),
@@ -242,27 +242,28 @@ def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
              'pre{background:#f4f4f4;padding:8px;white-space:pre-wrap}img{max-width:100%}'
              'h2{font-size:1.1em;margin-top:1.5em}</style></head><body>',
              f'<h1>{html.escape(title)}</h1>',
-             f'<p><b>{html.escape(report["verdict"])}</b></p>',
+             f'<p><b>{html.escape(report.verdict)}</b></p>',
              f'<pre>{summary}</pre>']
-    if report['effects']:
+    if report.effects:
         parts.append('<table border="1" cellpadding="4" style="border-collapse:collapse">'
                      '<tr><th>effect</th><th>kind</th><th>estimate</th>'
                      '<th>held-out gain (nats)</th>'
                      '<th>blocks improved</th></tr>')
-        for e in report['effects']:
-            parts.append(f'<tr><td>{html.escape(e["name"])}</td>'
-                         f'<td>{html.escape(e.get("kind", ""))}</td>'
-                         f'<td>{html.escape(e["estimate"].get("text", ""))}</td>'
-                         f'<td>{e["held_out_gain"]:.1f}</td>'
-                         f'<td>{e["blocks_improved"]}/{e["blocks"]}</td></tr>')
+        for e in report.effects:
+            parts.append(f'<tr><td>{html.escape(e.name)}</td>'
+                         f'<td>{html.escape(e.kind)}</td>'
+                         f'<td>{html.escape(e.estimate.text)}</td>'
+                         f'<td>{e.held_out_gain:.1f}</td>'
+                         f'<td>{e.blocks_improved}/{e.blocks}</td></tr>')
         parts.append('</table>')
     for caption, name in figures:
         if name:
             parts.append(f'<h2>{html.escape(caption)}</h2><img src="{name}" alt="{caption}">')
+    document = report.as_dict()
     parts.append('<h2>JSON</h2><pre>'
-                 + html.escape(json.dumps({k: report[k] for k in (
+                 + html.escape(json.dumps({k: document[k] for k in (
                      'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after',
-                     'noise_excess', 'verdict') if k in report}, indent=1))
+                     'noise_excess', 'verdict') if k in document}, indent=1))
                  + '</pre></body></html>')
     path = out / 'index.html'
     path.write_text('\n'.join(parts), encoding='utf-8')

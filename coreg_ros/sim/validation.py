@@ -195,7 +195,7 @@ def run_case(case: dict, options=None) -> dict:
     with one_blas_thread():
         diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings, options=options)
     elapsed = time.perf_counter() - t0
-    r = diag.report
+    r = diag.report.as_dict()  # the JSON document: the outcome keeps parts of it
     named = [e['name'] for e in r['effects']]
     kinds = [e.get('kind') for e in r['effects']]
     truth = case['effect']

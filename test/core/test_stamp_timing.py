@@ -19,10 +19,10 @@ def _stream(stamps, receive=None):
 
 def test_clean_clock_regular_stamps():
     t = stamp_timing(_stream(1_000_000_000 + np.arange(3000) * 10_000_000), 'A')
-    assert t['nominal_rate_hz'] == pytest.approx(100.0)
-    assert t['interval_scatter_s'] < 1e-9 and not t['jittered']
-    assert t['dropped'] == 0 and t['gaps'] == [] and t['backward'] == t['duplicate'] == 0
-    assert t['latency'] is None
+    assert t.nominal_rate_hz == pytest.approx(100.0)
+    assert t.interval_scatter_s < 1e-9 and not t.jittered
+    assert t.dropped == 0 and t.gaps == [] and t.backward == t.duplicate == 0
+    assert t.latency is None
 
 
 def test_drops_gaps_backward_duplicates_and_latency():
@@ -35,28 +35,28 @@ def test_drops_gaps_backward_duplicates_and_latency():
     stamps[500], stamps[501] = stamps[501], stamps[500]  # one pair swapped
     receive = stamps + 4_000_000 + rng.integers(0, 200_000, stamps.size)
     t = stamp_timing(_stream(stamps, receive), 'B')
-    assert t['duplicate'] == 1 and t['backward'] == 1
-    assert len(t['gaps']) == 1 and t['gaps'][0][1] == pytest.approx(3.0, abs=0.1)
+    assert t.duplicate == 1 and t.backward == 1
+    assert len(t.gaps) == 1 and t.gaps[0][1] == pytest.approx(3.0, abs=0.1)
     expected = int(np.sum(~keep)) - 300
-    assert abs(t['dropped'] - expected) <= 0.05 * expected + 3
-    assert t['latency']['median_s'] == pytest.approx(0.0041, abs=2e-4)
-    assert 'gaps' in t['text'] and 'receive latency' in t['text']
+    assert abs(t.dropped - expected) <= 0.05 * expected + 3
+    assert t.latency.median_s == pytest.approx(0.0041, abs=2e-4)
+    assert 'gaps' in t.text and 'receive latency' in t.text
 
 
 @pytest.mark.parametrize('sigma', [0.0007, 0.002, 0.005])
 def test_jitter_read_from_stamps(sigma):
     rec = simulate_recording(3, 60.0, effects=[TimestampJitter(sigma, 0.1)])
     rep = stamps_report(rec.stream_a, list(rec.streams_b))
-    b = rep['devices'][1]
-    assert rep['jittered'] == ['B'] and not rep['devices'][0]['jittered']
-    assert b['stamp_jitter_s'] == pytest.approx(sigma, rel=0.1)
-    assert b['dropped'] == pytest.approx(rec.truth.effects[0]['n_dropped'], rel=0.05)
+    b = rep.devices[1]
+    assert rep.jittered == ['B'] and not rep.devices[0].jittered
+    assert b.stamp_jitter_s == pytest.approx(sigma, rel=0.1)
+    assert b.dropped == pytest.approx(rec.truth.effects[0]['n_dropped'], rel=0.05)
 
 
 def test_stamp_only_jitter_is_named_when_residuals_cannot_show_it():
     # 0.7 ms of stamp jitter under slow motion: invisible in the residuals, plain in the stamps
     rec = simulate_recording(4, 40.0, effects=[TimestampJitter(0.0007, 0.05)])
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings()).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings()).report.as_dict()
     assert r['gap_detected'] is True
     assert r['effects'][0]['name'] == 'timestamp_jitter'
     assert r['effects'][0]['kind'] == 'noise'
@@ -66,7 +66,7 @@ def test_stamp_only_jitter_is_named_when_residuals_cannot_show_it():
 
 def test_clean_recording_has_no_stamp_issue():
     rec = simulate_recording(2, 30.0)
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings()).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings()).report.as_dict()
     assert r['stamps']['issues'] is False and r['effects'] == []
 
 
@@ -74,7 +74,7 @@ def test_clean_recording_has_no_stamp_issue():
 def test_large_offset_found_by_the_coarse_search_beside_another_error(tau):
     rec = simulate_recording(6, 40.0, effects=[parse_effect(f'time_offset={tau}'),
                                                parse_effect('scale=0.01')])
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings()).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings()).report.as_dict()
     names = [e['name'] for e in r['effects']]
     assert names[0] == 'time_offset' and 'scale' in names
     est = r['effects'][0]['estimate']
@@ -88,8 +88,8 @@ def test_stamps_rounded_to_milliseconds_are_not_jitter():
     # a CSV export in ms: a 30 Hz device's intervals alternate 33 and 34 ms
     t = np.round(np.arange(2000) * (1e9 / 30.0) / 1e6).astype(np.int64) * 1_000_000
     rep = stamp_timing(_stream(t), 'B')
-    assert rep['quantum_s'] == pytest.approx(1e-3)
-    assert not rep['jittered'] and 'rounded to 1 ms' in rep['text']
+    assert rep.quantum_s == pytest.approx(1e-3)
+    assert not rep.jittered and 'rounded to 1 ms' in rep.text
     rng = np.random.default_rng(1)
     noisy = t + np.round(rng.normal(0, 2e-3, t.size) * 1e3).astype(np.int64) * 1_000_000
-    assert stamp_timing(_stream(np.sort(noisy)), 'B')['jittered']
+    assert stamp_timing(_stream(np.sort(noisy)), 'B').jittered

@@ -8,12 +8,44 @@ block alone must show it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Optional
+
 from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.diagnosis.fit import Model
+from coreg_ros.core.diagnosis.record import optional, Record
 import numpy as np
 
 
-def drift_check(data: DiagData, sel, best, cands: list) -> dict:
+@dataclass(frozen=True, kw_only=True)
+class DriftCheck(Record):
+    """
+    The offsets fitted per time block, and whether they trend with the drift.
+
+    Attributes
+    ----------
+    block_offsets_s, block_sigma_s, block_mid_s : list of float
+        Per block: the offset and its standard uncertainty, and the block's middle, s.
+    accepted : bool
+    reason : str
+    trend_ppm, trend_sigma_ppm : float, optional
+        The offsets' linear trend and its standard uncertainty, ppm (three blocks or more).
+    drift_ppm : float, optional
+        The drift fitted, ppm.
+
+    """
+
+    block_offsets_s: list
+    block_sigma_s: list
+    block_mid_s: list
+    accepted: bool
+    reason: str
+    trend_ppm: Optional[float] = optional()
+    trend_sigma_ppm: Optional[float] = optional()
+    drift_ppm: Optional[float] = optional()
+
+
+def drift_check(data: DiagData, sel, best, cands: list) -> DriftCheck:
     """
     Accept a clock drift only if it beats a constant offset and per-block offsets trend.
 
@@ -35,8 +67,7 @@ def drift_check(data: DiagData, sel, best, cands: list) -> dict:
 
     Returns
     -------
-    dict
-        ``accepted``, ``reason``, the per-block offsets and the trend against the drift.
+    DriftCheck
 
     """
     K = sel.K
@@ -57,11 +88,9 @@ def drift_check(data: DiagData, sel, best, cands: list) -> dict:
         taus.append(float(fit.state.theta['time_offset'][0]))
         sds.append(float(np.sqrt(max(cov[sl, sl][0, 0], 1e-30))))
         mids.append(float(np.mean(data.t[block])))
-    out = {'block_offsets_s': taus, 'block_sigma_s': sds, 'block_mid_s': mids,
-           'accepted': False, 'reason': ''}
     if len(taus) < 3:
-        out['reason'] = 'too few blocks to see a trend of the offset'
-        return out
+        return DriftCheck(block_offsets_s=taus, block_sigma_s=sds, block_mid_s=mids,
+                          accepted=False, reason='too few blocks to see a trend of the offset')
     t = np.array(mids)
     y = np.array(taus)
     w = 1.0 / np.maximum(np.array(sds), 1e-9) ** 2
@@ -76,7 +105,6 @@ def drift_check(data: DiagData, sel, best, cands: list) -> dict:
     slope = float(coef[1])
     est = best.fit.state.theta['clock_drift']
     kappa = float(est[1]) / max(best.fit.model.duration, 1e-9)
-    out.update(trend_ppm=slope * 1e6, trend_sigma_ppm=slope_sd * 1e6, drift_ppm=kappa * 1e6)
     const = next((c for c in cands if c.name == 'time_offset'), None)
     margin = sel.threshold(0)
     reasons = []
@@ -88,6 +116,8 @@ def drift_check(data: DiagData, sel, best, cands: list) -> dict:
                        f'{kappa * 1e6:.1f} ppm of the drift fit')
     if const is not None and const.passes and best.gain - const.gain < margin:
         reasons.append('no better than a constant offset on held-out blocks')
-    out['accepted'] = not reasons
-    out['reason'] = '; '.join(reasons) if reasons else 'per-block offsets trend'
-    return out
+    return DriftCheck(block_offsets_s=taus, block_sigma_s=sds, block_mid_s=mids,
+                      accepted=not reasons,
+                      reason='; '.join(reasons) if reasons else 'per-block offsets trend',
+                      trend_ppm=slope * 1e6, trend_sigma_ppm=slope_sd * 1e6,
+                      drift_ppm=kappa * 1e6)

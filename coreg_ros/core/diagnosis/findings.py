@@ -1,167 +1,225 @@
 """
 What the report says beyond the accepted effects: stamps, structure left, noise, verdict.
 
-These read the final fit's held-out errors and the rows of the accepted effects, add or
-rename rows (jitter named from the stamps, clustered outliers called non-stationary, an
+These read the final fit's held-out errors and the findings of the accepted effects, add or
+rename findings (jitter named from the stamps, clustered outliers called non-stationary, an
 excess left in some blocks only) and write the one-sentence verdict.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from typing import Optional
 
-from coreg_ros.core.diagnosis import gap as gp
+from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import variance as vm
-from coreg_ros.core.diagnosis.stamps import jitter_row
+from coreg_ros.core.diagnosis.detect import Detection
+from coreg_ros.core.diagnosis.effects.finding import Finding
+from coreg_ros.core.diagnosis.effects.local import (
+    ClusteredOutliers,
+    LocalExcess,
+    NonStationaryCandidate,
+)
+from coreg_ros.core.diagnosis.effects.noise import OutliersCandidate
+from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
+from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
+from coreg_ros.core.diagnosis.locate import Location
+from coreg_ros.core.diagnosis.record import keyed, optional, Record
+from coreg_ros.core.diagnosis.stamps import jitter_finding, StampReport
 import numpy as np
 
 
-def stamp_rows(stamps: dict, rows: list) -> None:
+@dataclass(frozen=True, kw_only=True)
+class ExcessLeft(Record):
     """
-    Name jitter from the stamps when the residuals did not; add drops and gaps to any row.
+    The excess left after the accepted effects, and whether the flagged pairs cluster.
+
+    Attributes
+    ----------
+    excess_map : excess.ExcessMap
+        Where it lies, under the final model's noise (key ``map``).
+    flagged_pairs : excess.FlaggedPairs, optional
+        Whether the pairs the outlier model set aside cluster (with an outlier model).
+
+    """
+
+    excess_map: ex.ExcessMap = keyed('map')
+    flagged_pairs: Optional[ex.FlaggedPairs] = optional()
+
+
+@dataclass(frozen=True, kw_only=True)
+class NoiseExcess(Record):
+    """
+    The noise left larger (or smaller) than stated: a description, not a gap closed.
+
+    Attributes
+    ----------
+    factor : float
+        √(χ²/dof) at the stated noise: the residual noise over the stated.
+    effects : list of str
+        The noise effects found.
+    largest_in_time_s : list of float
+        The time block where the excess is largest: from, to, s.
+    largest_in_workspace_m : list of float
+        The centre of the cell where it is largest (B's base frame), m.
+    concentrated : bool
+        Some blocks or cells carry most of it.
+    where : str
+    text : str
+
+    """
+
+    factor: float
+    effects: list
+    largest_in_time_s: list
+    largest_in_workspace_m: list
+    concentrated: bool
+    where: str
+    text: str
+
+
+def _replaced(findings: list, old: Finding, new: Finding) -> list:
+    """Return the findings with ``old`` replaced by ``new`` in its place."""
+    return [new if f is old else f for f in findings]
+
+
+def with_stamps(stamps: StampReport, findings: list) -> list:
+    """
+    Name jitter from the stamps when the residuals did not; add drops and gaps to any finding.
 
     The stamp jitter goes first when the residuals named nothing structured (their first
     answer then was a noise description the stamps explain).
+
+    Parameters
+    ----------
+    stamps : StampReport
+        ``stamps.stamps_report`` of the recording.
+    findings : list of Finding
+        The effects found so far.
+
+    Returns
+    -------
+    list of Finding
+
     """
-    row = jitter_row(stamps)
-    if row is None:
-        return
-    have = next((r for r in rows if r['name'] == 'timestamp_jitter'), None)
+    found = jitter_finding(stamps)
+    if found is None:
+        return findings
+    have = next((f for f in findings if f.name == found.name), None)
     if have is not None:
-        have['estimate']['sigma_s_from_stamps'] = row['estimate']['sigma_s']
-        have['estimate']['dropped'] = row['estimate']['dropped']
-        have['estimate']['gaps'] = row['estimate']['gaps']
-        have['estimate']['text'] += f' (stamps: {row["estimate"]["text"]})'
-        return
-    if rows and rows[0]['kind'] == 'structured':
-        rows.append(row)
-    else:
-        # a noise answer ahead of it was the jitter seen through the residuals
-        rows[:] = [row] + rows
+        return _replaced(findings, have,
+                         replace(have, estimate=have.estimate.with_stamps(found.estimate)))
+    if findings and findings[0].kind == 'structured':
+        return findings + [found]
+    # a noise answer ahead of it was the jitter seen through the residuals
+    return [found] + findings
 
 
-def structure_checks(data, final, after, counted, rows: list, gap_after: dict) -> dict:
+def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter
+                     ) -> tuple:
     """
     Outliers versus structure, and an excess left in some blocks or cells only.
 
     Flagged pairs that cluster in time or in the workspace are a structured or
-    non-stationary error there, not glitches: the ``outliers`` row is renamed
+    non-stationary error there, not glitches: the ``outliers`` finding is renamed
     ``non_stationary`` (kind structured) and says where. An outlier share at the model's cap
     is said, never hidden. An excess left after the accepted effects that is concentrated in
-    some time blocks or workspace cells adds a ``non_stationary`` row: no stationary effect
-    explains it.
+    some time blocks or workspace cells adds a ``non_stationary`` finding: no stationary
+    effect explains it.
+
+    Returns
+    -------
+    excess_left : ExcessLeft
+    findings : list of Finding
+
     """
-    out = {}
     flagged = ~counted
     # under the fitted noise model: a noise that grows with range is stationary, not local
-    emap = gp.excess_map(data, after.quad, counted)
-    out['map'] = emap
+    emap = ex.excess_map(data, after.quad, counted)
 
-    def sized(estimate: dict, hot: np.ndarray) -> dict:
+    def sized(estimate, hot: np.ndarray):
         # how large the local error is where it acts (held-out errors, noise taken off)
-        size = gp.local_error_size(data, after.e, hot)
-        if size:
-            estimate.update(max_mm=size['max_mm'], rms_mm=size['rms_mm'],
-                            window_s=[size['from_s'], size['to_s']])
-            estimate['text'] += (f'; up to {size["max_mm"]:.2f} mm (RMS {size["rms_mm"]:.2f}'
-                                 f' mm) in {size["from_s"]:.0f}-{size["to_s"]:.0f} s')
-        return estimate
+        size = ex.local_error_size(data, after.e, hot)
+        return estimate if size is None else estimate.sized(size)
 
-    hot_t = gp.hot_time_mask(data, emap)
-    row = next((r for r in rows if r['name'] == 'outliers'), None)
-    if row is not None:
-        cl = gp.flagged_clustering(data, flagged)
-        out['flagged_pairs'] = cl
+    hot_t = ex.hot_time_mask(data, emap)
+    found = next((f for f in findings if f.name == OutliersCandidate.name), None)
+    cl = None
+    if found is not None:
+        cl = ex.flagged_clustering(data, flagged)
         at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
-        row['estimate']['at_cap'] = bool(at_cap)
-        if at_cap:
-            row['estimate']['text'] += (f' (at the cap of {vm.MAX_OUTLIER_SHARE * 100:.0f} %: '
-                                        'more pairs lie outside the stated noise; these are '
-                                        'not glitches)')
-        if cl['clustered'] or at_cap:
-            row['name'] = 'non_stationary'
-            row['kind'] = 'structured'
-            row['from'] = 'outliers'
-            where = cl['where'] or 'throughout'
-            row['estimate'] = {
-                'flagged_pairs': cl['count'], 'flagged_share': cl['share'],
-                'where': cl['where'], 'at_cap': bool(at_cap),
-                'text': (f'structured/non-stationary error here: {where} '
-                         f'({cl["count"]} pairs, {cl["share"] * 100:.1f} %, flagged in '
-                         'clusters, not at random)')}
+        if cl.clustered or at_cap:
             # the flagged pairs are where it acts (the excess map counts them out)
-            row['estimate'] = sized(row['estimate'], flagged)
+            estimate = sized(ClusteredOutliers.of(cl.count, cl.share, cl.where, at_cap),
+                             flagged)
+            named = replace(found, name=estimate.name, kind=estimate.kind, estimate=estimate,
+                            renamed_from=found.name)
+        else:
+            named = replace(found, estimate=found.estimate.capped(at_cap))
+        findings = _replaced(findings, found, named)
     ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
-    stated_excess = gap_after['chi2_per_dof_at_stated_noise'] - 1.0
-    if (emap['concentrated_in_time'] and ex_after > 0.02 and stated_excess > 0.02
-            and not any(r['name'] == 'non_stationary' for r in rows)):
-        rows.append({'name': 'non_stationary', 'kind': 'structured',
-                     'estimate': {'where': emap['text'],
-                                  'share_in_time_blocks': emap['share_in_time_blocks'],
-                                  'share_in_cells': emap['share_in_cells'],
-                                  'excess_after': ex_after,
-                                  'text': (f'excess left in {emap["text"]} only: no '
-                                           'stationary effect explains it')},
-                     'held_out_gain': 0.0, 'held_out_gain_per_residual': 0.0,
-                     'blocks_improved': 0, 'blocks': 0})
-        rows[-1]['estimate'] = sized(rows[-1]['estimate'], hot_t)
-    ns = next((r for r in rows if r['name'] == 'non_stationary'), None)
-    if ns is not None and rows[0]['name'] in ('distance_noise', 'noise_scale'):
+    stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
+    local = NonStationaryCandidate.name
+    if (emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
+            and not any(f.name == local for f in findings)):
+        estimate = LocalExcess.of(emap.text, emap.share_in_time_blocks, emap.share_in_cells,
+                                  ex_after)
+        findings = findings + [Finding.of(sized(estimate, hot_t))]
+    ns = next((f for f in findings if f.name == local), None)
+    if ns is not None and CANDIDATES[findings[0].name].sets_noise_level:
         # a local structured error goes before noise descriptions of it (a noise effect
         # never explains the gap)
-        rows.remove(ns)
-        rows.insert(0, ns)
-    return out
+        findings = [ns] + [f for f in findings if f is not ns]
+    return ExcessLeft(excess_map=emap, flagged_pairs=cl), findings
 
 
-def noise_excess(data, final, after, counted, rows: list, gap_after: dict) -> Optional[dict]:
+def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
+                 ) -> Optional[NoiseExcess]:
     """
     Describe the noise left larger (or smaller) than stated: a description, not a gap closed.
 
     Returns None when the held-out χ²/dof at the stated noise is within 5 % of one and no
     noise effect was accepted.
     """
-    chi = gap_after['chi2_per_dof_at_stated_noise']
-    noise_rows = [r for r in rows if r['kind'] == 'noise']
-    if abs(chi - 1.0) < 0.05 and not noise_rows:
+    chi = gap_after.stated.counted.chi2_per_dof_at_stated_noise
+    noisy = [f.name for f in findings if f.kind == 'noise']
+    if abs(chi - 1.0) < 0.05 and not noisy:
         return None
-    emap = gp.excess_map(data, after.quad_stated, counted)
-    worst_t = max(emap['time_blocks'], key=lambda b: b['excess'])
-    worst_c = max(emap['cells'], key=lambda c: c['excess'])
-    out = {'factor': float(np.sqrt(max(chi, 0.0))),
-           'effects': [r['name'] for r in noise_rows],
-           'largest_in_time_s': [worst_t['from_s'], worst_t['to_s']],
-           'largest_in_workspace_m': worst_c['centre_m'],
-           'concentrated': emap['concentrated'], 'where': emap['text']}
-    var = final.state.var
-    if 'distance_noise' in final.model.var_names:
-        out['distance_exponent'] = float(var.k)
-    if 'noise_scale' in final.model.var_names:
-        out['noise_scale'] = float(np.exp(0.5 * var.log_s2))
-    out['text'] = (f'the residual noise is x {out["factor"]:.2f} the stated'
-                   + (f' ({", ".join(out["effects"])})' if out['effects'] else ''))
-    return out
+    emap = ex.excess_map(data, after.quad_stated, counted)
+    worst_t = max(emap.time_blocks, key=lambda b: b.excess)
+    worst_c = max(emap.cells, key=lambda c: c.excess)
+    factor = float(np.sqrt(max(chi, 0.0)))
+    return NoiseExcess(factor=factor, effects=noisy,
+                       largest_in_time_s=[worst_t.from_s, worst_t.to_s],
+                       largest_in_workspace_m=worst_c.centre_m,
+                       concentrated=emap.concentrated, where=emap.text,
+                       text=(f'the residual noise is x {factor:.2f} the stated'
+                             + (f' ({", ".join(noisy)})' if noisy else '')))
 
 
-def verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
-            detection: dict, location: dict, noise_excess: Optional[dict] = None) -> str:
+def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
+            detection: Detection, location: Location,
+            noise_excess: Optional[NoiseExcess] = None,
+            stamps: Optional[StampReport] = None) -> str:
     """
-    One sentence: no gap, a gap nothing explains, noise described, or the gap explained.
+    One sentence: no gap, timing issues, a gap nothing explains, noise, or the gap explained.
 
     Parameters
     ----------
     gap : bool
         Whether a gap was detected.
-    effects : list of dict
-        The report's effect rows.
+    effects : list of Finding
+        The effects found.
     not_sep : list
         Pairs of effects not separable.
-    before, after : dict
-        The gap measures before and after the accepted effects.
-    detection, location : dict
-        ``detect.detect`` and ``detect.locate`` of the base fit.
-    noise_excess : dict, optional
+    before, after : GapBefore, GapAfter
+        The gap before and after the accepted effects.
+    detection, location : Detection, Location
+        ``detect.detect`` and ``locate.locate`` of the base fit.
+    noise_excess : NoiseExcess, optional
         ``noise_excess`` of the final fit.
+    stamps : StampReport, optional
+        What the stamps say (from the streams).
 
     Returns
     -------
@@ -170,39 +228,44 @@ def verdict(gap: bool, effects: list, not_sep: list, before: dict, after: dict,
     """
     if not gap:
         return (f'no gap: the recording fits the model with the stated noise '
-                f'(chi2/dof {detection["chi2_per_dof"]:.3f}, p = {detection["p_value"]:.2g})')
+                f'(chi2/dof {detection.chi2_per_dof:.3f}, p = {detection.p_value:.2g})')
+    if not effects and stamps is not None and stamps.issues:
+        return ('timing issues in the stamps, residuals fit the model: '
+                + '; '.join(f'{d.device}: {d.text}' for d in stamps.devices))
     if not effects:
-        return (f'gap detected (chi2/dof {detection["chi2_per_dof"]:.2f}) but none of the '
-                f'candidate effects explains it; largest in {location["largest"]}')
+        return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}) but none of the '
+                f'candidate effects explains it; largest in {location.largest}')
     parts = []
-    for row in effects:
-        text = row['name']
-        if row['estimate'].get('text'):
-            text += f' {row["estimate"]["text"]}'
-        if row.get('not_separable_with'):
-            text += f' (not separable from {", ".join(row["not_separable_with"])})'
+    for found in effects:
+        text = found.name
+        if found.estimate.text:
+            text += f' {found.estimate.text}'
+        if found.not_separable_with:
+            text += f' (not separable from {", ".join(found.not_separable_with)})'
         parts.append(text)
-    structured = [r for r in effects if r['kind'] == 'structured']
-    share = after['share_of_excess_explained']
+    structured = [f for f in effects if f.kind == 'structured']
+    share = after.share_of_excess_explained
+    b, a = before.stated.counted, after.stated.counted
     numbers = (f'held-out chi2/dof at the stated noise '
-               f'{before["chi2_per_dof_at_stated_noise"]:.2f} -> '
-               f'{after["chi2_per_dof_at_stated_noise"]:.2f}, position RMS '
-               f'{before["rms_position_mm"]:.3f} -> {after["rms_position_mm"]:.3f} mm '
-               f'(stated floor {after["stated_floor_position_mm"]:.3f} mm)')
-    if 'rms_rotation_deg' in after:
-        numbers += (f', rotation RMS {before["rms_rotation_deg"]:.3f} -> '
-                    f'{after["rms_rotation_deg"]:.3f} deg (stated floor '
-                    f'{after["stated_floor_rotation_deg"]:.3f} deg)')
-    excl = after['excluded_pairs']
-    if excl['count']:
-        numbers += f'; {excl["count"]} pairs set aside, counted as unexplained'
+               f'{b.chi2_per_dof_at_stated_noise:.2f} -> '
+               f'{a.chi2_per_dof_at_stated_noise:.2f}, position RMS '
+               f'{b.rms_position_mm:.3f} -> {a.rms_position_mm:.3f} mm '
+               f'(stated floor {a.stated_floor_position_mm:.3f} mm)')
+    if a.rms_rotation_deg is not None:
+        numbers += (f', rotation RMS {b.rms_rotation_deg:.3f} -> '
+                    f'{a.rms_rotation_deg:.3f} deg (stated floor '
+                    f'{a.stated_floor_rotation_deg:.3f} deg)')
+    excluded = after.stated.excluded_pairs.count
+    if excluded:
+        numbers += f'; {excluded} pairs set aside, counted as unexplained'
     if not structured:
+        larger = noise_excess is None or noise_excess.factor >= 1
         return (f'no structured effect: the residuals are noise '
-                f'{"larger" if (noise_excess or {}).get("factor", 1) >= 1 else "smaller"} '
+                f'{"larger" if larger else "smaller"} '
                 f'than stated ({"; ".join(parts)}); nothing is explained, the noise is '
                 f'described: {numbers}')
     verb = 'gap explained by' if share >= 0.5 else 'gap partly explained by'
-    if before['chi2_per_dof_at_stated_noise'] < 1.05:
+    if b.chi2_per_dof_at_stated_noise < 1.05:
         # nothing in excess of the stated noise: an effect can be real without a gap
         return (f'found {"; ".join(parts)}; the recording is within the stated noise, so '
                 f'there is no excess to explain: {numbers}')

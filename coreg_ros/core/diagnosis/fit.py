@@ -13,10 +13,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-from coreg_ros.core.diagnosis import candidates as fx
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData
+from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.heldout import Heldout, Pass, predict_blocks, solve_psd
+from coreg_ros.core.diagnosis.terms import Context
 from coreg_ros.core.models import linearize, Parameters
 import numpy as np
 
@@ -79,22 +80,21 @@ class Model:
     ----------
     data : DiagData
     names : tuple of str
-        Effect names (``candidates.EFFECT_NAMES``); at most one time effect.
+        Effect names (``effects.EFFECT_NAMES``); at most one time effect.
 
     """
 
     def __init__(self, data: DiagData, names=()):
         self.data = data
         self.names = tuple(names)
-        self.time = [n for n in self.names if n in fx.TIME_EFFECTS]
+        effects = [CANDIDATES[n] for n in self.names]
+        self.time = [e.model_term(data) for e in effects if e.acts_on == 'time']
         if len(self.time) > 1:
             raise ValueError('at most one time effect')
-        self.mean = [fx.make_mean_effect(n, data) for n in self.names if n in fx.MEAN_EFFECTS]
-        self.var_names = tuple(p for n in self.names if n in fx.VARIANCE_EFFECTS
-                               for p in vm.VAR_PARAMS[n])
+        self.mean = [e.model_term(data) for e in effects if e.acts_on == 'mean']
+        self.var_names = tuple(p for e in effects for p in e.var_params)
         self.P = data.spec.n_params
-        sizes = [(n, fx.time_parameters(n)) for n in self.time]
-        sizes += [(e.name, e.n) for e in self.mean]
+        sizes = [(term.name, term.n) for term in self.time + self.mean]
         self.slices = {}
         start = self.P
         for n, k in sizes:
@@ -145,8 +145,8 @@ class Model:
         d = self.data
         t = d.t[idx]
         if self.time:
-            name = self.time[0]
-            shift, dshift = fx.time_shift(name, state.theta[name], t, self.duration)
+            term = self.time[0]
+            shift, dshift = term.shift(state.theta[term.name], t, self.duration)
             xp, xq = d.trajectory.pose(t - shift)
             v, w = d.trajectory.velocity(t - shift)
         else:
@@ -161,7 +161,7 @@ class Model:
         if self.mean:
             k = d.spec.n_markers
             f_pos = (e[:, :3 * k] + pos_b.reshape(len(idx), -1)).reshape(len(idx), k, 3)
-            ctx = fx.Context(d, idx, state.params, xq, f_pos, jx, v)
+            ctx = Context(d, idx, state.params, xq, f_pos, jx, v)
             for eff in self.mean:
                 de, Je = eff.apply(ctx, state.theta[eff.name])
                 e = e + de

@@ -1,5 +1,5 @@
 """
-Gap measures that a noise model cannot game, and where the excess that is left lies.
+Gap measures that a noise model cannot game: the held-out gap at the stated noise.
 
 Every number here is taken at the **stated** noise (docs/design.md §5): an effect that only
 widens the noise model (noise scale, distance noise, jitter as a variance) changes none of
@@ -9,29 +9,137 @@ counted, shown and taken as unexplained.
 - ``stated_measures``: held-out χ²/dof at the stated noise, position RMS (mm) and rotation
   RMS (deg) against the stated floor, over the counted pairs and over all pairs.
 - ``share_explained``: the share of the excess explained, with excluded pairs unexplained.
-- ``excess_map``: the excess left per time block and workspace cell, and whether it is
-  concentrated (a non-stationary or local error that no stationary effect explains).
-- ``flagged_clustering``: whether the pairs an outlier model flags cluster in time or in the
-  workspace (then they are structure, not glitches).
+
+Where the excess that is left lies is ``excess.py``.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.diagnosis.data import grid_cells, time_folds
+from coreg_ros.core.diagnosis.record import inline, optional, Record
+from coreg_ros.core.diagnosis.summary import HeldOutGap
 import numpy as np
-from scipy import stats
 
-#: Time blocks and cells per workspace axis of the excess map.
-TIME_BLOCKS = 10
-CELLS = 3
-#: A block or cell is "where the excess lies" when its mean excess per residual is at least
-#: this and this many times the median block's.
-LOCAL_EXCESS = 0.2
-LOCAL_RATIO = 3.0
 #: An RMS that moved by less than this share did not move.
 RMS_MOVED = 0.02
+
+
+@dataclass(frozen=True, kw_only=True)
+class StatedBlock(Record):
+    """
+    The held-out gap at the stated noise over some pairs.
+
+    Attributes
+    ----------
+    chi2_per_dof_at_stated_noise : float
+        Mean squared normalised error per residual (one if the model and the noise hold).
+    rms_position_mm, stated_floor_position_mm : float
+        RMS position error and what the stated noise alone gives, mm.
+    rms_rotation_deg, stated_floor_rotation_deg : float, optional
+        The same for rotation, deg (full pose).
+
+    """
+
+    chi2_per_dof_at_stated_noise: float
+    rms_position_mm: float
+    stated_floor_position_mm: float
+    rms_rotation_deg: Optional[float] = optional()
+    stated_floor_rotation_deg: Optional[float] = optional()
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExcludedPairs(Record):
+    """
+    Pairs an outlier model set aside: counted as unexplained.
+
+    Attributes
+    ----------
+    count : int
+    share : float
+        Of all pairs.
+    counted_as : str
+        ``'unexplained'``.
+    stamps_ns : list of int
+        The first 200 of their stamps, ns.
+
+    """
+
+    count: int
+    share: float
+    counted_as: str
+    stamps_ns: list
+
+
+@dataclass(frozen=True, kw_only=True)
+class StatedGap(Record):
+    """
+    The held-out gap at the stated noise: over the counted pairs, over all, the excluded.
+
+    Attributes
+    ----------
+    counted : StatedBlock
+        Over the pairs counted (keys as they are).
+    all_pairs : StatedBlock
+        Over all pairs (keys with the suffix ``_all_pairs``).
+    excluded_pairs : ExcludedPairs
+
+    """
+
+    counted: StatedBlock = inline()
+    all_pairs: StatedBlock = inline('_all_pairs')
+    excluded_pairs: ExcludedPairs
+
+
+@dataclass(frozen=True, kw_only=True)
+class GapBefore(Record):
+    """
+    The gap before the effects: the base model on held-out blocks.
+
+    Attributes
+    ----------
+    held_out : HeldOutGap
+        Under the base model's noise (keys as they are).
+    stated : StatedGap
+        At the stated noise, all pairs counted (keys as they are).
+    held_out_on : str
+        ``'time blocks'`` or ``'workspace cells'``.
+    share_of_excess_explained : float
+        Nothing before the effects: 0.
+
+    """
+
+    held_out: HeldOutGap = inline()
+    stated: StatedGap = inline()
+    held_out_on: str
+    share_of_excess_explained: float = 0.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class GapAfter(Record):
+    """
+    The gap after the accepted effects: the final model on the same held-out blocks.
+
+    Attributes
+    ----------
+    held_out : HeldOutGap
+        Under the final model's noise (keys as they are).
+    stated : StatedGap
+        At the stated noise, over the pairs counted (keys as they are).
+    share_of_excess_explained : float
+        ``share_explained``.
+    held_out_on : str
+    rms_moved : bool
+        ``rms_moved``: whether the effects moved the RMS at all.
+
+    """
+
+    held_out: HeldOutGap = inline()
+    stated: StatedGap = inline()
+    share_of_excess_explained: float
+    held_out_on: str
+    rms_moved: bool
 
 
 def _rows(data) -> tuple[list, Optional[list]]:
@@ -42,7 +150,7 @@ def _rows(data) -> tuple[list, Optional[list]]:
 
 
 def stated_measures(data, quad_stated: np.ndarray, e: np.ndarray, sd: np.ndarray,
-                    counted: np.ndarray) -> dict:
+                    counted: np.ndarray) -> StatedGap:
     """
     Held-out gap at the stated noise.
 
@@ -61,11 +169,7 @@ def stated_measures(data, quad_stated: np.ndarray, e: np.ndarray, sd: np.ndarray
 
     Returns
     -------
-    dict
-        ``chi2_per_dof_at_stated_noise``, ``rms_position_mm``, ``stated_floor_position_mm``
-        (and ``rms_rotation_deg``, ``stated_floor_rotation_deg`` for full pose) over the
-        counted pairs; the same over all pairs with the suffix ``_all_pairs``;
-        ``excluded_pairs`` (count, share, the first stamps).
+    StatedGap
 
     """
     m = data.m
@@ -74,278 +178,58 @@ def stated_measures(data, quad_stated: np.ndarray, e: np.ndarray, sd: np.ndarray
         counted = np.ones_like(counted)
 
     def block(sel):
-        out = {'chi2_per_dof_at_stated_noise': float(np.mean(quad_stated[sel]) / m),
-               'rms_position_mm': float(np.sqrt(np.mean(e[sel][:, pos] ** 2)) * 1e3),
-               'stated_floor_position_mm': float(np.sqrt(np.mean(sd[sel][:, pos] ** 2)) * 1e3)}
+        rotation = {}
         if rot is not None:
             # rows 3:6 are half-angle errors: the angle is twice their size
-            out['rms_rotation_deg'] = float(np.degrees(
-                2.0 * np.sqrt(np.mean(e[sel][:, rot] ** 2))))
-            out['stated_floor_rotation_deg'] = float(np.degrees(
-                2.0 * np.sqrt(np.mean(sd[sel][:, rot] ** 2))))
-        return out
+            rotation = {'rms_rotation_deg': float(np.degrees(
+                            2.0 * np.sqrt(np.mean(e[sel][:, rot] ** 2)))),
+                        'stated_floor_rotation_deg': float(np.degrees(
+                            2.0 * np.sqrt(np.mean(sd[sel][:, rot] ** 2))))}
+        return StatedBlock(
+            chi2_per_dof_at_stated_noise=float(np.mean(quad_stated[sel]) / m),
+            rms_position_mm=float(np.sqrt(np.mean(e[sel][:, pos] ** 2)) * 1e3),
+            stated_floor_position_mm=float(np.sqrt(np.mean(sd[sel][:, pos] ** 2)) * 1e3),
+            **rotation)
 
-    out = block(counted)
-    for key, value in block(np.ones_like(counted)).items():
-        out[key + '_all_pairs'] = value
     excluded = np.flatnonzero(~counted)
-    out['excluded_pairs'] = {'count': int(excluded.size),
-                             'share': float(excluded.size / max(len(counted), 1)),
-                             'counted_as': 'unexplained',
-                             'stamps_ns': [int(s) for s in data.stamps[excluded[:200]]]}
-    return out
+    return StatedGap(counted=block(counted), all_pairs=block(np.ones_like(counted)),
+                     excluded_pairs=ExcludedPairs(
+                         count=int(excluded.size),
+                         share=float(excluded.size / max(len(counted), 1)),
+                         counted_as='unexplained',
+                         stamps_ns=[int(s) for s in data.stamps[excluded[:200]]]))
 
 
-def share_explained(before: dict, after: dict) -> float:
+def share_explained(before: StatedBlock, after: StatedBlock, excluded_share: float) -> float:
     """
     Share of the excess explained, at the stated noise, excluded pairs unexplained.
 
     ``(1 - excluded share) · (1 - excess after / excess before)``, the excess being χ²/dof at
     the stated noise minus one (before over all pairs, after over the counted ones), clipped
     to [0, 1]; zero when both RMS (position and rotation) moved by less than ``RMS_MOVED``.
+
+    Parameters
+    ----------
+    before, after : StatedBlock
+        The gap at the stated noise before (all pairs) and after (the counted pairs).
+    excluded_share : float
+        Share of the pairs set aside after.
+
     """
-    ex_b = before['chi2_per_dof_at_stated_noise'] - 1.0
-    ex_a = after['chi2_per_dof_at_stated_noise'] - 1.0
+    ex_b = before.chi2_per_dof_at_stated_noise - 1.0
+    ex_a = after.chi2_per_dof_at_stated_noise - 1.0
     if ex_b <= 1e-9:
         return 0.0
     if not rms_moved(before, after):
         return 0.0
     share = float(np.clip(1.0 - max(ex_a, 0.0) / ex_b, 0.0, 1.0))
-    return share * (1.0 - after['excluded_pairs']['share'])
+    return share * (1.0 - excluded_share)
 
 
-def rms_moved(before: dict, after: dict) -> bool:
+def rms_moved(before: StatedBlock, after: StatedBlock) -> bool:
     """Tell whether the position or the rotation RMS fell by at least ``RMS_MOVED``."""
-    for key in ('rms_position_mm', 'rms_rotation_deg'):
-        if key in before and key in after:
-            if after[key] < (1.0 - RMS_MOVED) * before[key]:
-                return True
+    for b, a in ((before.rms_position_mm, after.rms_position_mm),
+                 (before.rms_rotation_deg, after.rms_rotation_deg)):
+        if b is not None and a is not None and a < (1.0 - RMS_MOVED) * b:
+            return True
     return False
-
-
-def _concentration(excess: np.ndarray, labels: np.ndarray, quad: np.ndarray, m: int) -> dict:
-    """Mean excess per label, and which labels stand out (practically and significantly)."""
-    out = []
-    ids = np.unique(labels)
-    means = np.array([excess[labels == i].mean() for i in ids])
-    counts = np.array([np.sum(labels == i) for i in ids])
-    med = float(np.median(means))
-    for i, mu, c in zip(ids, means, counts, strict=True):
-        sel = labels == i
-        # chi-square of the block's sum against the others' level (scaled by their mean)
-        level = max(1.0 + med, 1.0)
-        stat = float(np.sum(quad[sel]) / level)
-        p = float(stats.chi2.sf(stat, m * int(c)))
-        out.append({'label': int(i), 'n': int(c), 'excess': float(mu),
-                    'stands_out': bool(mu >= LOCAL_EXCESS and mu >= LOCAL_RATIO * max(med, 0.05)
-                                       and p < 1e-6 and c >= 10)})
-    return {'median_excess': med, 'blocks': out}
-
-
-def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
-               n_blocks: int = TIME_BLOCKS) -> dict:
-    """
-    Where the held-out excess (stated noise) lies: time blocks and workspace cells.
-
-    Parameters
-    ----------
-    data : DiagData
-        The pairs.
-    quad_stated : ndarray, shape (N,)
-        Held-out squared normalised error per pair at the stated noise.
-    counted : ndarray of bool, shape (N,)
-        Pairs not set aside (the excluded ones are shown apart, not hidden).
-    n_blocks : int
-        Time blocks of equal duration.
-
-    Returns
-    -------
-    dict
-        ``time_blocks`` (from/to s, n, excess, stands_out), ``cells`` (centre m, n, excess,
-        stands_out), ``concentrated`` (bool: some blocks or cells carry most of the excess),
-        ``text``.
-
-    """
-    m = data.m
-    excess = quad_stated / m - 1.0
-    t = data.t
-    span = max(float(t[-1] - t[0]), 1e-12)
-    tb = time_folds(t, n_blocks)
-    pts = data.b_points[:, 0, :]
-    cl = grid_cells(pts, CELLS)
-    sel = counted if counted.sum() >= 20 else np.ones_like(counted)
-    ct = _concentration(excess[sel], tb[sel], quad_stated[sel], m)
-    cc = _concentration(excess[sel], cl[sel], quad_stated[sel], m)
-    edges = t[0] + span * np.arange(n_blocks + 1) / n_blocks
-    time_blocks = [{'from_s': float(edges[b['label']]), 'to_s': float(edges[b['label'] + 1]),
-                    'n': b['n'], 'excess': b['excess'], 'stands_out': b['stands_out']}
-                   for b in ct['blocks']]
-    cells = [{'centre_m': pts[sel][cl[sel] == b['label']].mean(axis=0).tolist(), 'n': b['n'],
-              'excess': b['excess'], 'stands_out': b['stands_out']} for b in cc['blocks']]
-    hot_t = [b for b in time_blocks if b['stands_out']]
-    hot_c = [c for c in cells if c['stands_out']]
-
-    def share(blocks):
-        # block sums, not pair sums: a pair's own excess is mostly its noise
-        pos = [max(b['excess'], 0.0) * b['n'] for b in blocks]
-        hot = [max(b['excess'], 0.0) * b['n'] for b in blocks if b['stands_out']]
-        return float(sum(hot) / sum(pos)) if sum(pos) > 0 else 0.0
-
-    hot_t_mask = np.isin(tb[sel], [b['label'] for b in ct['blocks'] if b['stands_out']])
-    hot_c_mask = np.isin(cl[sel], [b['label'] for b in cc['blocks'] if b['stands_out']])
-    # concentrated: the standing-out blocks (or cells) hold most of the excess while being
-    # a minority of the pairs
-    conc_t = bool(hot_t and share(ct['blocks']) >= 0.5 and hot_t_mask.mean() <= 0.5)
-    by_place = 0.0
-    if conc_t:
-        # a stationary local error shows in time too when the motion visits its place at
-        # some times only: predict the hot blocks' excess from the same cells at other times
-        from scipy.spatial import cKDTree
-
-        ex, ps = excess[sel], pts[sel]
-        cold = ~hot_t_mask
-        pred = np.zeros(int(hot_t_mask.sum()))
-        seen = np.zeros(int(hot_t_mask.sum()), dtype=bool)
-        if cold.sum() >= 20:
-            # the nearest pairs recorded at other times, close by: same place, other time
-            radius = 0.1 * float(np.max(np.ptp(ps, axis=0)))
-            tree = cKDTree(ps[cold])
-            dist, nn = tree.query(ps[hot_t_mask], k=10, distance_upper_bound=radius)
-            ok = np.isfinite(dist)
-            seen = ok.sum(axis=1) >= 5
-            vals = np.where(ok, ex[cold][np.minimum(nn, cold.sum() - 1)], 0.0)
-            pred = np.where(seen, vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1), 0.0)
-        if seen.mean() < 0.5:
-            # the motion never came back to these places: time and place cannot be told
-            # apart, so nothing is claimed about time
-            pred = np.full(len(pred), np.inf)
-        else:
-            pred = pred[seen]
-            hot_idx = np.flatnonzero(hot_t_mask)[seen]
-            hot_t_mask = np.zeros_like(hot_t_mask)
-            hot_t_mask[hot_idx] = True
-        e_hot = float(ex[hot_t_mask].mean()) if hot_t_mask.any() else 0.0
-        by_place = float(min(pred.mean() / e_hot, 1e3)) if e_hot > 0 else 1.0
-        conc_t = by_place < 0.5
-    conc_c = bool(hot_c and share(cc['blocks']) >= 0.5 and hot_c_mask.mean() <= 0.5)
-    parts = []
-    if conc_t:
-        parts.append('time ' + ', '.join(f'{b["from_s"]:.0f}-{b["to_s"]:.0f} s'
-                                         for b in hot_t))
-    if conc_c:
-        parts.append('workspace cells at ' + '; '.join(
-            '[' + ', '.join(f'{v:.2f}' for v in c['centre_m']) + '] m' for c in hot_c[:4]))
-    return {'time_blocks': time_blocks, 'cells': cells, 'concentrated_in_time': conc_t,
-            'concentrated_in_workspace': conc_c, 'explained_by_place': by_place,
-            'share_in_time_blocks': share(ct['blocks']),
-            'share_in_cells': share(cc['blocks']), 'concentrated': conc_t or conc_c,
-            'text': '; '.join(parts)}
-
-
-def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -> dict:
-    """
-    Whether flagged pairs cluster in time or in the workspace (then: structure, not glitches).
-
-    Glitches strike at random: the flagged count per time block and per workspace cell is
-    then binomial with the overall share. A chi-square test of that homogeneity (and a
-    practical size: some block holds at least three times the share it would) says the
-    flagged pairs are not outliers but a structured or non-stationary error there.
-
-    Parameters
-    ----------
-    data : DiagData
-        The pairs.
-    flagged : ndarray of bool, shape (N,)
-        Pairs the outlier model set aside.
-    n_blocks : int
-        Time blocks of equal duration.
-
-    Returns
-    -------
-    dict
-        ``clustered`` (bool), ``in_time``, ``in_workspace`` (bool), p-values, ``where`` text.
-
-    """
-    n = len(flagged)
-    k = int(flagged.sum())
-    out = {'clustered': False, 'in_time': False, 'in_workspace': False, 'count': k,
-           'share': float(k / max(n, 1)), 'p_time': 1.0, 'p_workspace': 1.0, 'where': ''}
-    if k < 8:
-        return out
-    t = data.t
-    span = max(float(t[-1] - t[0]), 1e-12)
-    tb = time_folds(t, n_blocks)
-    # A's tool positions: a flagged pair's own B position may be the glitch itself
-    pts = data.pos_a
-    cl = grid_cells(pts, CELLS)
-    share = k / n
-    where = []
-    for key, labels in (('time', tb), ('workspace', cl)):
-        ids, inv = np.unique(labels, return_inverse=True)
-        tot = np.bincount(inv)
-        hit = np.bincount(inv, weights=flagged.astype(float))
-        exp = tot * share
-        ok = exp > 0
-        stat = float(np.sum((hit[ok] - exp[ok]) ** 2 / (exp[ok] * (1 - share) + 1e-12)))
-        p = float(stats.chi2.sf(stat, max(int(ok.sum()) - 1, 1)))
-        ratio = hit / np.maximum(exp, 1e-12)
-        big = (ratio >= 3.0) & (hit >= 5)
-        clustered = bool(p < 1e-6 and big.any())
-        out['p_' + key] = p
-        out['in_' + key] = clustered
-        if clustered and key == 'time':
-            edges = t[0] + span * np.arange(n_blocks + 1) / n_blocks
-            where.append('time ' + ', '.join(f'{edges[i]:.0f}-{edges[i + 1]:.0f} s'
-                                             for i in ids[big]))
-        elif clustered:
-            cen = [pts[labels == i].mean(axis=0) for i in ids[big]][:4]
-            where.append('workspace (A tool) near ' + '; '.join(
-                '[' + ', '.join(f'{v:.2f}' for v in c) + '] m' for c in cen))
-    out['clustered'] = out['in_time'] or out['in_workspace']
-    out['where'] = '; '.join(where)
-    return out
-
-
-def local_error_size(data, e: np.ndarray, hot: np.ndarray, window: int = 5) -> dict:
-    """
-    Size of an error that acts at some times only: the largest held-out position error there.
-
-    The held-out position errors of B's first marker are smoothed over ``window`` samples
-    (the disturbance follows the sensor's path, the noise does not) and their largest norm
-    among the ``hot`` pairs is taken; the same statistic of the noise alone, read from the
-    other pairs at the same count, is taken off in quadrature.
-
-    Returns
-    -------
-    dict
-        ``max_mm``, ``rms_mm`` (the hot pairs' smoothed error, noise taken off),
-        ``noise_mm`` (what was taken off), ``from_s``/``to_s`` (the hot pairs' span).
-
-    """
-    hot = np.asarray(hot, dtype=bool)
-    if hot.sum() < window or (~hot).sum() < window:
-        return {}
-    p = e[:, 0:3]
-    kernel = np.ones(window) / window
-    s = np.stack([np.convolve(p[:, i], kernel, mode='same') for i in range(3)], axis=1)
-    norm = np.linalg.norm(s, axis=1) * 1e3
-    # the cold pairs' smoothed error: its level at the count of independent hot samples
-    cold = norm[~hot]
-    n_eff = max(hot.sum() / window, 1.0)
-    noise_max = float(np.quantile(cold, max(0.0, 1.0 - 1.0 / n_eff)))
-    noise_rms = float(np.sqrt(np.mean(cold ** 2)))
-    peak = float(norm[hot].max())
-    rms = float(np.sqrt(np.mean(norm[hot] ** 2)))
-    t = np.quantile(data.t[hot], [0.02, 0.98])
-    return {'max_mm': float(np.sqrt(max(peak ** 2 - noise_max ** 2, 0.0))),
-            'rms_mm': float(np.sqrt(max(rms ** 2 - noise_rms ** 2, 0.0))),
-            'noise_mm': noise_max, 'from_s': float(t[0]), 'to_s': float(t[1])}
-
-
-def hot_time_mask(data, emap: dict) -> np.ndarray:
-    """Pairs in the time blocks of an excess map that stand out."""
-    hot = np.zeros(data.n, dtype=bool)
-    for b in emap.get('time_blocks', []):
-        if b['stands_out']:
-            hot |= (data.t >= b['from_s']) & (data.t <= b['to_s'])
-    return hot

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from coreg_ros.core.diagnosis import candidates as fx
+from coreg_ros.core.diagnosis.effects.registry import EFFECT_NAMES
 
 #: ``progress(fraction, text)``, called as the work advances.
 Progress = Callable[[float, str], None]
@@ -51,5 +51,5 @@ class Options:
     min_gain: float = 10.0
     not_separable_ratio: float = 0.6
     nested_share: float = 0.25
-    candidates: tuple = fx.EFFECT_NAMES
+    candidates: tuple = EFFECT_NAMES
     seed: int = 0

@@ -1,10 +1,11 @@
-"""The base model's residuals on all pairs: the gap detected and where it lies (``detect.py``)."""
+"""The base model's residuals on all pairs: the gap detected and where it lies."""
 
 from __future__ import annotations
 
-from coreg_ros.core.diagnosis import detect as dt
 from coreg_ros.core.diagnosis.data import DiagData
+from coreg_ros.core.diagnosis.detect import detect, Detection
 from coreg_ros.core.diagnosis.fit import Fit
+from coreg_ros.core.diagnosis.locate import locate, Location
 from coreg_ros.core.models import linearize
 import numpy as np
 
@@ -38,9 +39,9 @@ def base_errors(data: DiagData, fit: Fit) -> tuple:
     return e, sd, z, lam, fdot
 
 
-def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple:
+def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple[Detection, Location]:
     """
-    Detect the gap in the base fit's errors and locate it (``detect.detect``, ``detect.locate``).
+    Detect the gap in the base fit's errors and locate it (``detect.detect``, ``locate.locate``).
 
     Parameters
     ----------
@@ -53,13 +54,14 @@ def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple:
 
     Returns
     -------
-    detection, location : dict
+    detection : Detection
+    location : Location
 
     """
     e, sd, z, lam, fdot = errors
     zstd = z / np.sqrt(1.0 + lam)
     quad = np.sum(zstd ** 2, axis=1)
-    detection = dt.detect(quad, zstd, data.m, data.spec.n_params)
+    detection = detect(quad, zstd, data.m, data.spec.n_params)
     # split ḟ into the parts of linear and angular velocity
     model = base.model
     idx = np.arange(data.n)
@@ -73,8 +75,8 @@ def detect_locate(data: DiagData, base: Fit, errors: tuple) -> tuple:
     fv = np.concatenate(fv) / sd
     fw = np.concatenate(fw) / sd
     step = float(np.median(np.diff(data.t))) if data.n > 1 else 0.0
-    location = dt.locate(t=data.t, quad=quad, e_std=e / sd, m=data.m,
-                         has_rotation=data.spec.has_q1, points=data.b_points[:, 0, :],
-                         speed=data.speed, angular_speed=data.angular_speed, fdot_v=fv,
-                         fdot_w=fw, dt=step)
+    location = locate(t=data.t, quad=quad, e_std=e / sd, m=data.m,
+                      has_rotation=data.spec.has_q1, points=data.b_points[:, 0, :],
+                      speed=data.speed, angular_speed=data.angular_speed, fdot_v=fv,
+                      fdot_w=fw, dt=step)
     return detection, location

@@ -17,14 +17,64 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.diagnosis import candidates as fx
-from coreg_ros.core.diagnosis import detect as dt
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import DiagData, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.drift import drift_check
+from coreg_ros.core.diagnosis.effects.registry import CANDIDATES, EFFECT_NAMES
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model
+from coreg_ros.core.diagnosis.locate import STATIC_ANGULAR_SPEED, STATIC_SPEED
 from coreg_ros.core.diagnosis.options import Options, Progress
+from coreg_ros.core.diagnosis.record import optional, Record
 import numpy as np
+
+
+@dataclass(frozen=True, kw_only=True)
+class CandidateScore(Record):
+    """
+    One candidate's line in the report's ranking.
+
+    Attributes
+    ----------
+    name : str
+    held_out_gain, held_out_gain_per_residual : float or None
+        Over the accepted ones, nats (None when screened: not refitted).
+    blocks_improved, blocks : int
+    accepted_test : bool
+        It passes the tests (gain, blocks).
+    reason : str
+    spatial_held_out_gain : float, optional
+        On unseen cells of the workspace (spatial effects).
+    predicted_in_sample_gain : float, optional
+        A screened candidate's predicted in-sample gain, nats (written after ``screened``).
+
+    """
+
+    name: str
+    held_out_gain: Optional[float]
+    held_out_gain_per_residual: Optional[float]
+    blocks_improved: int
+    blocks: int
+    accepted_test: bool
+    reason: str
+    spatial_held_out_gain: Optional[float] = optional()
+    predicted_in_sample_gain: Optional[float] = optional()
+
+    @property
+    def screened(self) -> bool:
+        """Whether it was screened out by its predicted gain (not refitted)."""
+        return self.predicted_in_sample_gain is not None
+
+    def as_dict(self) -> dict:
+        """Return the line's JSON dict: a screened candidate's gains after its test."""
+        doc = super().as_dict()
+        if not self.screened:
+            return doc
+        # not refitted: the gain is the predicted in-sample one, not a held-out one
+        doc.pop('predicted_in_sample_gain')
+        doc['screened'] = True
+        doc['predicted_in_sample_gain'] = self.predicted_in_sample_gain
+        doc['held_out_gain'] = doc.pop('held_out_gain')
+        return doc
 
 
 @dataclass
@@ -43,27 +93,22 @@ class Candidate:
     screened: bool = False
     behind: bool = False
 
-    def row(self, n_res: int) -> dict:
-        """JSON row of the candidate ranking."""
-        row = {'name': self.name, 'held_out_gain': float(self.gain),
-               'held_out_gain_per_residual': float(self.gain / max(n_res, 1)),
-               'blocks_improved': int(np.sum(self.fold_gains > 0)),
-               'blocks': int(len(self.fold_gains)), 'accepted_test': bool(self.passes),
-               'reason': self.reason}
-        if self.spatial_gain is not None:
-            row['spatial_held_out_gain'] = float(self.spatial_gain)
-        if self.screened:
-            # not refitted: the gain is the predicted in-sample one, not a held-out one
-            row['screened'] = True
-            row['predicted_in_sample_gain'] = row.pop('held_out_gain')
-            row['held_out_gain'] = None
-            row['held_out_gain_per_residual'] = None
-        return row
+    def score(self, n_res: int) -> CandidateScore:
+        """Return the candidate's line in the ranking (``n_res``: residuals of the pairs)."""
+        # a screened candidate was not refitted: its gain is the predicted in-sample one
+        held_out = None if self.screened else float(self.gain)
+        return CandidateScore(
+            name=self.name, held_out_gain=held_out,
+            held_out_gain_per_residual=None if self.screened else float(self.gain / max(n_res, 1)),
+            blocks_improved=int(np.sum(self.fold_gains > 0)), blocks=int(len(self.fold_gains)),
+            accepted_test=bool(self.passes), reason=self.reason,
+            spatial_held_out_gain=None if self.spatial_gain is None else float(self.spatial_gain),
+            predicted_in_sample_gain=float(self.gain) if self.screened else None)
 
 
 def has_motion(data: DiagData) -> bool:
     """Whether the tool moves in more than a tenth of the pairs (motion effects can show)."""
-    moving = (data.speed > dt.STATIC_SPEED) | (data.angular_speed > dt.STATIC_ANGULAR_SPEED)
+    moving = (data.speed > STATIC_SPEED) | (data.angular_speed > STATIC_ANGULAR_SPEED)
     return bool(np.mean(moving) > 0.1)
 
 
@@ -88,7 +133,7 @@ class Selector:
             fit = Model(self.data, names).fit(start, self.idx, self.tf, self.K)
             h = fit.heldout(self.tf, self.K)
             hs = None
-            if any(n in fx.SPATIAL_EFFECTS for n in names):
+            if any(CANDIDATES[n].spatial for n in names):
                 hs = fit.heldout(self.sf, self.K)
             self.cache[key] = (fit, h, hs)
         return self.cache[key]
@@ -121,7 +166,7 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     fold_gains = h.fold_sums(h.ll) - ref_h.fold_sums(ref_h.ll)
     gain = float(fold_gains.sum())
     kind = 'time'
-    if name in fx.SPATIAL_EFFECTS:
+    if CANDIDATES[name].spatial:
         # a spatial effect is judged on unseen cells of the workspace (interpolation): a
         # time block may cover a region the rest of the motion never visits, where any
         # field model can only extrapolate
@@ -155,6 +200,9 @@ SCREEN_SHARE = 0.3
 #: margin is for the prediction's error). Such a candidate is looked at again in the next
 #: round, on top of the pick.
 BEHIND_SHARE = 0.3
+#: The time effect whose linearisation screens every time effect (a time offset's parameter
+#: is its first one).
+SCREEN_TIME_EFFECT = 'clock_drift'
 
 
 def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> dict:
@@ -172,10 +220,10 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
     out: dict = {}
     fit0 = ref[0]
     state0 = fit0.state
-    time_new = [n for n in todo if n in fx.TIME_EFFECTS]
-    mean_new = [n for n in todo if n in fx.MEAN_EFFECTS]
+    time_new = [n for n in todo if CANDIDATES[n].acts_on == 'time']
+    mean_new = [n for n in todo if CANDIDATES[n].acts_on == 'mean']
     if time_new or mean_new:
-        names = accepted + (('clock_drift',) if time_new else ()) + tuple(mean_new)
+        names = accepted + ((SCREEN_TIME_EFFECT,) if time_new else ()) + tuple(mean_new)
         try:
             model = Model(sel.data, names)
             ps = model.normal(model.initial_state(state0), sel.idx)
@@ -187,10 +235,11 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
                 if a in model.slices:
                     base_cols += list(range(model.slices[a].start, model.slices[a].stop))
             for name in time_new + mean_new:
-                sl = model.slices['clock_drift' if name in fx.TIME_EFFECTS else name]
+                effect = CANDIDATES[name]
+                sl = model.slices[SCREEN_TIME_EFFECT if effect.acts_on == 'time' else name]
                 cols = list(range(sl.start, sl.stop))
-                if name == 'time_offset':
-                    cols = cols[:1]
+                if effect.acts_on == 'time':
+                    cols = cols[:effect.term.n]
                 c = np.array(base_cols + cols)
                 H = ps.H[np.ix_(c, c)]
                 g = ps.g[c]
@@ -207,10 +256,10 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
     stats = fit0.stats
     ll0 = float(np.sum(vm.loglik(state0.var, stats)))
     for name in todo:
-        if name not in fx.VARIANCE_EFFECTS:
+        if CANDIDATES[name].acts_on != 'variance':
             continue
         model = Model(sel.data, accepted + (name,))
-        if any(n in fx.TIME_EFFECTS or n in fx.MEAN_EFFECTS for n in model.names
+        if any(CANDIDATES[n].acts_on in ('time', 'mean') for n in model.names
                if n not in fit0.model.names):
             continue
         var0 = model.initial_state(state0).var
@@ -226,16 +275,15 @@ def compatible(accepted: tuple, name: str) -> bool:
     """Whether ``name`` can be fitted on top of ``accepted`` (one time effect, one noise level)."""
     if name in accepted:
         return False
-    if name in fx.TIME_EFFECTS and any(a in fx.TIME_EFFECTS for a in accepted):
+    effects = [CANDIDATES[n] for n in (name, *accepted)]
+    if effects[0].acts_on == 'time' and any(e.acts_on == 'time' for e in effects[1:]):
         return False
-    if {name, *accepted} >= {'noise_scale', 'distance_noise'}:
-        return False
-    return True
+    return sum(e.sets_noise_level for e in effects) < 2
 
 
 def nested(a: str, b: str) -> bool:
-    """Whether one of the two effects is a special case of the other (``NESTED``)."""
-    return (a, b) in fx.NESTED or (b, a) in fx.NESTED
+    """Whether one of the two effects is a special case of the other (``simpler``)."""
+    return CANDIDATES[a].simpler == b or CANDIDATES[b].simpler == a
 
 
 def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str],
@@ -280,11 +328,10 @@ def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str
     # nested: prefer the simpler unless the richer gains clearly more (its few extra
     # parameters are already paid for on the held-out blocks)
     margin = max(sel.opts.min_gain, sel.opts.nested_share * thr)
-    for simple, rich in fx.NESTED:
-        if best.name == rich:
-            alt = next((c for c in passing if c.name == simple), None)
-            if alt is not None and best.gain - alt.gain < margin:
-                best = alt
+    simpler = CANDIDATES[best.name].simpler
+    alt = next((c for c in passing if c.name == simpler), None)
+    if alt is not None and best.gain - alt.gain < margin:
+        best = alt
     not_sep = []
     for other in passing:
         if other is best or nested(other.name, best.name):
@@ -320,7 +367,7 @@ class Selection:
         The accepted effect and each such rival.
     rounds : list of list of Candidate
         The candidates scored in each round.
-    drift_checks : list of dict
+    drift_checks : list of DriftCheck
         ``drift.drift_check`` of each round that picked a clock drift.
     ref : tuple
         ``Selector.score`` of the accepted model (fit, time held-out, spatial held-out).
@@ -352,9 +399,9 @@ def select_effects(sel: Selector, start) -> Selection:
 
     """
     opts, data = sel.opts, sel.data
-    names = [c for c in opts.candidates if c in fx.EFFECT_NAMES]
+    names = [c for c in opts.candidates if c in EFFECT_NAMES]
     if not has_motion(data):
-        names = [c for c in names if c not in fx.MOTION_EFFECTS]
+        names = [c for c in names if not CANDIDATES[c].needs_motion]
     ref = sel.score((), start)
     accepted: tuple = ()
     not_separable = []
@@ -365,13 +412,13 @@ def select_effects(sel: Selector, start) -> Selection:
         span = (0.1 + 0.25 * r, 0.1 + 0.25 * (r + 1))
         best, cands, not_sep = select_round(sel, accepted, ref, names, r, span)
         rounds.append(cands)
-        if best is not None and best.name == 'clock_drift':
+        if best is not None and CANDIDATES[best.name].trend_checked:
             check = drift_check(data, sel, best, cands)
             drift_checks.append(check)
-            if not check['accepted']:
+            if not check.accepted:
                 best.passes = False
-                best.reason = check['reason']
-                alt = [c for c in cands if c.passes and c.name != 'clock_drift']
+                best.reason = check.reason
+                alt = [c for c in cands if c.passes and c.name != best.name]
                 best = max(alt, key=lambda c: c.gain) if alt else None
                 not_sep = []
         if best is None:

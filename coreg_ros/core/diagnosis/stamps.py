@@ -12,8 +12,12 @@ devices) is still named from the stamps.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
+from coreg_ros.core.diagnosis.effects.finding import Finding, STAMPS
+from coreg_ros.core.diagnosis.effects.noise import TimestampJitterCandidate
+from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.types import PoseStream
 import numpy as np
 
@@ -25,6 +29,112 @@ JITTER_MIN_SHARE = 0.005
 #: An interval longer than this many nominal intervals (and GAP_MIN_S) is a gap, not drops.
 GAP_PERIODS = 10
 GAP_MIN_S = 0.25
+
+
+@dataclass(frozen=True, kw_only=True)
+class Latency(Record):
+    """
+    Receive stamp minus header stamp of a device's samples, s.
+
+    Attributes
+    ----------
+    median_s, sigma_s : float
+        Median and robust σ.
+    min_s, max_s : float
+    negative : int
+        Samples received before their header stamp.
+
+    """
+
+    median_s: float
+    sigma_s: float
+    min_s: float
+    max_s: float
+    negative: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeviceTiming(Record):
+    """
+    What a device's stamps say (the defaults: too few samples to say anything).
+
+    Attributes
+    ----------
+    device : str
+        ``'A'`` or ``'B'``.
+    n : int
+        Samples.
+    nominal_interval_s, nominal_rate_hz : float or None
+        The median interval and its rate.
+    interval_scatter_s : float
+        Robust σ of the intervals about whole multiples of the nominal one.
+    stamp_jitter_s : float
+        That over √2: the per-stamp σ.
+    jittered : bool
+        The stamps scatter beyond clean clocks and rounding.
+    dropped : int
+        Samples missing inside regular stretches.
+    drop_share : float
+    gaps : list of [float, float]
+        Intervals far longer than a few periods: start and length, s.
+    backward, duplicate : int
+        Stamps going backwards, repeated.
+    latency : Latency or None
+        None without receive stamps.
+    text : str
+    irregular : bool, optional
+        Stamp errors of a sizeable share of the period (read from the stamps' phases).
+    quantum_s : float, optional
+        The power of ten all stamps are multiples of, s (0: none above 1 ns).
+    bunched : int, optional
+        Intervals under half a period.
+
+    """
+
+    device: str
+    n: int
+    nominal_interval_s: Optional[float] = None
+    nominal_rate_hz: Optional[float] = None
+    interval_scatter_s: float = 0.0
+    stamp_jitter_s: float = 0.0
+    jittered: bool = False
+    dropped: int = 0
+    drop_share: float = 0.0
+    gaps: list = field(default_factory=list)
+    backward: int = 0
+    duplicate: int = 0
+    latency: Optional[Latency] = None
+    text: str = 'too few samples'
+    irregular: Optional[bool] = optional()
+    quantum_s: Optional[float] = optional()
+    bunched: Optional[int] = optional()
+
+    @property
+    def issues(self) -> bool:
+        """Whether the stamps show jitter, drops, gaps, backward or duplicate stamps."""
+        return bool(self.jittered or self.dropped or self.gaps or self.backward
+                    or self.duplicate)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StampReport(Record):
+    """
+    Stamp timing of both devices.
+
+    Attributes
+    ----------
+    devices : list of DeviceTiming
+        A's and B's.
+    jittered : list of str
+        The devices whose stamps scatter.
+    issues : bool
+        Some device shows jitter, drops, gaps, backward or duplicate stamps.
+
+    """
+
+    devices: list
+    jittered: list
+    issues: bool
 
 
 def _robust_sd(x: np.ndarray) -> float:
@@ -74,7 +184,7 @@ def _quantum(stamps: np.ndarray) -> float:
     return q
 
 
-def stamp_timing(stream: PoseStream, device: str) -> dict:
+def stamp_timing(stream: PoseStream, device: str) -> DeviceTiming:
     """
     Interval statistics, drops, gaps, backward and duplicate stamps of one device.
 
@@ -87,29 +197,19 @@ def stamp_timing(stream: PoseStream, device: str) -> dict:
 
     Returns
     -------
-    dict
-        ``n``, ``nominal_interval_s``, ``nominal_rate_hz``, ``interval_scatter_s`` (robust σ
-        of the intervals about whole multiples of the nominal one), ``stamp_jitter_s`` (that
-        over √2: the per-stamp σ), ``jittered`` (bool), ``dropped`` (samples missing inside
-        regular stretches), ``drop_share``, ``gaps`` (list of [start s, length s]),
-        ``backward``, ``duplicate``, ``latency`` (receive minus header stamp: median, σ, min,
-        max in s; None without receive stamps), ``text``.
+    DeviceTiming
 
     """
     stamps = np.asarray(stream.stamps, dtype=np.int64)
     n = int(stamps.size)
-    out = {'device': device, 'n': n, 'nominal_interval_s': None, 'nominal_rate_hz': None,
-           'interval_scatter_s': 0.0, 'stamp_jitter_s': 0.0, 'jittered': False, 'dropped': 0,
-           'drop_share': 0.0, 'gaps': [], 'backward': 0, 'duplicate': 0, 'latency': None,
-           'text': 'too few samples'}
+    timing = DeviceTiming(device=device, n=n)
     if n < 3:
-        return out
+        return timing
     d = np.diff(stamps)
-    out['backward'] = int(np.sum(d < 0))
-    out['duplicate'] = int(np.sum(d == 0))
+    timing = replace(timing, backward=int(np.sum(d < 0)), duplicate=int(np.sum(d == 0)))
     pos = d[d > 0].astype(float) * 1e-9
     if pos.size < 2:
-        return out
+        return timing
     nominal = float(np.median(pos))
     k = np.maximum(np.rint(pos / nominal), 1.0)
     gap = (k > GAP_PERIODS) & (pos > GAP_MIN_S)
@@ -145,83 +245,100 @@ def stamp_timing(stream: PoseStream, device: str) -> dict:
         floor = max(floor, 1.5 * quantum / np.sqrt(12.0))
     jitter = scatter / np.sqrt(2.0)
     jittered = bool(jitter > floor)
-    out.update(nominal_interval_s=nominal, nominal_rate_hz=1.0 / nominal,
-               interval_scatter_s=float(scatter), stamp_jitter_s=float(jitter),
-               jittered=jittered, irregular=bool(irregular), quantum_s=quantum,
-               bunched=int(np.sum(pos < 0.5 * nominal)) if not irregular else 0,
-               dropped=dropped,
-               drop_share=float(dropped / max(n + dropped, 1)), gaps=gaps)
+    timing = replace(timing, nominal_interval_s=nominal, nominal_rate_hz=1.0 / nominal,
+                     interval_scatter_s=float(scatter), stamp_jitter_s=float(jitter),
+                     jittered=jittered, irregular=bool(irregular), quantum_s=quantum,
+                     bunched=int(np.sum(pos < 0.5 * nominal)) if not irregular else 0,
+                     dropped=dropped, drop_share=float(dropped / max(n + dropped, 1)),
+                     gaps=gaps, latency=_latency(stream, stamps))
+    return replace(timing, text=_text(timing))
+
+
+def _latency(stream: PoseStream, stamps: np.ndarray) -> Optional[Latency]:
+    """Return the receive latency of the samples (None without receive stamps)."""
     rec = stream.receive_stamps
-    if rec is not None and len(rec) == n and not np.array_equal(rec, stamps):
+    if rec is None or len(rec) != len(stamps) or np.array_equal(rec, stamps):
         # (receive stamps equal to the header stamps carry no receive time)
-        lat = (np.asarray(rec, dtype=np.int64) - stamps).astype(float) * 1e-9
-        out['latency'] = {'median_s': float(np.median(lat)), 'sigma_s': _robust_sd(lat),
-                          'min_s': float(lat.min()), 'max_s': float(lat.max()),
-                          'negative': int(np.sum(lat < 0))}
-    out['text'] = _text(out)
-    return out
+        return None
+    lat = (np.asarray(rec, dtype=np.int64) - stamps).astype(float) * 1e-9
+    return Latency(median_s=float(np.median(lat)), sigma_s=_robust_sd(lat),
+                   min_s=float(lat.min()), max_s=float(lat.max()),
+                   negative=int(np.sum(lat < 0)))
 
 
-def _text(t: dict) -> str:
-    parts = [f'{t["nominal_rate_hz"]:.2f} Hz nominal, interval scatter '
-             f'{t["interval_scatter_s"] * 1e3:.4f} ms']
-    if t.get('quantum_s', 0.0) >= 1e-6:
-        parts.append(f'stamps rounded to {t["quantum_s"] * 1e3:g} ms')
-    if t['jittered']:
-        parts.append(f'stamp jitter {t["stamp_jitter_s"] * 1e3:.3f} ms'
+def _text(t: DeviceTiming) -> str:
+    parts = [f'{t.nominal_rate_hz:.2f} Hz nominal, interval scatter '
+             f'{t.interval_scatter_s * 1e3:.4f} ms']
+    if t.quantum_s >= 1e-6:
+        parts.append(f'stamps rounded to {t.quantum_s * 1e3:g} ms')
+    if t.jittered:
+        parts.append(f'stamp jitter {t.stamp_jitter_s * 1e3:.3f} ms'
                      + (' or more (stamps reordered: read from the residuals)'
-                        if t.get('irregular') else ''))
-    if t['dropped']:
-        parts.append(f'{t["dropped"]} samples dropped ({t["drop_share"] * 100:.1f} %)')
-    if t['gaps']:
-        longest = max(g[1] for g in t['gaps'])
-        parts.append(f'{len(t["gaps"])} gaps (longest {longest:.2f} s)')
-    if t.get('bunched'):
-        parts.append(f'{t["bunched"]} intervals under half a period')
-    if t['backward'] or t['duplicate']:
-        parts.append(f'{t["backward"]} backward and {t["duplicate"]} duplicate stamps')
-    if t['latency'] is not None:
-        lat = t['latency']
-        parts.append(f'receive latency {lat["median_s"] * 1e3:.2f} ± '
-                     f'{lat["sigma_s"] * 1e3:.2f} ms')
+                        if t.irregular else ''))
+    if t.dropped:
+        parts.append(f'{t.dropped} samples dropped ({t.drop_share * 100:.1f} %)')
+    if t.gaps:
+        longest = max(g[1] for g in t.gaps)
+        parts.append(f'{len(t.gaps)} gaps (longest {longest:.2f} s)')
+    if t.bunched:
+        parts.append(f'{t.bunched} intervals under half a period')
+    if t.backward or t.duplicate:
+        parts.append(f'{t.backward} backward and {t.duplicate} duplicate stamps')
+    if t.latency is not None:
+        parts.append(f'receive latency {t.latency.median_s * 1e3:.2f} ± '
+                     f'{t.latency.sigma_s * 1e3:.2f} ms')
     return '; '.join(parts)
 
 
-def stamps_report(stream_a: PoseStream, streams_b) -> dict:
-    """
-    Stamp timing of both devices (B's marker topics share stamps: the first is read).
-
-    Returns
-    -------
-    dict
-        ``devices`` (``stamp_timing`` of A and B), ``jittered`` (names of devices whose
-        stamps scatter), ``issues`` (bool: jitter, drops, gaps, backward or duplicate stamps).
-
-    """
+def stamps_report(stream_a: PoseStream, streams_b) -> StampReport:
+    """Stamp timing of both devices (B's marker topics share stamps: the first is read)."""
     b = streams_b[0] if isinstance(streams_b, (list, tuple)) else streams_b
     devices = [stamp_timing(stream_a, 'A'), stamp_timing(b, 'B')]
-    jittered = [d['device'] for d in devices if d['jittered']]
-    issues = any(d['jittered'] or d['dropped'] or d['gaps'] or d['backward'] or d['duplicate']
-                 for d in devices)
-    return {'devices': devices, 'jittered': jittered, 'issues': bool(issues)}
+    return StampReport(devices=devices, jittered=[d.device for d in devices if d.jittered],
+                       issues=any(d.issues for d in devices))
 
 
-def jitter_row(report: dict) -> Optional[dict]:
-    """Return an effect row ``timestamp_jitter`` read from the stamps (None: none scatter)."""
-    devs = [d for d in report['devices'] if d['jittered']]
+@dataclass(frozen=True, kw_only=True)
+class StampJitter(Record):
+    """
+    Stamp jitter read from the stamps of the device that scatters most.
+
+    Attributes
+    ----------
+    sigma_s, sigma_sigma_s : float
+        Per-stamp σ and its standard uncertainty, s.
+    device : str
+        ``'A'`` or ``'B'``.
+    dropped : int
+        Samples the device dropped.
+    gaps : list of [float, float]
+        Its gaps: start and length, s.
+    text : str
+
+    """
+
+    sigma_s: float
+    sigma_sigma_s: float
+    device: str
+    dropped: int
+    gaps: list
+    text: str
+
+
+def jitter_finding(report: StampReport) -> Optional[Finding]:
+    """Return the ``timestamp_jitter`` the stamps show (None: no device's stamps scatter)."""
+    devs = [d for d in report.devices if d.jittered]
     if not devs:
         return None
-    worst = max(devs, key=lambda d: d['stamp_jitter_s'])
-    sig = worst['stamp_jitter_s']
-    extra = [f'{d["device"]}: {d["text"]}' for d in report['devices']
-             if d['dropped'] or d['gaps']]
-    text = (f'{sig * 1e3:.2f} ms on device {worst["device"]} from the stamps (interval scatter '
-            f'{worst["interval_scatter_s"] * 1e3:.3f} ms)')
+    worst = max(devs, key=lambda d: d.stamp_jitter_s)
+    sig = worst.stamp_jitter_s
+    extra = [f'{d.device}: {d.text}' for d in report.devices if d.dropped or d.gaps]
+    text = (f'{sig * 1e3:.2f} ms on device {worst.device} from the stamps (interval scatter '
+            f'{worst.interval_scatter_s * 1e3:.3f} ms)')
     if extra:
         text += '; ' + '; '.join(extra)
-    return {'name': 'timestamp_jitter', 'kind': 'noise', 'source': 'stamps',
-            'estimate': {'sigma_s': sig, 'sigma_sigma_s': sig / np.sqrt(2.0 * max(
-                worst['n'] - 1, 1)), 'device': worst['device'],
-                'dropped': worst['dropped'], 'gaps': worst['gaps'], 'text': text},
-            'held_out_gain': 0.0, 'held_out_gain_per_residual': 0.0, 'blocks_improved': 0,
-            'blocks': 0}
+    estimate = StampJitter(sigma_s=sig, sigma_sigma_s=sig / np.sqrt(2.0 * max(worst.n - 1, 1)),
+                           device=worst.device, dropped=worst.dropped, gaps=worst.gaps,
+                           text=text)
+    return Finding(name=TimestampJitterCandidate.name, kind=TimestampJitterCandidate.kind,
+                   source=STAMPS, estimate=estimate)

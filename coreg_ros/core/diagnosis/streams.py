@@ -9,6 +9,7 @@ the fine fit to walk to is found first by cross-correlating the devices' speeds.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Optional, Union
 
 from coreg_ros.core.calibration.calibrate import calibrate
@@ -16,6 +17,7 @@ from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.clock.timing import coarse_offsets
 from coreg_ros.core.diagnosis.engine import diagnose, Diagnosis
 from coreg_ros.core.diagnosis.options import Options, Progress
+from coreg_ros.core.diagnosis.report import Pairing
 from coreg_ros.core.diagnosis.stamps import stamps_report
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
@@ -41,18 +43,19 @@ def diagnose_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence
     """
     bs = list(streams_b) if isinstance(streams_b, (list, tuple)) else [streams_b]
     context = {'stamps': stamps_report(stream_a, bs)}
-    pairs, report = pair_for(stream_a, bs, settings)
+    pairs, paired = pair_for(stream_a, bs, settings)
     use_settings = settings
     shift = coarse_shift(stream_a, bs, settings, pairs)
     if shift:
         moved = settings.updated(time_offset=settings.time_offset + shift)
         context['before'] = (pairs, settings)
         context['coarse_shift_s'] = shift
-        pairs, report = pair_for(stream_a, bs, moved)
+        pairs, paired = pair_for(stream_a, bs, moved)
         use_settings = moved
     diag = diagnose(pairs, use_settings, stream_a, options, progress, context=context)
-    diag.report['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b,
-                              'n_paired': report.n_paired, 'unpaired': dict(report.unpaired)}
+    diag.report = replace(diag.report, pairing=Pairing(
+        n_a=paired.n_a, n_b=paired.n_b, n_paired=paired.n_paired,
+        unpaired=dict(paired.unpaired)))
     return diag
 
 

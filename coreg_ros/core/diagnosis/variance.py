@@ -27,13 +27,6 @@ _LOG2PI = float(np.log(2.0 * np.pi))
 #: Largest share of outliers: beyond it the errors are a wrong noise model, not glitches.
 MAX_OUTLIER_SHARE = 0.2
 
-#: Free parameters of each variance effect (in VarState).
-VAR_PARAMS = {
-    'noise_scale': ('log_s2',),
-    'distance_noise': ('log_c', 'k'),
-    'timestamp_jitter': ('log_beta',),
-    'outliers': ('logit_eps', 'log_lam'),
-}
 _BOUNDS = {
     'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0),
     # EM noise grows with the distance from the source: the exponent is not negative
@@ -174,6 +167,26 @@ def loglik(var: VarState, st: PairStats, with_parts: bool = False):
     return ll
 
 
+def inflation(var: VarState, st: PairStats) -> float:
+    """
+    Factor (>= 1) on a fit's parameter variances: the chi-square per dof left under it.
+
+    Parameters
+    ----------
+    var : VarState
+        The fitted noise parameters.
+    st : PairStats
+        The fitted pairs' decorrelated errors (inliers counted only, with outliers modelled).
+
+    """
+    quad, _, _, _ = components(var, st)
+    if var.eps > 0:
+        _, p_in, _ = loglik(var, st, with_parts=True)
+        quad = quad[p_in > 0.5]
+    m = st.z.shape[1]
+    return float(max(1.0, np.mean(quad) / m)) if len(quad) else 1.0
+
+
 def _initial(name: str, st: PairStats, var: VarState) -> float:
     m = st.z.shape[1]
     quad, _, _, _ = components(var, st)
@@ -205,7 +218,7 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
     var : VarState
         Start and fixed values of the other parameters.
     names : tuple of str
-        Parameters to fit (keys of ``VAR_PARAMS`` values).
+        Parameters to fit (an effect's ``var_params``, ``effects/``).
     step : float
         Size of the first simplex (or bracket) about the start, in the parameters' units
         (logs): 0.3 from a rough start; a few hundredths from a nearby optimum (a held-out

@@ -8,9 +8,9 @@ from coreg_ros.core.diagnosis import diagnose_streams, EFFECT_NAMES
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.data import prepare, spatial_folds, time_folds, Trajectory
 from coreg_ros.core.diagnosis.detect import detect, ljung_box
+from coreg_ros.core.diagnosis.effects import CANDIDATES, FitReading
 from coreg_ros.core.diagnosis.engine import _params_of
 from coreg_ros.core.diagnosis.fit import Model, start_state
-from coreg_ros.core.diagnosis.summary import effect_estimate
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.injected import EFFECT_NAMES as SIM_EFFECT_NAMES
@@ -36,7 +36,7 @@ def test_effect_names_match_the_simulator():
 def test_clean_recording_has_no_gap_and_exact_keys():
     rec, settings = _recording(None, seed=21, duration=30.0)
     diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings)
-    r = diag.report
+    r = diag.report.as_dict()
     assert REPORT_KEYS <= set(r)
     assert r['gap_detected'] is False
     assert r['effects'] == []
@@ -48,7 +48,7 @@ def test_clean_recording_has_no_gap_and_exact_keys():
 
 def test_time_offset_named_with_estimate_and_gap_closed():
     rec, settings = _recording('time_offset=0.012', seed=5, duration=30.0)
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report.as_dict()
     assert r['gap_detected'] is True
     assert r['effects'][0]['name'] == 'time_offset'
     est = r['effects'][0]['estimate']
@@ -89,8 +89,7 @@ def test_effect_model_recovers_injected_parameter(spec, name, get, truth):
         data = prepare(pairs, settings, rec.stream_a)
         base = Model(data, ()).fit(start_state(_params_of(res, data.spec)))
         fit = Model(data, (name,)).fit(base.state)
-        est = effect_estimate(name, fit, fit.mean_cov(),
-                              fit.var_cov() if fit.model.var_names else None)
+        est = CANDIDATES[name].size(FitReading.of(fit)).as_dict()
     value, sigma = get(est)
     assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
     # within the reported uncertainty (3σ), plus the model's approximation where the
@@ -142,10 +141,10 @@ def test_ljung_box_and_detect():
     assert p_ar < 1e-6 and abs(rho[0] - 0.5) < 0.05
     z = rng.standard_normal((3000, 6))
     d = detect(np.sum(z ** 2, axis=1), z, 6, 12)
-    assert d['gap'] is False
+    assert d.gap is False
     z[::50] *= 30.0
     d = detect(np.sum(z ** 2, axis=1), z, 6, 12)
-    assert d['flags']['heavy_tails'] and d['flags']['chi2_high']
+    assert d.flags.heavy_tails and d.flags.chi2_high
 
 
 def test_variance_fits():
@@ -194,6 +193,6 @@ def test_one_blas_thread_holds_blas_at_one_thread_and_restores_it():
 
 def test_position_only_model_diagnosis():
     rec, settings = _recording('outliers=0.03', seed=6, duration=30.0, model='position_only')
-    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report
+    r = diagnose_streams(rec.stream_a, list(rec.streams_b), settings).report.as_dict()
     assert r['effects'] and r['effects'][0]['name'] == 'outliers'
     assert 'rotation_rms_rad' not in r['gap_after']

@@ -1,7 +1,10 @@
 """Gap measures a noise model cannot game (issue 11, item 1), outliers versus structure (2)."""
 
+from dataclasses import replace
+
 from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.diagnosis import diagnose_streams
+from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import prepare
 from coreg_ros.core.settings import Settings
@@ -24,7 +27,7 @@ def _diag(specs, seed=5, duration=40.0, model='full_pose'):
 @pytest.mark.parametrize('spec,factor', [('noise_scale=1.8', 1.8), ('distance_noise=4', None)])
 def test_a_noise_effect_never_shrinks_the_gap(spec, factor, tmp_path):
     diag = _diag([spec])
-    r = diag.report
+    r = diag.report.as_dict()
     assert r['effects'] and r['effects'][0]['kind'] == 'noise'
     b, a = r['gap_before'], r['gap_after']
     assert (NEW_KEYS | OLD_KEYS) <= set(a)
@@ -45,14 +48,14 @@ def test_a_noise_effect_never_shrinks_the_gap(spec, factor, tmp_path):
 
 def test_distance_noise_exponent_is_never_negative():
     # noise shrinking away from the source is physically backwards: never reported
-    r = _diag(['distance_noise=-3']).report
+    r = _diag(['distance_noise=-3']).report.as_dict()
     for e in r['effects']:
         if e['name'] == 'distance_noise':
             assert e['estimate']['exponent'] >= 0.0
 
 
 def test_structured_effect_moves_the_rms_and_keeps_old_keys():
-    r = _diag(['scale=0.01,-0.008,0.006']).report
+    r = _diag(['scale=0.01,-0.008,0.006']).report.as_dict()
     assert r['effects'][0]['name'] == 'scale' and r['effects'][0]['kind'] == 'structured'
     b, a = r['gap_before'], r['gap_after']
     assert a['rms_position_mm'] < 0.8 * b['rms_position_mm']
@@ -62,7 +65,7 @@ def test_structured_effect_moves_the_rms_and_keeps_old_keys():
 
 
 def test_set_aside_pairs_are_counted_as_unexplained():
-    r = _diag(['outliers=0.03']).report
+    r = _diag(['outliers=0.03']).report.as_dict()
     a = r['gap_after']
     excl = a['excluded_pairs']
     assert excl['count'] > 0 and excl['counted_as'] == 'unexplained'
@@ -74,12 +77,13 @@ def test_set_aside_pairs_are_counted_as_unexplained():
 
 
 def test_share_explained_rules():
-    before = {'chi2_per_dof_at_stated_noise': 3.0, 'rms_position_mm': 1.0}
-    after = {'chi2_per_dof_at_stated_noise': 1.0, 'rms_position_mm': 0.6,
-             'excluded_pairs': {'share': 0.25}}
-    assert gp.share_explained(before, after) == pytest.approx(0.75)
-    after['rms_position_mm'] = 0.995            # χ² fell but the RMS did not move
-    assert gp.share_explained(before, after) == 0.0
+    before = gp.StatedBlock(chi2_per_dof_at_stated_noise=3.0, rms_position_mm=1.0,
+                            stated_floor_position_mm=0.5)
+    after = gp.StatedBlock(chi2_per_dof_at_stated_noise=1.0, rms_position_mm=0.6,
+                           stated_floor_position_mm=0.5)
+    assert gp.share_explained(before, after, excluded_share=0.25) == pytest.approx(0.75)
+    after = replace(after, rms_position_mm=0.995)  # χ² fell but the RMS did not move
+    assert gp.share_explained(before, after, excluded_share=0.25) == 0.0
 
 
 def test_flagged_pairs_in_one_time_block_are_structure_not_outliers():
@@ -88,11 +92,11 @@ def test_flagged_pairs_in_one_time_block_are_structure_not_outliers():
     data = prepare(pairs, Settings(), rec.stream_a)
     rng = np.random.default_rng(0)
     scattered = rng.random(data.n) < 0.04
-    assert gp.flagged_clustering(data, scattered)['clustered'] is False
+    assert ex.flagged_clustering(data, scattered).clustered is False
     burst = np.zeros(data.n, dtype=bool)
     burst[(data.t > 10) & (data.t < 13)] = True
-    cl = gp.flagged_clustering(data, burst)
-    assert cl['clustered'] and cl['in_time'] and '8-12 s' in cl['where'] + '12-16 s'
+    cl = ex.flagged_clustering(data, burst)
+    assert cl.clustered and cl.in_time and '8-12 s' in cl.where + '12-16 s'
 
 
 def test_a_local_error_is_sized_where_it_acts_with_the_noise_taken_off():
@@ -104,9 +108,9 @@ def test_a_local_error_is_sized_where_it_acts_with_the_noise_taken_off():
     hot = (data.t > 10) & (data.t < 16)
     bump = np.exp(-0.5 * ((data.t - 13.0) / 1.0) ** 2) * 4e-3
     e[:, 0] += np.where(hot, bump, 0.0)
-    size = gp.local_error_size(data, e, hot)
-    assert size['max_mm'] == pytest.approx(4.0, rel=0.2)
-    assert 9.5 < size['from_s'] < size['to_s'] < 16.5
+    size = ex.local_error_size(data, e, hot)
+    assert size.max_mm == pytest.approx(4.0, rel=0.2)
+    assert 9.5 < size.from_s < size.to_s < 16.5
     # noise alone is small
-    assert gp.local_error_size(data, rng.normal(scale=5e-4, size=e.shape),
-                               hot)['max_mm'] < 0.8
+    assert ex.local_error_size(data, rng.normal(scale=5e-4, size=e.shape),
+                               hot).max_mm < 0.8

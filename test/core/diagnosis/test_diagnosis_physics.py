@@ -16,7 +16,8 @@ import pytest
 
 def _report(effects, seed=5, duration=40.0, model='full_pose'):
     rec = simulate_recording(seed, duration, model, effects=effects)
-    return rec, diagnose_streams(rec.stream_a, list(rec.streams_b), Settings(model=model)).report
+    diag = diagnose_streams(rec.stream_a, list(rec.streams_b), Settings(model=model))
+    return rec, diag.report.as_dict()
 
 
 @pytest.mark.parametrize('seed', [5, 12])
@@ -64,7 +65,7 @@ def test_non_stationary_distortion_says_when_and_that_nothing_stationary_explain
 
 
 def test_field_linear_terms_are_symmetric_trace_free_and_not_rigid():
-    from coreg_ros.core.diagnosis.candidates import FieldDistortion as Field
+    from coreg_ros.core.diagnosis.terms import FieldDistortion as Field
     from coreg_ros.core.rigid import rigid_part
 
     eff = Field()

@@ -1,17 +1,19 @@
 """
-The ten candidate effects as extensions of the measurement model (docs/design.md §5).
+The terms the candidate effects add to the measurement model (docs/design.md §5).
 
 Each effect adds parameters to the model of Ikits eq. 16/18/19 in one of three ways:
 
 - ``time``: device A is evaluated at ``t - s(t; θ)`` instead of t (the pairs' stamps); the
   output error moves by ``-ḟ ∂s/∂θ`` to first order, with ``ḟ = J_x ẋ_A`` the rate of the
-  model output. Time offset ``s = τ``; clock drift ``s = τ0 + κ t``.
+  model output. Time offset ``s = τ`` (``OffsetShift``); clock drift ``s = τ0 + κ t``
+  (``DriftShift``).
 - ``mean``: the output error e = f - y gains a term ``δe(θ)`` (Jacobian ``∂δe/∂θ``): scale,
-  field distortion, link flex, backlash.
+  field distortion, link flex, backlash (``MeanEffect``).
 - ``variance``: the per-pair covariance of e changes (``variance.py``): noise scale, distance
   noise, timestamp jitter, outliers.
 
-The functions here only build the extra terms; fitting is ``fit.py``.
+The classes here only build the extra terms; which effect uses which term is its class in
+``effects/`` (``term``), fitting is ``fit.py``.
 """
 
 from __future__ import annotations
@@ -23,24 +25,6 @@ from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.rigid import rigid_columns
 from coreg_ros.core.so3 import skew
 import numpy as np
-
-#: The ten effects, in the order of docs/design.md §5 (the names of ``coreg_ros.sim.injected``).
-EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distortion',
-                'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
-
-#: Effects acting on the time axis, on the output error, and on the noise.
-TIME_EFFECTS = ('time_offset', 'clock_drift')
-MEAN_EFFECTS = ('field_distortion', 'scale', 'link_flex', 'backlash')
-VARIANCE_EFFECTS = ('timestamp_jitter', 'distance_noise', 'outliers', 'noise_scale')
-#: Effects that change only the noise model (describe the noise, never close the gap).
-NOISE_EFFECTS = ('timestamp_jitter', 'distance_noise', 'noise_scale')
-#: Effects tied to the workspace (also cross-validated on spatial blocks).
-SPATIAL_EFFECTS = ('field_distortion', 'scale', 'distance_noise')
-#: Effects that need motion to show (velocity signatures).
-MOTION_EFFECTS = ('time_offset', 'clock_drift', 'timestamp_jitter', 'backlash')
-#: Pairs where the simpler effect is a special case of the richer one (simpler, richer).
-NESTED = (('time_offset', 'clock_drift'), ('noise_scale', 'distance_noise'),
-          ('scale', 'field_distortion'))
 
 
 @dataclass
@@ -340,33 +324,42 @@ class Backlash(MeanEffect):
         return J @ theta, J
 
 
-def effect_kind(name: str) -> str:
-    """``'noise'`` for effects that change only the noise model, else ``'structured'``."""
-    return 'noise' if name in NOISE_EFFECTS else 'structured'
+class TimeShift:
+    """Base of effects that shift the time at which A is evaluated: ``t - s(t; θ)``."""
+
+    name = ''
+    n = 0
+
+    def setup(self, data: DiagData) -> None:
+        """Nothing depends on the data: the shift is a function of time alone."""
+
+    def shift(self, theta: np.ndarray, t: np.ndarray, duration: float):
+        """Return the shift s(t) (n,), s, and ∂s/∂θ (n, k)."""
+        raise NotImplementedError
 
 
-def make_mean_effect(name: str, data: DiagData) -> MeanEffect:
-    """Instantiate and set up the mean effect ``name`` for the data."""
-    cls = {'scale': Scale, 'field_distortion': FieldDistortion, 'link_flex': LinkFlex,
-           'backlash': Backlash}[name]
-    eff = cls()
-    eff.setup(data)
-    return eff
+class OffsetShift(TimeShift):
+    """A constant offset of B's clock: ``s = τ``, θ = (τ,), s."""
 
+    name = 'time_offset'
+    n = 1
 
-def time_parameters(name: str) -> int:
-    """Return the number of parameters of a time effect."""
-    return {'time_offset': 1, 'clock_drift': 2}[name]
-
-
-def time_shift(name: str, theta: np.ndarray, t: np.ndarray, duration: float):
-    """
-    Shift s(t) (s) of the time at which A is evaluated, and ∂s/∂θ (n, k).
-
-    clock drift: θ = (τ0, κ T) with T the recording's duration (for conditioning); so
-    ``s = τ0 + κ t``.
-    """
-    if name == 'time_offset':
+    def shift(self, theta, t, duration):
+        """Shift every pair by τ."""
         return np.full(t.shape, theta[0]), np.ones((t.size, 1))
-    u = t / max(duration, 1e-9)
-    return theta[0] + theta[1] * u, np.stack([np.ones_like(u), u], axis=1)
+
+
+class DriftShift(TimeShift):
+    """
+    A clock that drifts: ``s = τ0 + κ t``.
+
+    θ = (τ0, κ T) with T the recording's duration (for conditioning), s.
+    """
+
+    name = 'clock_drift'
+    n = 2
+
+    def shift(self, theta, t, duration):
+        """Shift by the offset at the start plus the drift since."""
+        u = t / max(duration, 1e-9)
+        return theta[0] + theta[1] * u, np.stack([np.ones_like(u), u], axis=1)
