@@ -24,7 +24,11 @@ from coreg_ros.core.calibration.pairing import pair_for  # noqa: E402
 from coreg_ros.core.calibration.pipeline import calibrate_streams  # noqa: E402
 from coreg_ros.core.live import guidance as g  # noqa: E402
 from coreg_ros.core.live import watchdog as w  # noqa: E402
-from coreg_ros.core.live.guidance import batch_from_pairs, Estimate, GuidanceAccumulator  # noqa: E402
+from coreg_ros.core.live.guidance import (  # noqa: E402
+    batch_from_pairs,
+    Estimate,
+    GuidanceAccumulator,
+)
 from coreg_ros.core.live.watchdog import Watchdog  # noqa: E402
 from coreg_ros.core.settings import Settings  # noqa: E402
 from coreg_ros.sim import simulate_recording  # noqa: E402
