@@ -43,10 +43,11 @@ def _feed(h, obj) -> None:
         h.update(repr(('nd', a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())
     elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        # a field left at None is skipped: adding an optional field changes no hash
+        # a field left at None or empty is skipped: adding an optional field changes no hash
         h.update(type(obj).__name__.encode())
         for f in dataclasses.fields(obj):
-            if getattr(obj, f.name) is not None:
+            value = getattr(obj, f.name)
+            if value is not None and not (isinstance(value, tuple) and not value):
                 h.update(f.name.encode())
                 _feed(h, getattr(obj, f.name))
     elif isinstance(obj, dict):

@@ -233,6 +233,52 @@ class UncertainPose:
     covariance: Optional[np.ndarray] = None
 
 
+@dataclass(frozen=True)
+class Unobservable:
+    """
+    A direction of (T0, T1) the recorded motion does not determine (a restricted rig).
+
+    Attributes
+    ----------
+    direction : ndarray, shape (12,)
+        Unit vector in the layout of ``CalibrationResult.cov_joint``: T0's position (B's base
+        frame, m), its rotation (about B's base axes, rad), T1's position (A's tool frame, m),
+        its rotation (about A's tool axes, rad); its largest component positive.
+    description : str
+        The direction in words ("T1's position along z (A's tool frame) together with T0's
+        translation along ... (B's base frame)").
+    by : str
+        ``'held'``: nothing determines it; the fit holds it (``held_at``) and every published
+        covariance carries ``observability.UNKNOWN_VARIANCE`` along it. ``'prior'``: the
+        prior determines it, with the prior's variance.
+    held_at : dict
+        ``{"component", "value", "unit", "from"}``: the component that holds it and its value
+        (the closed-form start's, or the prior's).
+    determine : str
+        What would determine it: a partial prior (a measured lever, a known orientation) or
+        the motion that shows it.
+    markers : ndarray, shape (9,), optional
+        Three markers: the direction's part on the three marker positions (A's tool frame).
+
+    """
+
+    direction: np.ndarray
+    description: str
+    by: str
+    held_at: dict
+    determine: str
+    markers: Optional[np.ndarray] = None
+
+    def as_dict(self) -> dict:
+        """JSON form: ``{"direction", "description", "held_at", "by", "determine"}``."""
+        out = {'direction': [float(v) for v in self.direction],
+               'description': self.description, 'held_at': dict(self.held_at), 'by': self.by,
+               'determine': self.determine}
+        if self.markers is not None:
+            out['markers_direction'] = [float(v) for v in self.markers]
+        return out
+
+
 #: The ``status`` values of a calibration and what each means.
 STATUS = {
     1: 'converged: every step component below xtol posterior standard deviations',
@@ -309,6 +355,11 @@ class CalibrationResult:
     direction_check : calibration.stream_directions.DirectionReport, optional
         Which way round the streams fit best, when the pipeline checked it (after a fit the
         data contradict); a flagged report makes the result not a success.
+    unobservable : tuple of Unobservable
+        The directions the motion does not determine (a restricted rig: a SCARA arm, a mobile
+        robot, a gantry, a turntable), held or determined by the prior; empty when the motion
+        determines everything. The covariances carry ``observability.UNKNOWN_VARIANCE``
+        along the held ones.
 
     """
 
@@ -338,6 +389,7 @@ class CalibrationResult:
     verdict: str = ''
     prior_check: Optional[dict] = None
     direction_check: Optional[object] = None
+    unobservable: tuple = ()
 
     @property
     def reduced_chi2(self) -> float:
@@ -348,6 +400,11 @@ class CalibrationResult:
         """Return the text ``coreg calibrate`` prints (with the pairing report, if given)."""
         from coreg_ros.core.result_text import format_result
         return format_result(self, pairing)
+
+    @property
+    def held(self) -> tuple:
+        """The directions the fit held (``unobservable`` not determined by a prior)."""
+        return tuple(u for u in self.unobservable if u.by == 'held')
 
     @property
     def n_rejected(self) -> int:

@@ -2,7 +2,10 @@
 Calibration from pairs: validation, closed-form start, OLS, TLS, observability, covariance.
 
 This is the one entry point the CLI and the node use (through ``pipeline.calibrate_streams``),
-so that both give the same numbers from the same pairs.
+so that both give the same numbers from the same pairs. Ikits' robust loop: start, fit,
+reject, refit, the verdict's numbers; on a rig that cannot move in every direction the
+directions the motion does not determine are held at the start's value and marked unknown
+(``observability``).
 """
 
 from __future__ import annotations
@@ -10,9 +13,15 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Optional
 
-from coreg_ros.core.calibration import screening
+from coreg_ros.core.calibration import observability, screening
 from coreg_ros.core.calibration.initialize import initialize
-from coreg_ros.core.calibration.observability import check_motion, check_observability
+from coreg_ros.core.calibration.observability import (
+    hold_prior,
+    published_covariance,
+    refuse_if_nothing_moved,
+    Undetermined,
+    undetermined,
+)
 from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.errors import (
     ConvergenceError,
@@ -23,6 +32,7 @@ from coreg_ros.core.estimator import (
     can_take_out,
     carried_inputs,
     heading,
+    information,
     InputState,
     noise_covariance,
     normal_equations,
@@ -39,7 +49,7 @@ from coreg_ros.core.estimator import (
 )
 from coreg_ros.core.estimator.linearized import PairData, reference_squares
 from coreg_ros.core.estimator.posterior import result_poses
-from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.estimator.priors import Prior, prior_rows
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
@@ -69,6 +79,12 @@ SUBSAMPLE = 100_000
 SUBSAMPLE_TLS = 25_000
 #: First LM damping of a TLS refit that starts at the last fit's inputs.
 WARM_DAMPING = 1e-9
+#: Pairs (every k-th) the information is taken on to see what the data determine: the
+#: eigenvalue shares of the scaled information do not depend on N.
+OBSERVABILITY_SAMPLE = 25_000
+#: Times the held directions are looked for again at the solution (a start far from it may
+#: name them a little differently); the fit is repeated when they changed.
+HOLD_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -128,21 +144,58 @@ class _Fitter:
         # all pairs, for the robust statistic of every pair (rejected ones are tested again)
         self.everything = Problem(spec, self.pos_a, self.quat_a, self.pos_b, self.quat_b,
                                   self.whiten_b, self.whiten_a, self.scale)
+        self.sigma_rot_a = float(np.sqrt(np.max(np.diag(np.asarray(cov_a).reshape(6, 6))[3:6])))
+        # the directions the motion does not determine, and the gauge that holds them (part
+        # of every fit, with or without the user's prior: it is not knowledge, a convention)
+        self.found = Undetermined(np.zeros((spec.n_params, 0)), np.zeros((spec.n_params, 0)),
+                                  np.ones(spec.n_params))
+        self.gauge, self.held_components = [], []
 
     def problem(self, keep: np.ndarray, with_priors: bool = True) -> Problem:
         """Return the pairs in ``keep`` as a Problem (the arrays themselves if all are kept)."""
         idx = None if keep.all() else np.flatnonzero(keep)
-        return self.everything.subset(idx, self.priors if with_priors else None)
+        return self.everything.subset(idx, self.gauge + (self.priors if with_priors else []))
 
-    def solve(self, keep: np.ndarray, start: Optional[Parameters], warm: bool = False,
-              with_priors: bool = True, screened: bool = False,
-              inputs: Optional[InputState] = None) -> Solution:
+    def undetermined_at(self, params: Parameters, keep: np.ndarray) -> Undetermined:
         """
-        Fit the pairs in ``keep`` from ``start`` (closed form when None).
+        Find what the pairs in ``keep`` and the prior leave undetermined at ``params``.
 
-        OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) goes to TLS
-        directly, its inputs starting at ``inputs`` (``carried``) if given. A fit to be
-        ``screened`` for outliers may pause (``FastPaths.screen``, ``reject_outliers``).
+        From the OLS information of every k-th pair (at most ``OBSERVABILITY_SAMPLE``), the
+        prior's rows at ``params`` beside it (``observability.undetermined``).
+        """
+        idx = np.flatnonzero(keep)
+        idx = idx[::max(1, len(idx) // OBSERVABILITY_SAMPLE)]
+        data_info = information(self.everything.subset(idx), params)
+        prior_info = None
+        if self.priors:
+            _, J = prior_rows(self.everything.subset(None, self.priors), params)
+            prior_info = J.T @ J
+        return undetermined(data_info, prior_info, params, self.sigma_rot_a)
+
+    def hold_undetermined(self, start: Parameters, keep: np.ndarray) -> None:
+        """Look for what the data leave undetermined at ``start``; hold it there from now on."""
+        found = self.undetermined_at(start, keep)
+        if not found.empty:
+            self.hold(found, start)
+
+    def hold(self, found: Undetermined, start: Parameters) -> None:
+        """Hold ``found``'s undetermined directions at ``start`` in every later fit."""
+        prior, self.held_components = hold_prior(found, start)
+        self.found = found
+        self.gauge = prior.terms(self.spec) if prior is not None else []
+        # the masked OLS refits weigh all pairs: the gauge goes with them
+        self.everything = replace(self.everything, priors=list(self.gauge))
+
+    def solve(self, keep: np.ndarray, start: Parameters, warm: bool = False,
+              with_priors: bool = True, screened: bool = False,
+              inputs: Optional[InputState] = None, fitted: bool = False) -> Solution:
+        """
+        Fit the pairs in ``keep`` from ``start`` (``start()``, or a fit of nearly these pairs).
+
+        OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) or a
+        ``fitted`` one (an OLS fit of a subsample) goes to TLS directly, its inputs starting at
+        ``inputs`` (``carried``) if given. A fit to be ``screened`` for outliers may pause
+        (``FastPaths.screen``, ``reject_outliers``).
         """
         settings = self.settings
         n_keep = int(keep.sum())
@@ -153,12 +206,8 @@ class _Fitter:
                 f'{min_pairs}); record longer, or check the noise (sigma_b) and the units')
         problem = self.problem(keep, with_priors)
         tls = settings.method == 'tls'
-        fitted = False  # whether the start is already an OLS fit (of a subsample)
-        if start is None:
-            start, fitted = self._start(keep, problem)
         if not (tls and (warm or fitted)):
             sol = solve_ols(problem, start, max_iterations=settings.max_iterations, xtol=XTOL)
-            check_observability(sol.info, sol.params, problem.quat_a)
             start = sol.params
         if tls:
             # next to the minimum (inputs of nearly the same fit), the first step needs
@@ -168,10 +217,9 @@ class _Fitter:
             sol = solve_tls(problem, start, max_iterations=settings.max_iterations, xtol=XTOL,
                             inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING,
                             pause_at=pause)
-            check_observability(sol.info, sol.params, problem.quat_a)
         return sol
 
-    def _start(self, keep: np.ndarray, problem: Problem) -> tuple[Parameters, bool]:
+    def start(self, keep: np.ndarray) -> tuple[Parameters, bool]:
         """
         Closed-form start; for many pairs the OLS fit of a subsample (then True).
 
@@ -180,18 +228,24 @@ class _Fitter:
         k-th, so the whole motion is seen) is within a few σ of the OLS fit of all pairs;
         TLS (or OLS) on all pairs converges from there to the same minimum under the same
         stopping rule. (A TLS fit of the subsample saves no pass: from measured inputs TLS
-        needs three linearisations from either start.) Its observability is not checked
-        here: the fit of all pairs checks it.
+        needs three linearisations from either start.)
+
+        What the motion does not determine is held at the closed form's value from here on
+        (``hold_undetermined``), the subsample's fit included.
         """
         size = SUBSAMPLE_TLS if self.settings.method == 'tls' else SUBSAMPLE
-        stride = problem.n // size if self.paths.start else 0
-        if stride < 2:
-            return initialize(self.spec, problem.pos_a, problem.quat_a, problem.pos_b,
-                              problem.quat_b), False
-        sub = np.zeros(len(keep), dtype=bool)
-        sub[np.flatnonzero(keep)[::stride]] = True
+        n = int(keep.sum())
+        stride = n // size if self.paths.start else 0
+        sub = keep
+        if stride >= 2:
+            sub = np.zeros(len(keep), dtype=bool)
+            sub[np.flatnonzero(keep)[::stride]] = True
         small = self.problem(sub, with_priors=False)
         start = initialize(self.spec, small.pos_a, small.quat_a, small.pos_b, small.quat_b)
+        self.hold_undetermined(start, keep)
+        if stride < 2:
+            return start, False
+        small = self.problem(sub, with_priors=False)  # with the gauge, if any
         try:
             start = solve_ols(small, start, max_iterations=self.settings.max_iterations,
                               xtol=XTOL).params
@@ -285,8 +339,6 @@ class _Fitter:
         else:
             return self.solve(kept, sol.params, warm=True, with_priors=False,
                               inputs=self.carried(sol, fitted, kept))
-        check_observability(out.info, out.params,
-                            np.take(self.quat_a, np.flatnonzero(kept), axis=0))
         return out
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
@@ -368,33 +420,59 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
     cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
     fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b, paths)
-    check_motion(fitter.quat_a, spec, float(np.sqrt(np.max(np.diag(cov_a)[3:6]))))
+    cov_a6 = np.asarray(cov_a, dtype=float).reshape(6, 6)
+    refuse_if_nothing_moved(fitter.pos_a, fitter.quat_a,
+                            np.sqrt(np.max(np.diag(cov_a6).reshape(2, 3), axis=1)))
     keep = np.ones(len(pairs), dtype=bool)
     # outliers are a property of the data: they are found without the prior, which is then
     # tested against the data (verdict.prior_check) instead of pulling pairs out of the fit
     with_priors = not (settings.robust and prior is not None)
     try:
-        # start (closed form, or OLS of a subsample) and fit all pairs: OLS (B.1), TLS (B.2)
-        sol = fitter.solve(keep, start, warm and start is not None, with_priors,
-                           screened=settings.robust)
-        if settings.robust:
-            # reject the pairs far outside the noise, refit the rest (from the last fit)
-            keep, sol = fitter.reject_outliers(sol, max_rejected_share)
-            if prior is not None:  # the prior (B.3) joins the fit of the inliers
-                sol = fitter.solve(keep, sol.params, warm=True,
-                                   inputs=fitter.carried(sol, keep, keep))
+        # start (closed form, or OLS of a subsample), what the motion does not determine held
+        fitted = False
+        if start is None:
+            start, fitted = fitter.start(keep)
+        else:
+            fitter.hold_undetermined(start, keep)
+        # fit all pairs: OLS (B.1), TLS (B.2)
+        sol = fitter.solve(keep, start, warm and not fitted, with_priors,
+                           screened=settings.robust, fitted=fitted)
+        for _ in range(HOLD_ROUNDS):
+            if settings.robust:
+                # reject the pairs far outside the noise, refit the rest (from the last fit)
+                keep, sol = fitter.reject_outliers(sol, max_rejected_share)
+                if prior is not None:  # the prior (B.3) joins the fit of the inliers
+                    sol = fitter.solve(keep, sol.params, warm=True,
+                                       inputs=fitter.carried(sol, keep, keep))
+            # held what the data leave undetermined at the solution, and nothing else? else
+            # hold that and fit all pairs again (the robust rejection starts from all pairs)
+            found = fitter.undetermined_at(sol.params, keep)
+            if found.same_held(fitter.found):
+                break
+            fitter.hold(found, start)
+            every = np.ones(len(pairs), dtype=bool)
+            sol = fitter.solve(every, sol.params, warm=True, with_priors=with_priors,
+                               screened=settings.robust,
+                               inputs=fitter.carried(sol, keep, every))
+            keep = every
     except np.linalg.LinAlgError as e:  # e.g. positions of 1e300 m: SVD does not converge
         raise ConvergenceError(
             f'the numbers do not allow a solution ({e}); check the data for absurd values '
             f'(units, a corrupt sample) with coreg diagnose') from e
     # the verdict's numbers: chi-square (B.4.1), posterior covariance (B.4.2) in ROS layout
-    result = _result(sol, spec, settings, len(pairs))
+    result = _result(sol, spec, settings, len(pairs), fitter.found)
     return replace(result, inliers=keep,
-                   rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep])
+                   rejected_stamps=np.asarray(pairs.stamps, dtype=np.int64)[~keep],
+                   unobservable=observability.report(fitter.found, sol.params,
+                                                     fitter.held_components, prior))
 
 
-def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int) -> CalibrationResult:
-    t0, t1, joint = result_poses(sol.params, sol.cov)
+def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int,
+            found: Undetermined) -> CalibrationResult:
+    published = sol.cov
+    if sol.cov is not None and found.held.shape[1]:
+        published = published_covariance(sol.cov, sol.params, found.held)
+    t0, t1, joint = result_poses(sol.params, published)
     dof = sol.n_rows - spec.n_params
     p_value = float(stats.chi2.sf(sol.chi2, dof)) if dof > 0 else float('nan')
     message = sol.message if sol.cov is not None else (

@@ -1,54 +1,424 @@
 """
-Observability of φ from the whitened Jacobian, and a plain-language account of what is missing.
+What the motion and the prior determine: directions held, said, and carried in the covariance.
 
-The information matrix (JᵀJ for OLS, the Schur complement for TLS) is scaled to unit diagonal;
-eigenvalues below ``RANK_TOLERANCE`` of the largest mark directions the data cannot determine
-at all, and a posterior standard deviation above ``WEAK_POSITION_M`` / ``WEAK_ROTATION_RAD``
-marks directions determined too poorly to be of use. Either way the calibration is refused with
-the parameter direction named and the motion that would fix it.
+Rigs that cannot move in every direction (a SCARA arm turns about one vertical axis, a mobile
+robot moves on a floor, a gantry does not turn, a turntable turns about one fixed axis) leave
+some directions of (T0, T1) undetermined: for yaw-only motion, T1's offset along the rotation
+axis traded against T0's translation along that axis in B's base; for a gantry, T1's position
+against T0's. Everything else is determined, and is estimated.
+
+The directions are found from the information the data carry at the estimate (whitened JᵀJ,
+Ikits B.4.2), in the tangent coordinates ψ of the parameters (T0's position in B's base frame
+m, its rotation about B's base axes rad, the marker position(s) in A's tool frame m, T1's
+rotation about A's tool axes rad; ``tangent_matrix``), scaled to unit diagonal. A direction is
+**undetermined** when its eigenvalue is below ``WEAK_SHARE`` of the largest, or below
+``WOBBLE_FACTOR`` σ²_rot,A of it: the noise of A's orientations makes the measured (and, for
+TLS, the estimated) inputs wobble about the axes the tool does not turn about, which lends
+spurious information of about 0.04 σ²_rot,A to exactly those directions, while a real rotation
+of s rad RMS about a second axis gives about 0.11 s² (measured on SCARA motion: 1e-8 for the
+noise of 0.2 mrad, 4.6e-5 for a 0.02 rad rotation; free motion 5e-3 and more). The threshold
+1e-5 is what a rotation of about 0.5° RMS about a second axis gives.
+
+An undetermined direction that a prior determines (its variance along it below
+``PRIOR_VARIANCE``) is estimated with the prior (``by: prior``). The others are **held**
+(``by: held``): the fit holds, per direction, the parameter component that dominates it at the
+closed-form start's value (a gauge: an internal prior far tighter than the data on that
+component alone, ``hold_prior``), so that the observable part is estimated as if the direction
+did not exist: its posterior covariance is exact, the same for any choice of the held
+component. Every published covariance carries ``UNKNOWN_VARIANCE`` along a held direction
+(``published_covariance``).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Optional
+
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import UnobservableError
-from coreg_ros.core.models import Parameters, tangent_of_chart
+from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.models import Parameters, S0, S1, tangent_of_chart
+from coreg_ros.core.types import UncertainPose, Unobservable
 import numpy as np
 
-RANK_TOLERANCE = 1e-10
-WEAK_POSITION_M = 0.1
-WEAK_ROTATION_RAD = 0.1
+#: A direction whose information is below this share of the best-determined one's is
+#: undetermined (about what a 0.5° RMS rotation about a second tool axis gives).
+WEAK_SHARE = 1e-5
+#: ... or below this many σ²_rot,A of it (A's orientation noise lends ~0.04 σ² there).
+WOBBLE_FACTOR = 3.0
+#: Variance (m² or rad²) along a held direction in every published covariance. ROS consumers
+#: read a large variance as unknown (σ 100 m or 100 rad: no filter will trust it); unlike the
+#: -1 that marks a component the model does not have at all, it keeps the matrix positive
+#: definite, so whoever inverts it (a filter, a prior of the next calibration) can.
+UNKNOWN_VARIANCE = 1e4
+#: A prior determines an undetermined direction when its variance along it is below this
+#: (σ 10 m or 10 rad); a previous result's unknown directions (UNKNOWN_VARIANCE) do not.
+PRIOR_VARIANCE = 1e2
+#: The held component is pinned this much tighter than the data determine it (the gauge
+#: dominates the spurious information along the direction by far, and the information matrix
+#: stays well conditioned).
+HOLD_TIGHTNESS = 1e-3
 #: Rotation spread (rad, RMS about a principal axis) below which the tool counts as not turning.
 STILL_RAD = 0.02
+#: Translation (m, RMS) below which the tool counts as not moving (or 10 σ of A's position).
+STILL_M = 1e-3
 #: Orientations the motion check reads at most (every k-th, so the whole recording is seen):
-#: an RMS spread from 100k of them is within ~0.2 % (1/√(2n)) of that of all, far inside the
-#: margins of the limits, and a million-pair recording is checked in a tenth of the time.
+#: an RMS spread from 100k of them is within ~0.2 % (1/√(2n)) of that of all.
 MOTION_SAMPLE = 100_000
 
-_BLOCK_NAMES = {
-    'p0': 'base-to-base translation',
-    's0': 'base-to-base rotation',
-    's1': 'tool-to-marker rotation',
-}
+#: The 12 components of (T0, T1) in the covariance's layout: (block, axis, unit).
+COMPONENTS = tuple((block, axis, unit) for block, unit in
+                   (('base_to_base position', 'm'), ('base_to_base rotation', 'rad'),
+                    ('tool_to_marker position', 'm'), ('tool_to_marker rotation', 'rad'))
+                   for axis in 'xyz')
+_FRAMES = {'base_to_base position': "B's base frame", 'base_to_base rotation': "B's base axes",
+           'tool_to_marker position': "A's tool frame",
+           'tool_to_marker rotation': "A's tool axes"}
+_SHORT = {'base_to_base position': "T0's translation", 'base_to_base rotation': "T0's rotation",
+          'tool_to_marker position': "T1's position", 'tool_to_marker rotation': "T1's rotation"}
 
 
-def _blocks(params: Parameters) -> dict:
-    spec = params.spec
-    out = {'p0': slice(0, 3), 's0': slice(3, 6)}
-    for j in range(spec.n_markers):
-        out[f'p{j + 1}'] = spec.marker_slice(j)
+# ----------------------------------------------------------------------------- coordinates
+
+def tangent_matrix(params: Parameters) -> np.ndarray:
+    """
+    T with δψ = T δφ: chart steps of the reduced quaternions to rotations (``tangent_of_chart``).
+
+    ψ has φ's layout: positions unchanged, each rotation block the small rotation δθ with
+    ``q ← Exp(δθ) ⊗ q`` (about the fixed axes of the frame the pose is expressed in).
+
+    Returns
+    -------
+    ndarray, shape (P, P)
+
+    """
+    T = np.eye(params.spec.n_params)
+    T[S0, S0] = tangent_of_chart(params.q0, params.dq0)
+    if params.spec.has_q1:
+        T[S1, S1] = tangent_of_chart(params.q1, params.dq1)
+    return T
+
+
+def in_tangent(info: np.ndarray, params: Parameters) -> np.ndarray:
+    """Information of φ (P×P, chart coordinates) in the tangent coordinates ψ."""
+    T_inv = np.linalg.inv(tangent_matrix(params))
+    out = T_inv.T @ info @ T_inv
+    return 0.5 * (out + out.T)
+
+
+def pose_layout(u: np.ndarray, spec) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """
+    Return a ψ direction in the (T0, T1) layout of the covariance (12,), and the markers' (9,).
+
+    T1's rotation rows are zero where the model has no q1; for three markers T1 is marker 1
+    and all three markers' positions are returned beside (else None).
+    """
+    out = np.zeros(12)
+    out[0:9] = u[0:9]
     if spec.has_q1:
-        out['s1'] = slice(9, 12)
-    return out
+        out[9:12] = u[9:12]
+    markers = u[6:15].copy() if spec.n_markers == 3 else None
+    return out, markers
 
 
-def _block_name(key: str, n_markers: int) -> str:
-    if key in _BLOCK_NAMES:
-        return _BLOCK_NAMES[key]
-    if n_markers == 1:
-        return 'tool-to-marker translation'
-    return f'marker {key[1]} position'
+# ----------------------------------------------------------------------------- the analysis
 
+@dataclass(frozen=True)
+class Undetermined:
+    """
+    The directions of ψ the data leave undetermined at an estimate.
+
+    Attributes
+    ----------
+    held : ndarray, shape (P, k)
+        Orthonormal directions (ψ coordinates) no prior determines: the fit holds them.
+    by_prior : ndarray, shape (P, j)
+        Orthonormal directions a prior determines.
+    scale : ndarray, shape (P,)
+        √ of the data information's diagonal in ψ (how well each component alone is known).
+
+    """
+
+    held: np.ndarray
+    by_prior: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def empty(self) -> bool:
+        """Tell whether the data determine every direction."""
+        return self.held.shape[1] + self.by_prior.shape[1] == 0
+
+    def same_held(self, other: Undetermined, degrees: float = 1.0) -> bool:
+        """Tell whether ``other`` holds the same subspace (principal angles below ``degrees``)."""
+        if self.held.shape != other.held.shape:
+            return False
+        if self.held.shape[1] == 0:
+            return True
+        cosines = np.linalg.svd(self.held.T @ other.held, compute_uv=False)
+        return bool(cosines.min() >= np.cos(np.radians(degrees)))
+
+
+def undetermined(data_info: np.ndarray, prior_info: Optional[np.ndarray], params: Parameters,
+                 sigma_rot_a: float) -> Undetermined:
+    """
+    Find the directions the data leave undetermined, and which of them a prior determines.
+
+    Parameters
+    ----------
+    data_info : ndarray, shape (P, P)
+        Information of φ from the pairs alone (whitened JᵀJ; the TLS Schur complement), chart
+        coordinates.
+    prior_info : ndarray, shape (P, P), optional
+        Information of φ from the user's prior rows (None: no prior).
+    params : Parameters
+        The estimate the information is taken at.
+    sigma_rot_a : float
+        Device A's rotation noise, rad (the wobble it lends, ``WOBBLE_FACTOR``).
+
+    Returns
+    -------
+    Undetermined
+
+    """
+    P = params.spec.n_params
+    info = in_tangent(data_info, params)
+    d = np.sqrt(np.clip(np.diag(info), 0.0, None))
+    scale = np.where(d > 0, d, 1.0)
+    w, V = np.linalg.eigh(info / np.outer(scale, scale))
+    limit = max(WEAK_SHARE, WOBBLE_FACTOR * sigma_rot_a ** 2) * max(w[-1], 0.0)
+    weak = w <= limit
+    if not weak.any():
+        return Undetermined(np.zeros((P, 0)), np.zeros((P, 0)), d)
+    # back to ψ (an undetermined direction v of the scaled matrix is D⁻¹v in ψ), orthonormal
+    U, _ = np.linalg.qr(V[:, weak] / scale[:, None])
+    if prior_info is None:
+        return Undetermined(U, np.zeros((P, 0)), d)
+    # the prior's information restricted to the undetermined subspace, by its own axes
+    m = U.T @ in_tangent(prior_info, params) @ U
+    pw, pv = np.linalg.eigh(0.5 * (m + m.T))
+    determined = pw >= 1.0 / PRIOR_VARIANCE
+    return Undetermined(U @ pv[:, ~determined], U @ pv[:, determined], d)
+
+
+def refuse_if_nothing_moved(pos_a: np.ndarray, quat_a: np.ndarray, sigma_a) -> None:
+    """
+    Refuse a recording from which nothing can be estimated: device A's tool did not move.
+
+    Any motion determines something (a gantry's translations give T0's rotation; a SCARA's yaw
+    gives all but one direction); a tool that neither turned (rotation spread below
+    ``STILL_RAD`` or 5 σ_rot,A) nor moved (translation RMS below ``STILL_M`` or 10 σ_pos,A)
+    determines only the composite T0 · T_A · T1, not the two transforms.
+
+    Parameters
+    ----------
+    pos_a : ndarray, shape (N, 3)
+        A's tool positions, m.
+    quat_a : ndarray, shape (N, 4)
+        A's tool orientations.
+    sigma_a : (float, float)
+        Device A's noise (position m, rotation rad).
+
+    """
+    step = max(1, len(quat_a) // MOTION_SAMPLE)
+    spread, _ = rotation_spread(quat_a[::step])
+    pos = pos_a[::step]
+    moved = float(np.sqrt(np.mean(np.sum((pos - pos.mean(axis=0)) ** 2, axis=1))))
+    still_rot = max(STILL_RAD, 5.0 * float(sigma_a[1]))
+    still_pos = max(STILL_M, 10.0 * float(sigma_a[0]))
+    if spread[0] < still_rot and moved < still_pos:
+        lost = ['T0 and T1 apart: only their composite T0 · T_A · T1 is determined']
+        raise UnobservableError(
+            f"device A's tool did not move ({np.degrees(spread[0]):.2f}° RMS rotation, "
+            f'{moved * 1e3:.2f} mm RMS translation; noise-level limits '
+            f'{np.degrees(still_rot):.2f}°, {still_pos * 1e3:.2f} mm): nothing can be '
+            f'estimated, {lost[0]}; move and rotate the tool while recording', directions=lost)
+
+
+# ----------------------------------------------------------------------------- holding
+
+def _held_components(held: np.ndarray, spec) -> list:
+    """
+    Choose the component (index of ψ in the (T0, T1) layout) that pins each held direction.
+
+    Per direction, greedily, the one it moves most (T1's components preferred, weighted 2×:
+    a lever length is what a user can measure), after the directions already pinned are
+    taken out of it, so that the pinned components determine the held subspace.
+    """
+    allowed = np.zeros(spec.n_params, dtype=bool)
+    allowed[0:9] = True
+    if spec.has_q1:
+        allowed[9:12] = True
+    weight = np.where(np.arange(spec.n_params) >= 6, 2.0, 1.0) * allowed
+    chosen = []
+    basis = held.copy()
+    for k in range(held.shape[1]):
+        col = basis[:, k]
+        i = int(np.argmax(np.abs(col) * weight * ~np.isin(np.arange(len(col)), chosen)))
+        chosen.append(i)
+        # the later directions no longer move component i (they are combined to cancel it)
+        if abs(col[i]) > 0:
+            for j in range(k + 1, held.shape[1]):
+                basis[:, j] -= basis[i, j] / col[i] * col
+    return chosen
+
+
+def by_component(held: np.ndarray, components: list) -> np.ndarray:
+    """
+    Turn a held basis so that direction k moves pinned component k alone (of the pinned ones).
+
+    The same subspace, said per pinned component ("T1's position along x together with ..."),
+    each direction of unit length (no longer orthogonal to each other).
+    """
+    basis = held @ np.linalg.inv(held[components, :])
+    return basis / np.linalg.norm(basis, axis=0)
+
+
+def hold_prior(found: Undetermined, start: Parameters) -> tuple[Optional[Prior], list]:
+    """
+    Build the gauge that holds the undetermined directions: a prior on one component each.
+
+    Each held direction is pinned by the component of the (T0, T1) layout it moves most
+    (``_held_components``), at ``start``'s value, with σ ``HOLD_TIGHTNESS`` times what the data
+    alone give that component. The observable part's estimate and covariance do not depend
+    on which component pins a direction (the direction carries no information).
+
+    Returns
+    -------
+    prior : Prior or None
+        None when nothing is held.
+    components : list of int
+        The pinned components (indices of the 12-layout), one per held direction.
+
+    """
+    if found.held.shape[1] == 0:
+        return None, []
+    components = _held_components(found.held, start.spec)
+    var = np.full(12, np.inf)
+    for i in components:
+        var[i] = (HOLD_TIGHTNESS / found.scale[i]) ** 2 if found.scale[i] > 0 else 1e-18
+    t0 = UncertainPose(start.p0.copy(), quat.canonical(start.q0), np.diag(var[0:6]))
+    t1 = UncertainPose(start.markers[0].copy(), quat.canonical(start.q1), np.diag(var[6:12]))
+    use_t0, use_t1 = np.isfinite(var[0:6]).any(), np.isfinite(var[6:12]).any()
+    return Prior(t0 if use_t0 else None, t1 if use_t1 else None), components
+
+
+def published_covariance(cov: np.ndarray, params: Parameters, held: np.ndarray) -> np.ndarray:
+    """
+    Return φ's covariance with every held direction unknown (observable part + UNKNOWN_VARIANCE).
+
+    The fit's covariance (the gauge's tight component included) is projected onto the
+    complement of the held directions in ψ, which is the observable part whatever component
+    pinned them, and ``UNKNOWN_VARIANCE`` is put along each held direction.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (P, P)
+        Posterior covariance of φ from the fit with the gauge (chart coordinates).
+    params : Parameters
+        The estimate.
+    held : ndarray, shape (P, k)
+        Orthonormal held directions in ψ.
+
+    Returns
+    -------
+    ndarray, shape (P, P)
+        Chart coordinates, like ``cov``.
+
+    """
+    T = tangent_matrix(params)
+    c = T @ cov @ T.T
+    proj = np.eye(len(c)) - held @ held.T
+    c = proj @ c @ proj + UNKNOWN_VARIANCE * (held @ held.T)
+    T_inv = np.linalg.inv(T)
+    out = T_inv @ c @ T_inv.T
+    return 0.5 * (out + out.T)
+
+
+# ----------------------------------------------------------------------------- words
+
+def _axis_words(v: np.ndarray) -> str:
+    """'z' for a coordinate axis (within 3°), else the unit vector."""
+    v = v / (np.linalg.norm(v) or 1.0)
+    k = int(np.argmax(np.abs(v)))
+    if abs(v[k]) > np.cos(np.radians(3.0)):
+        return ('-' if v[k] < 0 else '') + 'xyz'[k]
+    return f'[{v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}]'
+
+
+def describe(u12: np.ndarray) -> tuple[str, str]:
+    """
+    Say a direction of the (T0, T1) layout in words, and what would determine it.
+
+    Returns
+    -------
+    description : str
+        E.g. "T1's position along z (A's tool frame) together with T0's translation along
+        [0.10, -0.20, 0.97] (B's base frame)".
+    determine : str
+        A partial prior (a measured lever, a known orientation) or the motion that shows it.
+
+    """
+    blocks = [(COMPONENTS[3 * b][0], u12[3 * b:3 * b + 3]) for b in range(4)]
+    size = max(np.linalg.norm(v) for _, v in blocks) or 1.0
+    parts = [(name, v) for name, v in blocks if np.linalg.norm(v) >= 0.2 * size]
+    parts.sort(key=lambda p: not p[0].startswith('tool_to_marker'))  # the tool side first
+    words = [f'{_SHORT[name]} {"about" if "rotation" in name else "along"} {_axis_words(v)} '
+             f'({_FRAMES[name]})' for name, v in parts]
+    description = ' together with '.join(words)
+    first, v = parts[0]
+    axis = _axis_words(v)
+    if 'position' in first:
+        prior = (f'a measured lever: a partial prior on {_SHORT[first]} along {axis} '
+                 f'(--prior with sigma per axis)')
+    else:
+        prior = (f'a known orientation: a partial prior on {_SHORT[first]} about {axis} '
+                 f'(--prior with sigma per axis; --gravity-aligned when both bases are z up)')
+    motion = ('or rotating the tool about a second axis while recording'
+              if 'rotation' not in first else 'or rotating the tool about more axes')
+    return description, f'{prior}, {motion}'
+
+
+def report(found: Undetermined, params: Parameters, components: list,
+           prior: Optional[Prior]) -> tuple:
+    """
+    Return the undetermined directions as ``types.Unobservable`` records, held ones first.
+
+    Parameters
+    ----------
+    found : Undetermined
+        The analysis at the estimate.
+    params : Parameters
+        The estimate (for the values held).
+    components : list of int
+        The component pinning each held direction (``hold_prior``).
+    prior : Prior, optional
+        The user's prior (for the values it holds the prior-determined directions at).
+
+    """
+    spec = params.spec
+    rotvec = np.concatenate([quat.log(quat.canonical(params.q0)),
+                             quat.log(quat.canonical(params.q1))])
+    values = np.concatenate([params.p0, rotvec[0:3], params.markers[0], rotvec[3:6]])
+    out = []
+    held = by_component(found.held, components) if components else found.held
+    for kind, basis in (('held', held), ('prior', found.by_prior)):
+        for k in range(basis.shape[1]):
+            u12, markers = pose_layout(basis[:, k], spec)
+            norm = np.linalg.norm(u12) or 1.0
+            u12 = u12 / norm
+            u12 *= np.sign(u12[np.argmax(np.abs(u12))])  # a sign users can compare
+            description, determine = describe(u12)
+            i = components[k] if kind == 'held' else int(np.argmax(np.abs(u12)))
+            block, axis, unit = COMPONENTS[i]
+            held_at = {'component': f'{block} {axis}', 'value': float(values[i]), 'unit': unit,
+                       'from': 'the closed-form start' if kind == 'held' else 'the prior'}
+            out.append(Unobservable(direction=u12, description=description, by=kind,
+                                    held_at=held_at, determine=determine,
+                                    markers=None if markers is None else markers / norm))
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------- motion
 
 def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
@@ -94,143 +464,3 @@ def rotation_spread(quat_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     proj = rotvecs @ vt.T
     sv = np.sqrt(np.einsum('ij,ij->j', proj, proj) / len(rotvecs))
     return sv, vt
-
-
-def _still_limit(sigma_rot_a: float) -> float:
-    """Rotation spread (rad) that is indistinguishable from no rotation at A's noise level."""
-    return max(STILL_RAD, 5.0 * sigma_rot_a)
-
-
-def describe_motion(quat_a: np.ndarray, sigma_rot_a: float = 0.0) -> str:
-    """One phrase on what the rotation of device A's tool lacks."""
-    spread, axes = rotation_spread(quat_a)
-    still = _still_limit(sigma_rot_a)
-    if spread[0] < still:
-        return (f"device A's tool hardly rotated ({np.degrees(spread[0]):.1f}° RMS): rotate it "
-                'about at least two different axes while recording')
-    if spread[1] < max(still, 0.1 * spread[0]):
-        a = axes[0]
-        return (f'rotation about only one axis (tool axis [{a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}]): '
-                f'rotate about a second axis')
-    deg = np.degrees(spread)
-    return (f'the recorded rotations (RMS {deg[0]:.1f}°, {deg[1]:.1f}°, {deg[2]:.1f}° about the '
-            f'principal axes) are too small or too few: rotate the tool more widely about all '
-            f'three axes')
-
-
-def check_motion(quat_a: np.ndarray, spec, sigma_rot_a: float) -> None:
-    """
-    Refuse motion whose rotations leave parameters unobservable, before any fitting.
-
-    Rotation about a single tool axis hides the marker offset(s) along that axis (their
-    rotated image is constant, absorbed by p0); no rotation at all also hides the split of
-    orientation between T0 and T1. Variation at the level of A's rotation noise is no
-    rotation: under OLS it would lend spurious information to exactly those directions.
-
-    Parameters
-    ----------
-    quat_a : ndarray, shape (N, 4)
-        A's tool orientations.
-    spec : ModelSpec
-        The measurement model.
-    sigma_rot_a : float
-        Device A's rotation noise, rad.
-
-    """
-    spread, axes = rotation_spread(quat_a[::max(1, len(quat_a) // MOTION_SAMPLE)])
-    still = _still_limit(sigma_rot_a)
-    one = spec.n_markers == 1
-    offsets = 'tool-to-marker translation' if one else 'the marker positions in the tool frame'
-    verb = 'is' if one else 'are'
-    if spread[0] < still:
-        lost = [f'{offsets} {verb} unobservable']
-        if spec.has_q1:
-            lost.append('the rotation split between base-to-base and tool-to-marker is '
-                        'unobservable')
-        raise UnobservableError(
-            f"device A's tool hardly rotated ({np.degrees(spread[0]):.2f}° RMS, noise-level "
-            f"limit {np.degrees(still):.2f}°): {'; '.join(lost)}; rotate the tool about at "
-            f'least two different axes while recording', directions=lost)
-    if spread[1] < still:
-        a = axes[0]
-        lost = [f'{offsets} along that axis {verb} unobservable']
-        raise UnobservableError(
-            f'rotation about only one axis (tool axis [{a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}], '
-            f'{np.degrees(spread[1]):.2f}° RMS about any other): {lost[0]}; rotate about a '
-            f'second axis', directions=lost)
-
-
-def check_observability(info: np.ndarray, params: Parameters, quat_a: np.ndarray) -> None:
-    """
-    Refuse (UnobservableError) when the data leave a direction of φ undetermined.
-
-    Parameters
-    ----------
-    info : ndarray, shape (P, P)
-        Information matrix of φ (whitened JᵀJ or the TLS Schur complement).
-    params : Parameters
-        The estimate (for the units of the rotation coordinates).
-    quat_a : ndarray, shape (N, 4)
-        Device A's tool orientations, to explain which motion is missing.
-
-    """
-    spec = params.spec
-    blocks = _blocks(params)
-    d = np.sqrt(np.clip(np.diag(info), 0.0, None))
-    problems = []
-    if (d == 0).any():
-        scaled = np.eye(len(d))
-    else:
-        scaled = info / np.outer(d, d)
-    w, V = np.linalg.eigh(scaled)
-    for k in np.flatnonzero(w <= RANK_TOLERANCE * w[-1]):
-        u = V[:, k] / np.where(d > 0, d, 1.0)
-        problems.append(_direction_phrase(u, blocks, spec.n_markers, params, 'unobservable'))
-    if not problems and (d > 0).all():
-        cov = np.linalg.inv(info)
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        for key, sl in blocks.items():
-            if key.startswith('p'):
-                worst = float(sd[sl].max())
-                if worst > WEAK_POSITION_M:
-                    problems.append(
-                        f'{_block_name(key, spec.n_markers)} is barely observable '
-                        f'(σ = {worst:.2g} m)')
-            else:
-                q, dq = (params.q0, params.dq0) if key == 's0' else (params.q1, params.dq1)
-                G = tangent_of_chart(q, dq)
-                c = G @ cov[sl, sl] @ G.T
-                worst = float(np.sqrt(max(np.linalg.eigvalsh(c).max(), 0.0)))
-                if worst > WEAK_ROTATION_RAD:
-                    problems.append(
-                        f'{_block_name(key, spec.n_markers)} is barely observable '
-                        f'(σ = {np.degrees(worst):.2g}°)')
-    if (d == 0).any():
-        for key, sl in blocks.items():
-            if (d[sl] == 0).any():
-                problems.append(f'{_block_name(key, spec.n_markers)} is unobservable')
-    if problems:
-        unique = list(dict.fromkeys(problems))
-        raise UnobservableError(
-            f'{describe_motion(quat_a)}; {"; ".join(unique)}', directions=unique)
-
-
-def _direction_phrase(u: np.ndarray, blocks: dict, n_markers: int, params: Parameters,
-                      what: str) -> str:
-    """Name the parameter block that dominates a null direction and the axis along it."""
-    weights = {key: float(np.linalg.norm(u[sl])) for key, sl in blocks.items()}
-    # a translation of T1 along the axis is what single-axis rotation cannot see; prefer
-    # naming the tool-side block, whose direction is meaningful in the tool frame
-    key = max(weights, key=lambda k: (weights[k] * (2.0 if k not in ('p0', 's0') else 1.0)))
-    v = u[blocks[key]]
-    v = v / (np.linalg.norm(v) or 1.0)
-    if key.startswith('s'):
-        q, dq = (params.q0, params.dq0) if key == 's0' else (params.q1, params.dq1)
-        v = tangent_of_chart(q, dq) @ v
-        v = v / (np.linalg.norm(v) or 1.0)
-        frame = "B's base frame" if key == 's0' else 'the tool frame'
-        return (f'{_block_name(key, n_markers)} about axis [{v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}] '
-                f'({frame}) is {what}')
-    frame = "B's base frame" if key == 'p0' else 'the tool frame'
-    return (f'{_block_name(key, n_markers)} along [{v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}] '
-            f'({frame}) is {what}')

@@ -60,6 +60,16 @@ def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.nda
     return H, g, cost
 
 
+def information(problem: Problem, params: Parameters) -> np.ndarray:
+    """
+    Return the whitened JᵀJ of the problem at φ (its priors included), shape (P, P).
+
+    One pass over the pairs (``_ols_normal``): what OLS would take as the posterior information
+    at ``params``, e.g. to see which directions the data determine before a fit.
+    """
+    return _ols_normal(problem, params)[0]
+
+
 def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
               normal: Optional[NormalEquations] = None) -> Solution:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.calibration.observability import check_motion
+from coreg_ros.core.calibration.observability import refuse_if_nothing_moved
 from coreg_ros.core.errors import InputError, UnobservableError
 from coreg_ros.core.live.guidance.feed import PairBatch
 from coreg_ros.core.live.guidance.fisher import (
@@ -34,7 +34,6 @@ from coreg_ros.core.live.guidance.keys import (
     KEY_WORST_RATIO,
 )
 from coreg_ros.core.live.guidance.motions import candidate_motions
-from coreg_ros.core.models import SPECS
 from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import MODELS
 import numpy as np
@@ -219,7 +218,7 @@ class GuidanceAccumulator:
             raise InputError('target_sigma_time must be > 0 (or None)')
         self.model = model
         self.cov_a, self.cov_b = device_covariances(model, sigma_a, sigma_b)
-        self.sigma_rot_a = float(sigma_a[1])
+        self.sigma_pos_a, self.sigma_rot_a = float(sigma_a[0]), float(sigma_a[1])
         self.targets = (float(target_sigma_position), float(target_sigma_rotation),
                         None if target_sigma_time is None else float(target_sigma_time))
         self.with_time = bool(estimate_time_offset)
@@ -339,8 +338,9 @@ class GuidanceAccumulator:
         if self._n_store and not self._motion_ok:
             try:
                 # the store is an even sample of the motion: enough to judge its rotations
-                check_motion(np.concatenate(self._store)[:, 3:7], SPECS[self.model],
-                             self.sigma_rot_a)
+                stored = np.concatenate(self._store)
+                refuse_if_nothing_moved(stored[:, 0:3], stored[:, 3:7],
+                                        (self.sigma_pos_a, self.sigma_rot_a))
                 self._motion_ok = True
             except UnobservableError as e:
                 determined, reason = False, str(e).split(':')[0]
