@@ -35,11 +35,16 @@ def format_time_offset(timing) -> str:
     return line
 
 
-def format_pose(name: str, meaning: str, pose, rotation_known: bool = True) -> str:
-    """Pose with 1σ uncertainties: position in m (σ in mm), orientation (σ in degrees)."""
+def format_pose(name: str, meaning: str, pose, rotation_known: bool = True,
+                cov=None) -> str:
+    """
+    Pose with 1σ uncertainties: position in m (σ in mm), orientation (σ in degrees).
+
+    ``cov`` (6×6), when given, is the covariance the σ are taken from instead of the pose's.
+    """
     lines = [f'{name}  ({meaning})']
     p = pose.position
-    cov = pose.covariance
+    cov = pose.covariance if cov is None else cov
     sd = None if cov is None else np.sqrt(np.clip(np.diag(cov), 0.0, None))
     pos = f'  position     [{p[0]: .6f}, {p[1]: .6f}, {p[2]: .6f}] m'
     if sd is not None:
@@ -57,6 +62,36 @@ def format_pose(name: str, meaning: str, pose, rotation_known: bool = True) -> s
     else:
         lines.append('  orientation  not estimated by this model (covariance marked -1)')
     return '\n'.join(lines)
+
+
+def determined_covariance(result):
+    """
+    Return the joint 12×12 covariance of the part the motion determines (None: none held).
+
+    The published covariance less what it says along the held directions: its orthogonal
+    projection onto their complement. The σ printed per axis are this part's; the held
+    directions are said on their own lines (``format_unobservable``).
+    """
+    held = [u.direction for u in result.unobservable if u.by == 'held']
+    if not held or result.cov_joint is None:
+        return None
+    q, _ = np.linalg.qr(np.array(held, dtype=float).T)
+    proj = np.eye(12) - q @ q.T
+    out = proj @ np.asarray(result.cov_joint, dtype=float) @ proj
+    unknown = np.diag(result.cov_joint) < 0  # components the model does not have stay -1
+    out[unknown, unknown] = np.diag(result.cov_joint)[unknown]
+    return out
+
+
+def format_unobservable(u) -> str:
+    """One line on a direction the motion does not determine (``types.Unobservable``)."""
+    at = u.held_at
+    value = (f'{at["value"]:.6f} m' if at['unit'] == 'm' else
+             f'{np.degrees(at["value"]):.4f}° (rotation vector)')
+    if u.by == 'held':
+        return (f'unobservable: {u.description}: held at {at["component"]} = {value} '
+                f'({at["from"]}), variance marked unknown; to determine it: {u.determine}')
+    return f'determined by the prior only: {u.description} ({at["component"]} = {value})'
 
 
 def format_result(result, report=None) -> str:
@@ -83,14 +118,22 @@ def format_result(result, report=None) -> str:
         out.append(f"prior: chi2 = {pc['chi2']:.2f} for {pc['dof']} dof, p = "
                    f"{pc['p_value']:.3g}: {'agrees' if pc['consistent'] else 'DISAGREES'} "
                    f'with the data')
+    determined = determined_covariance(result)
+    blocks = (None, None) if determined is None else (determined[0:6, 0:6],
+                                                      determined[6:12, 6:12])
     out.append(format_pose('base_to_base', "pose of device A's base frame in device B's base "
-                           'frame', result.base_to_base))
+                           'frame', result.base_to_base, cov=blocks[0]))
     out.append(format_pose('tool_to_marker', "pose of device B's marker in device A's tool "
-                           'frame', result.tool_to_marker, result.model == 'full_pose'))
+                           'frame', result.tool_to_marker, result.model == 'full_pose',
+                           cov=blocks[1]))
     if result.model == 'three_marker':
         for j, m in enumerate(result.markers):
             out.append(f'  marker {j + 1} in the tool frame [{m[0]: .6f}, {m[1]: .6f}, '
                        f'{m[2]: .6f}] m')
+    out += [format_unobservable(u) for u in result.unobservable]
     out.append('σ are 1-sigma posterior standard deviations (Ikits B.4.2); the covariance '
                'layout is geometry_msgs/PoseWithCovariance (x y z, rotation about x y z).')
+    if determined is not None:
+        out.append('with directions held (unobservable above), the σ are those of the part the '
+                   'motion determines; the published covariances are unknown along them')
     return '\n'.join(out)

@@ -15,7 +15,9 @@ Layout (relied upon by checks)::
      "base_to_base": {"position": [x, y, z], "orientation": {"w", "x", "y", "z"},
                       "covariance": [36 numbers, ROS row-major layout]},
      "tool_to_marker": {same},
-     "markers": [[x, y, z], ...]}
+     "markers": [[x, y, z], ...],
+     "unobservable": [{"direction": [12 numbers], "description", "held_at", "by", "determine"}]
+                     (the directions the motion does not determine: empty for a free rig)}
 
 ``base_to_base`` is T_bbase_abase (A's base frame in B's base frame); ``tool_to_marker`` is
 T_atool_bmarker (B's marker frame in A's tool frame).
@@ -99,6 +101,7 @@ def result_to_dict(result: CalibrationResult) -> dict:
                                   ('tool_to_marker', result.tool_to_marker))}}
     if result.prior_check is not None:
         out['prior_check'] = dict(result.prior_check)
+    out['unobservable'] = [u.as_dict() for u in result.unobservable]
     return out
 
 

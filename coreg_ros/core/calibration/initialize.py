@@ -6,9 +6,12 @@ All solves are O(N) accumulations into small matrices followed by an SVD:
 - full pose: rotations from ``R0 R_Ai = R_Bi R1ᵀ``, a bilinear problem whose relaxed solution
   is the top singular pair of a 9×9 matrix (the Kronecker form of the rotation equations),
   each factor projected onto SO(3); then p0, p1 by linear least squares. When the tool turns
-  about one axis or not at all (a SCARA arm, a gantry), the rotations alone leave R0 open
-  along a family (the top singular value is not unique): R0 then comes from the positions,
-  as for position only, and R1 from the rotations given R0;
+  about one axis or not at all (a SCARA arm, a turntable, a gantry), the rotations alone
+  leave R0 open along a family (the top singular value is not unique). About one axis a (A's
+  base frame), B's rotations turn about b = R0 a: R0 is the rotation taking a to b, then
+  about b by the angle whose linear least squares of the positions fit best (a search over
+  the circle); without rotation R0 comes from the positions, as for position only; R1 from
+  the rotations given R0;
 - position only: a linear lifting ``p_B = p0 + R0 p_A + G vec(R_A)`` with G = R0 ⊗ p1ᵀ
   (13 regressors per axis), R0 projected onto SO(3), then p0, p1 by linear least squares;
 - three markers: the lifting per marker, the R0 estimates averaged on SO(3), then p0 and the
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.models import ModelSpec, Parameters
+from coreg_ros.core.so3 import skew
 import numpy as np
 
 
@@ -113,6 +117,71 @@ def _lifted_rotation(Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray) -> np
     return project_to_so3(theta[1:4].T)
 
 
+#: Angles tried about the rotation axis when the rotations leave R0 open about it (0.1°; the
+#: fit refines).
+AXIS_ANGLES = 3600
+#: Rotation (rad, RMS about the principal axis) below which the tool counts as not turning.
+TURNING_RAD = 0.02
+
+
+def _principal_axis(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return the axis (base frame) rotations R (N, 3, 3) turn about most, and the angles about it.
+
+    From the rotation vectors of ``R_i R_refᵀ`` (ref: the first), centred; the angles are their
+    projections on the axis, so two such series can be compared for sign.
+    """
+    rel = quat.log(quat.from_matrix(R @ R[0].T))  # base-frame rotation vectors
+    rel = rel - rel.mean(axis=0)
+    _, _, vt = np.linalg.svd(rel, full_matrices=False)
+    return vt[0], rel @ vt[0]
+
+
+def _rotation_taking(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return the smallest rotation taking unit vector a to unit vector b (Rodrigues)."""
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    if c < -1.0 + 1e-12:  # opposite: half a turn about any axis orthogonal to a
+        ortho = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        ortho /= np.linalg.norm(ortho)
+        return 2.0 * np.outer(ortho, ortho) - np.eye(3)
+    vx = skew(v)
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def _axis_aligned_r0(Ra: np.ndarray, Rb: np.ndarray, pos_a: np.ndarray,
+                     pos_b: np.ndarray) -> np.ndarray:
+    """
+    R0 when the tool turns about one axis only (the rotations determine R0 up to that axis).
+
+    ``R_Bi R_Bjᵀ = R0 (R_Ai R_Ajᵀ) R0ᵀ``: B turns about b = R0 a, so R0 = Rot(b, φ) · R_ab
+    (R_ab takes a to b). φ is the angle whose linear least squares of p0 and p1 leaves the
+    smallest position residual. In A's base frame the residual of pair i is
+    ``y_i(φ) - R0ᵀp0 - R_Ai p1`` with ``y_i(φ) = R0ᵀ p_Bi - p_Ai``: the regressors do not
+    depend on φ, and ``y(φ) = u0 + cos φ u1 + sin φ u2`` (Rodrigues), so the least squares
+    residual is the quadratic form ``vᵀ G v`` of v = (1, cos φ, sin φ) with the 3×3 G of
+    the u's projected off the regressors: one pass over the pairs, then ``AXIS_ANGLES``
+    angles for nothing. Where the positions do not determine φ either (a turntable), any
+    angle is as good, and the fit holds that direction.
+    """
+    a, angle_a = _principal_axis(Ra)
+    b, angle_b = _principal_axis(Rb)
+    if np.dot(angle_a, angle_b) < 0:  # the two axes' signs must turn the same way
+        b = -b
+    base = _rotation_taking(a, b)
+    bx = skew(b)
+    # y(φ) = baseᵀ Rot(b, -φ) p_B - p_A, Rot(b, -φ) = (I + B²) - cos φ B² - sin φ B
+    u = np.stack([pos_b @ (base.T @ (np.eye(3) + bx @ bx)).T - pos_a,
+                  -pos_b @ (base.T @ bx @ bx).T, -pos_b @ (base.T @ bx).T])  # (3, N, 3)
+    n = len(Ra)
+    xtx = np.block([[n * np.eye(3), Ra.sum(axis=0)], [Ra.sum(axis=0).T, n * np.eye(3)]])
+    xtu = np.concatenate([u.sum(axis=1), np.einsum('nji,knj->ki', Ra, u)], axis=1)  # (3, 6)
+    gram = np.einsum('kni,lni->kl', u, u) - xtu @ np.linalg.pinv(xtx) @ xtu.T
+    phi = np.linspace(0.0, 2.0 * np.pi, AXIS_ANGLES, endpoint=False)
+    v = np.stack([np.ones_like(phi), np.cos(phi), np.sin(phi)])
+    best = phi[int(np.argmin(np.einsum('kp,kl,lp->p', v, gram, v)))]
+    return (np.eye(3) + np.sin(best) * bx + (1.0 - np.cos(best)) * bx @ bx) @ base
+
+
 def initialize(spec: ModelSpec, pos_a, quat_a, pos_b, quat_b=None) -> Parameters:
     """
     Closed-form estimate of φ from the pairs, for any T0, T1 over SO(3).
@@ -143,7 +212,9 @@ def initialize(spec: ModelSpec, pos_a, quat_a, pos_b, quat_b=None) -> Parameters
         Rb = quat.to_matrix(quat_b)
         R0, R1, ratio = rotations_from_pairs(Ra, Rb)
         if ratio > DEGENERATE_RATIO:  # rotation about one axis or none: R0 from the positions
-            R0 = _lifted_rotation(Ra, pos_a, pos_b3[:, 0, :])
+            turning = quat.log(quat.from_matrix(Ra @ Ra[0].T)).std(axis=0).max() > TURNING_RAD
+            R0 = (_axis_aligned_r0(Ra, Rb, pos_a, pos_b3[:, 0, :]) if turning else
+                  _lifted_rotation(Ra, pos_a, pos_b3[:, 0, :]))
             R1 = project_to_so3(np.einsum('nji,njk->ik', R0 @ Ra, Rb))  # Σ (R0 R_A)ᵀ R_B
         q1 = quat.from_matrix(R1)
     else:

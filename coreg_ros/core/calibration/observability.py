@@ -367,12 +367,14 @@ def describe(u12: np.ndarray) -> tuple[str, str]:
     description = ' together with '.join(words)
     first, v = parts[0]
     axis = _axis_words(v)
+    per_axis = ('' if len(axis) <= 2 else
+                '; a prior on any axis not orthogonal to that direction determines it')
     if 'position' in first:
-        prior = (f'a measured lever: a partial prior on {_SHORT[first]} along {axis} '
-                 f'(--prior with sigma per axis)')
+        prior = (f'a measured lever: a partial prior on {_SHORT[first]} (--prior with sigma '
+                 f'per axis{per_axis})')
     else:
-        prior = (f'a known orientation: a partial prior on {_SHORT[first]} about {axis} '
-                 f'(--prior with sigma per axis; --gravity-aligned when both bases are z up)')
+        prior = (f'a known orientation: a partial prior on {_SHORT[first]} (--prior with sigma '
+                 f'per axis{per_axis}; --gravity-aligned when both bases are z up)')
     motion = ('or rotating the tool about a second axis while recording'
               if 'rotation' not in first else 'or rotating the tool about more axes')
     return description, f'{prior}, {motion}'
