@@ -1,19 +1,21 @@
 """
-Tests of the observability checks.
+Tests of what the motion determines (core.calibration.observability).
 
-Motion that cannot determine the calibration is refused with a message that names the
-unobservable parameter and the motion that would fix it.
+A motion that leaves directions undetermined (rotation about one axis, none) is calibrated with
+those directions held, named and marked unknown; only a tool that did not move is refused, with
+the reason.
 """
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration import calibrate as calibrate_module
 from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.calibration.observability import (
-    check_motion,
-    check_observability,
     rotation_spread,
+    undetermined,
+    UNKNOWN_VARIANCE,
 )
 from coreg_ros.core.errors import CoregError, UnobservableError
-from coreg_ros.core.estimator import noise_covariance, Problem, solve_ols, whitening
+from coreg_ros.core.estimator import information, noise_covariance, Problem, whitening
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_pairs
@@ -24,87 +26,116 @@ MODELS = tuple(SPECS)
 METHODS = ('ols', 'tls')
 
 
-def offsets_phrase(model):
-    return 'tool-to-marker translation' if model != 'three_marker' else 'marker positions'
+def single_axis_null(truth, rng_seed=None, quat_a=None) -> np.ndarray:
+    """
+    The analytic null direction of rotation about one tool axis u, in the (T0, T1) layout.
+
+    R_A u = a is constant (A's base frame): shifting every marker by t·u (tool frame) moves B's
+    measurements by t·R0 a, which T0's translation takes back: (δp0, δθ0, δp1, δθ1) ∝
+    (-R0 a, 0, u, 0).
+    """
+    spread, axes = rotation_spread(quat_a)
+    u = axes[0]
+    a = quat.to_matrix(quat_a[0]) @ u
+    out = np.concatenate([-quat.to_matrix(truth.q0) @ a, np.zeros(3), u, np.zeros(3)])
+    return out / np.linalg.norm(out)
+
+
+def angle_deg(u, v) -> float:
+    """Angle between two directions (either sign), degrees."""
+    c = abs(float(np.dot(u, v))) / (np.linalg.norm(u) * np.linalg.norm(v))
+    return float(np.degrees(np.arccos(min(1.0, c))))
 
 
 @pytest.mark.parametrize('model', MODELS)
 @pytest.mark.parametrize('method', METHODS)
-def test_single_axis_rotation_is_refused(model, method):
-    noisy, _, _ = simulate_pairs(np.random.default_rng(1), 150, model, motion='single_axis')
-    with pytest.raises(UnobservableError) as info:
-        calibrate(noisy, Settings(model=model, method=method))
-    msg = str(info.value)
-    assert '\n' not in msg
-    for words in ('rotation about only one axis', offsets_phrase(model), 'along that axis',
-                  'unobservable', 'rotate about a second axis'):
-        assert words in msg, f'{words!r} not in {msg!r}'
-    assert info.value.directions and offsets_phrase(model) in info.value.directions[0]
+def test_single_axis_rotation_is_held_and_named(model, method):
+    noisy, _, truth = simulate_pairs(np.random.default_rng(1), 400, model, motion='single_axis')
+    result = calibrate(noisy, Settings(model=model, method=method))
+    assert result.success
+    assert [u.by for u in result.unobservable] == ['held']
+    held = result.unobservable[0]
+    assert angle_deg(held.direction, single_axis_null(truth, quat_a=noisy.quat_a)) < 1.0
+    assert "T1's position" in held.description and "T0's translation" in held.description
+    assert 'rotating the tool about a second axis' in held.determine
+    assert held.held_at['component'].startswith('tool_to_marker position')
+    # the published covariance is unknown along the held direction, determined elsewhere
+    C = result.cov_joint
+    along = float(held.direction @ C @ held.direction)
+    # (three markers: the (T0, T1) layout holds marker 1 only, half of the direction's length)
+    assert along > (0.45 if model == 'three_marker' else 0.9) * UNKNOWN_VARIANCE
+    assert np.sqrt(np.diag(C)[3:6]).max() < 0.01  # T0's rotation: determined (rad)
+    if model == 'three_marker':
+        assert held.markers is not None and held.markers.shape == (9,)
 
 
 @pytest.mark.parametrize('model', MODELS)
 @pytest.mark.parametrize('method', METHODS)
 @pytest.mark.parametrize('preset', ['no_rotation', 'static'])
-def test_no_rotation_is_refused(model, method, preset):
+def test_no_rotation_holds_the_lever_and_a_still_tool_is_refused(model, method, preset):
     noisy, _, _ = simulate_pairs(np.random.default_rng(2), 150, model, motion=preset)
+    settings = Settings(model=model, method=method)
+    if preset == 'no_rotation':
+        # a gantry: T1's position against T0's translation, three directions; T0's rotation
+        # and (full pose) T1's are determined by the translations
+        result = calibrate(noisy, settings)
+        assert result.success and len(result.held) == 3
+        assert all("T1's position" in u.description for u in result.held)
+        blocks = np.array([u.direction for u in result.held])
+        assert np.abs(blocks[:, 3:6]).max() < 1e-6 and np.abs(blocks[:, 9:12]).max() < 1e-6
+        return
     with pytest.raises(UnobservableError) as info:
-        calibrate(noisy, Settings(model=model, method=method))
+        calibrate(noisy, settings)
     msg = str(info.value)
     assert '\n' not in msg
-    for words in ('hardly rotated', offsets_phrase(model), 'unobservable',
-                  'rotate the tool about at least two different axes'):
+    for words in ('did not move', 'nothing can be estimated', 'move and rotate the tool'):
         assert words in msg, f'{words!r} not in {msg!r}'
-    if SPECS[model].has_q1:
-        assert 'rotation split between base-to-base and tool-to-marker' in msg
-        assert len(info.value.directions) == 2
-    else:
-        assert len(info.value.directions) == 1
+    assert len(info.value.directions) == 1
     assert isinstance(info.value, CoregError)
 
 
 def test_rotation_at_the_noise_level_counts_as_none():
-    """A tool held still but measured with rotation noise has not rotated."""
+    """A tool held still but measured with rotation noise has not rotated: nothing borrowed."""
     noisy, _, _ = simulate_pairs(np.random.default_rng(3), 300, 'full_pose',
                                  motion='no_rotation', sigma_a=(2e-4, 5e-3))
     spread, _ = rotation_spread(noisy.quat_a)
     assert spread[0] > 0.004  # measurable jitter, yet far below real motion
-    with pytest.raises(UnobservableError, match='hardly rotated'):
-        calibrate(noisy, Settings(model='full_pose', sigma_a=(2e-4, 5e-3)))
+    result = calibrate(noisy, Settings(model='full_pose', sigma_a=(2e-4, 5e-3)))
+    assert result.success and len(result.held) == 3
 
 
 @pytest.mark.parametrize('model', MODELS)
 @pytest.mark.parametrize('method', METHODS)
-def test_diverse_motion_passes(model, method):
+def test_diverse_motion_determines_everything(model, method):
     noisy, _, _ = simulate_pairs(np.random.default_rng(4), 150, model, motion='diverse')
-    check_motion(noisy.quat_a, SPECS[model], 5e-4)
     r = calibrate(noisy, Settings(model=model, method=method))
-    assert r.success and r.param_cov is not None
+    assert r.success and r.param_cov is not None and r.unobservable == ()
+    variances = np.diag(r.cov_joint)
+    # nothing unknown anywhere (-1: T1's orientation, which the position models do not have)
+    assert np.sqrt(variances[variances > 0]).max() < 0.01
+    assert (variances > 0).sum() == (12 if model == 'full_pose' else 9)
 
 
 @pytest.mark.parametrize('motion', ['diverse', 'single_axis', 'no_rotation'])
-def test_the_motion_check_of_a_long_recording_reads_a_subsample_to_the_same_verdict(
+def test_the_analysis_of_a_long_recording_reads_a_subsample_to_the_same_answer(
         monkeypatch, motion):
-    """Every k-th orientation (MOTION_SAMPLE) gives the spread of all and the same verdict."""
-    from coreg_ros.core.calibration import observability
-
+    """Every k-th pair (OBSERVABILITY_SAMPLE) gives the directions all pairs give."""
     noisy, _, _ = simulate_pairs(np.random.default_rng(7), 4000, 'full_pose', motion=motion,
                                  sigma_a=(2e-4, 2e-3))
     full, _ = rotation_spread(noisy.quat_a)
     sub, _ = rotation_spread(noisy.quat_a[::4])
     np.testing.assert_allclose(sub, full, rtol=0.05, atol=1e-3)
-
-    def verdict():
-        try:
-            check_motion(noisy.quat_a, SPECS['full_pose'], 2e-3)
-        except UnobservableError as e:
-            return str(e).split(' (')[0]
-        return 'observable'
-
-    everything = verdict()
-    monkeypatch.setattr(observability, 'MOTION_SAMPLE', 1000)  # every 4th of 4000
-    assert verdict() == everything == {'diverse': 'observable',
-                                       'single_axis': 'rotation about only one axis',
-                                       'no_rotation': "device A's tool hardly rotated"}[motion]
+    settings = Settings(sigma_a=(2e-4, 2e-3))
+    everything = calibrate(noisy, settings)
+    monkeypatch.setattr(calibrate_module, 'OBSERVABILITY_SAMPLE', 1000)  # every 4th of 4000
+    sampled = calibrate(noisy, settings)
+    expected = {'diverse': 0, 'single_axis': 1, 'no_rotation': 3}[motion]
+    assert len(everything.held) == len(sampled.held) == expected
+    if expected:  # the same subspace: every principal angle below 0.1°
+        a = np.linalg.qr(np.array([u.direction for u in everything.held]).T)[0]
+        b = np.linalg.qr(np.array([u.direction for u in sampled.held]).T)[0]
+        cosines = np.linalg.svd(a.T @ b, compute_uv=False)
+        assert np.degrees(np.arccos(np.clip(cosines.min(), -1.0, 1.0))) < 0.1
 
 
 def test_rotation_spread_finds_the_single_axis():
@@ -120,26 +151,24 @@ def test_rotation_spread_finds_the_single_axis():
 
 
 @pytest.mark.parametrize('model', MODELS)
-def test_rank_check_names_the_null_direction(model):
-    """The information-matrix check on its own, on single-axis data that passed no pre-check."""
+def test_the_information_names_the_null_direction(model):
+    """The analysis on its own, at the truth: one direction for single-axis data, none else."""
     spec = SPECS[model]
     noisy, _, truth = simulate_pairs(np.random.default_rng(6), 200, model,
                                      motion='single_axis', sigma_a=(0.0, 0.0))
     problem = Problem(spec, noisy.pos_a, noisy.quat_a, noisy.pos_b, noisy.quat_b,
                       whitening(noise_covariance((5e-4, 2e-3)), spec, 'b'),
                       whitening(noise_covariance((2e-4, 5e-4)), None, 'a'))
-    start = Parameters.from_transforms(spec, truth.p0, truth.q0, truth.markers, truth.q1)
-    sol = solve_ols(problem, start)
-    with pytest.raises(UnobservableError) as info:
-        check_observability(sol.info, sol.params, noisy.quat_a)
-    msg = str(info.value)
-    assert 'unobservable' in msg and 'rotate about a second axis' in msg
-    name = 'tool-to-marker translation' if spec.n_markers == 1 else 'marker'
-    assert any(name in d for d in info.value.directions), info.value.directions
-    # and the well-posed problem passes
+    at = Parameters.from_transforms(spec, truth.p0, truth.q0, truth.markers, truth.q1)
+    found = undetermined(information(problem, at), None, at, 0.0)
+    assert found.held.shape[1] == 1 and found.by_prior.shape[1] == 0
+    u = found.held[:, 0]
+    null = single_axis_null(truth, quat_a=noisy.quat_a)
+    assert angle_deg(np.concatenate([u[0:9], np.zeros(3)]) if spec.n_params != 12 else u,
+                     null) < 0.01
+    # and the well-posed problem has none
     noisy, _, truth = simulate_pairs(np.random.default_rng(6), 200, model, sigma_a=(0.0, 0.0))
     problem = Problem(spec, noisy.pos_a, noisy.quat_a, noisy.pos_b, noisy.quat_b,
                       problem.whiten_b, problem.whiten_a)
-    sol = solve_ols(problem, Parameters.from_transforms(spec, truth.p0, truth.q0,
-                                                        truth.markers, truth.q1))
-    check_observability(sol.info, sol.params, noisy.quat_a)
+    at = Parameters.from_transforms(spec, truth.p0, truth.q0, truth.markers, truth.q1)
+    assert undetermined(information(problem, at), None, at, 0.0).empty

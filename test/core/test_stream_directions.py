@@ -171,10 +171,10 @@ def test_pipeline_check_can_be_turned_off(rec):
 
 
 def test_unobservable_error_keeps_its_directions_through_the_pipeline():
-    """A motion about one axis, B in mm: the units note is added, the directions kept."""
+    """A tool that never moved, B in mm: the units note is added, the directions kept."""
     import coreg_ros as cr
     from coreg_ros.core.errors import UnobservableError
-    r = simulate_recording(5, 30.0, motion='single_axis')
+    r = simulate_recording(5, 30.0, motion='static')
     a, b = r.stream_a, r.streams_b[0]
     with pytest.raises(UnobservableError) as direct:
         cr.calibrate(a.position, a.quat_wxyz, b.position, b.quat_wxyz, stamps_a=a.stamps,

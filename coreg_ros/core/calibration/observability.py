@@ -54,6 +54,11 @@ UNKNOWN_VARIANCE = 1e4
 #: A prior determines an undetermined direction when its variance along it is below this
 #: (σ 10 m or 10 rad); a previous result's unknown directions (UNKNOWN_VARIANCE) do not.
 PRIOR_VARIANCE = 1e2
+#: A block of a direction (a 3-vector: a position or a rotation) below this share of its
+#: largest block is noise, not part of it: A's orientation noise tilts the sampled null
+#: direction by about σ_rot,A, which would otherwise carry UNKNOWN_VARIANCE · σ² into
+#: components the motion determines (1e-4 rad² on T0's rotation for σ_rot,A = 1e-4).
+SNAP_SHARE = 0.01
 #: The held component is pinned this much tighter than the data determine it (the gauge
 #: dominates the spurious information along the direction by far, and the information matrix
 #: stays well conditioned).
@@ -190,7 +195,7 @@ def undetermined(data_info: np.ndarray, prior_info: Optional[np.ndarray], params
     if not weak.any():
         return Undetermined(np.zeros((P, 0)), np.zeros((P, 0)), d)
     # back to ψ (an undetermined direction v of the scaled matrix is D⁻¹v in ψ), orthonormal
-    U, _ = np.linalg.qr(V[:, weak] / scale[:, None])
+    U, _ = np.linalg.qr(_snapped(V[:, weak] / scale[:, None]))
     if prior_info is None:
         return Undetermined(U, np.zeros((P, 0)), d)
     # the prior's information restricted to the undetermined subspace, by its own axes
@@ -198,6 +203,15 @@ def undetermined(data_info: np.ndarray, prior_info: Optional[np.ndarray], params
     pw, pv = np.linalg.eigh(0.5 * (m + m.T))
     determined = pw >= 1.0 / PRIOR_VARIANCE
     return Undetermined(U @ pv[:, ~determined], U @ pv[:, determined], d)
+
+
+def _snapped(directions: np.ndarray) -> np.ndarray:
+    """Zero each direction's 3-blocks below SNAP_SHARE of its largest block (noise)."""
+    out = directions.copy()
+    blocks = out.reshape(-1, 3, out.shape[1])  # (P/3, 3, k)
+    norms = np.linalg.norm(blocks, axis=1)      # (P/3, k)
+    blocks *= (norms >= SNAP_SHARE * norms.max(axis=0))[:, None, :]
+    return blocks.reshape(out.shape)
 
 
 def refuse_if_nothing_moved(pos_a: np.ndarray, quat_a: np.ndarray, sigma_a) -> None:
