@@ -403,7 +403,7 @@ class CalibrationResult:
 
     @property
     def held(self) -> tuple:
-        """The directions the fit held (``unobservable`` not determined by a prior)."""
+        """Return the held directions: those of ``unobservable`` that no prior determines."""
         return tuple(u for u in self.unobservable if u.by == 'held')
 
     @property

@@ -322,7 +322,9 @@ def test_result_to_dict_layout():
     d = result_to_dict(r)
     assert set(d) == {'success', 'status', 'message', 'method', 'model', 'n_pairs', 'chi2',
                       'dof', 'p_value', 'iterations', 'base_to_base', 'tool_to_marker',
-                      'markers', 'fit_consistent', 'verdict', 'rejected_pairs', 'cov_joint'}
+                      'markers', 'fit_consistent', 'verdict', 'rejected_pairs', 'cov_joint',
+                      'unobservable'}
+    assert d['unobservable'] == []  # free motion determines everything
     json.dumps(d, allow_nan=False)  # plain JSON
     for key, pose in (('base_to_base', r.base_to_base), ('tool_to_marker', r.tool_to_marker)):
         p = d[key]

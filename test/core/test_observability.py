@@ -15,7 +15,7 @@ from coreg_ros.core.calibration.observability import (
     UNKNOWN_VARIANCE,
 )
 from coreg_ros.core.errors import CoregError, UnobservableError
-from coreg_ros.core.estimator import information, noise_covariance, Problem, whitening
+from coreg_ros.core.estimator import noise_covariance, ols_information, Problem, whitening
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_pairs
@@ -28,7 +28,7 @@ METHODS = ('ols', 'tls')
 
 def single_axis_null(truth, rng_seed=None, quat_a=None) -> np.ndarray:
     """
-    The analytic null direction of rotation about one tool axis u, in the (T0, T1) layout.
+    Return the analytic null direction of rotation about one tool axis u ((T0, T1) layout).
 
     R_A u = a is constant (A's base frame): shifting every marker by t·u (tool frame) moves B's
     measurements by t·R0 a, which T0's translation takes back: (δp0, δθ0, δp1, δθ1) ∝
@@ -160,7 +160,7 @@ def test_the_information_names_the_null_direction(model):
                       whitening(noise_covariance((5e-4, 2e-3)), spec, 'b'),
                       whitening(noise_covariance((2e-4, 5e-4)), None, 'a'))
     at = Parameters.from_transforms(spec, truth.p0, truth.q0, truth.markers, truth.q1)
-    found = undetermined(information(problem, at), None, at, 0.0)
+    found = undetermined(ols_information(problem, at), None, at, 0.0)
     assert found.held.shape[1] == 1 and found.by_prior.shape[1] == 0
     u = found.held[:, 0]
     null = single_axis_null(truth, quat_a=noisy.quat_a)
@@ -171,4 +171,4 @@ def test_the_information_names_the_null_direction(model):
     problem = Problem(spec, noisy.pos_a, noisy.quat_a, noisy.pos_b, noisy.quat_b,
                       problem.whiten_b, problem.whiten_a)
     at = Parameters.from_transforms(spec, truth.p0, truth.q0, truth.markers, truth.q1)
-    assert undetermined(information(problem, at), None, at, 0.0).empty
+    assert undetermined(ols_information(problem, at), None, at, 0.0).empty

@@ -32,10 +32,10 @@ from coreg_ros.core.estimator import (
     can_take_out,
     carried_inputs,
     heading,
-    information,
     InputState,
     noise_covariance,
     normal_equations,
+    ols_information,
     output_covariance,
     paused,
     Problem,
@@ -136,6 +136,7 @@ class _Fitter:
         self.stamps = np.asarray(pairs.stamps, dtype=np.int64)
         self.whiten_a = whitening(cov_a, None, 'a')
         self.whiten_b = whitening(cov_b, spec, 'b')
+        self.prior = prior
         self.priors = prior.terms(spec) if prior is not None else []
         self.data = PairData(self.pos_a, self.quat_a, self.pos_b, self.quat_b,
                              np.asarray(cov_a, dtype=float).reshape(6, 6),
@@ -165,18 +166,47 @@ class _Fitter:
         """
         idx = np.flatnonzero(keep)
         idx = idx[::max(1, len(idx) // OBSERVABILITY_SAMPLE)]
-        data_info = information(self.everything.subset(idx), params)
+        data_info = ols_information(self.everything.subset(idx), params)
         prior_info = None
         if self.priors:
             _, J = prior_rows(self.everything.subset(None, self.priors), params)
             prior_info = J.T @ J
         return undetermined(data_info, prior_info, params, self.sigma_rot_a)
 
-    def hold_undetermined(self, start: Parameters, keep: np.ndarray) -> None:
-        """Look for what the data leave undetermined at ``start``; hold it there from now on."""
+    def hold_undetermined(self, start: Parameters, keep: np.ndarray) -> Parameters:
+        """
+        Look for what the data leave undetermined at ``start``; hold it there from now on.
+
+        Directions the prior determines are moved to the prior first (``towards_prior``):
+        the start's value along them is arbitrary, and the prior alone pulls the fit there,
+        over a cost nearly flat along them. Returns the start to fit from.
+        """
         found = self.undetermined_at(start, keep)
-        if not found.empty:
+        if found.by_prior.shape[1]:
+            start = self.towards_prior(found, start, keep)
+        self.found = found
+        if found.held.shape[1]:
             self.hold(found, start)
+        return start
+
+    def towards_prior(self, found: Undetermined, start: Parameters,
+                      keep: np.ndarray) -> Parameters:
+        """
+        Move ``start`` along the directions the prior determines to the prior's values.
+
+        An OLS fit of (at most ``OBSERVABILITY_SAMPLE``) pairs with those directions pinned at
+        the prior's poses (``hold_prior(..., at=prior)``) and the held ones at the start.
+        """
+        pinned = Undetermined(np.hstack([found.by_prior, found.held]), found.held[:, :0],
+                              found.scale)
+        gauge, _ = hold_prior(pinned, start, at=self.prior)
+        idx = np.flatnonzero(keep)
+        idx = idx[::max(1, len(idx) // OBSERVABILITY_SAMPLE)]
+        try:
+            return solve_ols(self.everything.subset(idx, gauge.terms(self.spec)), start,
+                             max_iterations=self.settings.max_iterations, xtol=XTOL).params
+        except (np.linalg.LinAlgError, ValueError, ConvergenceError):
+            return start  # the fit of all pairs starts from what there is
 
     def hold(self, found: Undetermined, start: Parameters) -> None:
         """Hold ``found``'s undetermined directions at ``start`` in every later fit."""
@@ -242,7 +272,7 @@ class _Fitter:
             sub[np.flatnonzero(keep)[::stride]] = True
         small = self.problem(sub, with_priors=False)
         start = initialize(self.spec, small.pos_a, small.quat_a, small.pos_b, small.quat_b)
-        self.hold_undetermined(start, keep)
+        start = self.hold_undetermined(start, keep)
         if stride < 2:
             return start, False
         small = self.problem(sub, with_priors=False)  # with the gauge, if any
@@ -433,7 +463,7 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
         if start is None:
             start, fitted = fitter.start(keep)
         else:
-            fitter.hold_undetermined(start, keep)
+            start = fitter.hold_undetermined(start, keep)
         # fit all pairs: OLS (B.1), TLS (B.2)
         sol = fitter.solve(keep, start, warm and not fitted, with_priors,
                            screened=settings.robust, fitted=fitted)
@@ -448,6 +478,7 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
             # hold that and fit all pairs again (the robust rejection starts from all pairs)
             found = fitter.undetermined_at(sol.params, keep)
             if found.same_held(fitter.found):
+                fitter.found = replace(fitter.found, by_prior=found.by_prior)  # at the solution
                 break
             fitter.hold(found, start)
             every = np.ones(len(pairs), dtype=bool)

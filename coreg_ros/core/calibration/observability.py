@@ -185,8 +185,30 @@ def undetermined(data_info: np.ndarray, prior_info: Optional[np.ndarray], params
     Undetermined
 
     """
-    P = params.spec.n_params
-    info = in_tangent(data_info, params)
+    return undetermined_in_tangent(
+        in_tangent(data_info, params),
+        None if prior_info is None else in_tangent(prior_info, params), sigma_rot_a)
+
+
+def undetermined_in_tangent(info: np.ndarray, prior_info: Optional[np.ndarray],
+                            sigma_rot_a: float) -> Undetermined:
+    """
+    ``undetermined`` with the information already in the tangent coordinates ψ.
+
+    ψ is also the layout of ``planning.crlb`` (the guidance's information), so the live
+    guidance and the calibration judge the motion alike.
+
+    Parameters
+    ----------
+    info : ndarray, shape (P, P)
+        The data's information over ψ.
+    prior_info : ndarray, shape (P, P), optional
+        The prior's information over ψ.
+    sigma_rot_a : float
+        Device A's rotation noise, rad.
+
+    """
+    P = len(info)
     d = np.sqrt(np.clip(np.diag(info), 0.0, None))
     scale = np.where(d > 0, d, 1.0)
     w, V = np.linalg.eigh(info / np.outer(scale, scale))
@@ -199,7 +221,7 @@ def undetermined(data_info: np.ndarray, prior_info: Optional[np.ndarray], params
     if prior_info is None:
         return Undetermined(U, np.zeros((P, 0)), d)
     # the prior's information restricted to the undetermined subspace, by its own axes
-    m = U.T @ in_tangent(prior_info, params) @ U
+    m = U.T @ prior_info @ U
     pw, pv = np.linalg.eigh(0.5 * (m + m.T))
     determined = pw >= 1.0 / PRIOR_VARIANCE
     return Undetermined(U @ pv[:, ~determined], U @ pv[:, determined], d)
@@ -287,14 +309,16 @@ def by_component(held: np.ndarray, components: list) -> np.ndarray:
     return basis / np.linalg.norm(basis, axis=0)
 
 
-def hold_prior(found: Undetermined, start: Parameters) -> tuple[Optional[Prior], list]:
+def hold_prior(found: Undetermined, start: Parameters, at: Optional[Prior] = None
+               ) -> tuple[Optional[Prior], list]:
     """
     Build the gauge that holds the undetermined directions: a prior on one component each.
 
     Each held direction is pinned by the component of the (T0, T1) layout it moves most
-    (``_held_components``), at ``start``'s value, with σ ``HOLD_TIGHTNESS`` times what the data
-    alone give that component. The observable part's estimate and covariance do not depend
-    on which component pins a direction (the direction carries no information).
+    (``_held_components``), at ``start``'s value (or ``at``'s, for the poses it gives), with σ
+    ``HOLD_TIGHTNESS`` times what the data alone give that component. The observable part's
+    estimate and covariance do not depend on which component pins a direction (the direction
+    carries no information).
 
     Returns
     -------
@@ -310,8 +334,14 @@ def hold_prior(found: Undetermined, start: Parameters) -> tuple[Optional[Prior],
     var = np.full(12, np.inf)
     for i in components:
         var[i] = (HOLD_TIGHTNESS / found.scale[i]) ** 2 if found.scale[i] > 0 else 1e-18
-    t0 = UncertainPose(start.p0.copy(), quat.canonical(start.q0), np.diag(var[0:6]))
-    t1 = UncertainPose(start.markers[0].copy(), quat.canonical(start.q1), np.diag(var[6:12]))
+    given0 = None if at is None else at.base_to_base
+    given1 = None if at is None else at.tool_to_marker
+    t0 = UncertainPose(start.p0.copy() if given0 is None else np.asarray(given0.position),
+                       quat.canonical(start.q0 if given0 is None else given0.quat_wxyz),
+                       np.diag(var[0:6]))
+    t1 = UncertainPose(start.markers[0].copy() if given1 is None else np.asarray(given1.position),
+                       quat.canonical(start.q1 if given1 is None else given1.quat_wxyz),
+                       np.diag(var[6:12]))
     use_t0, use_t1 = np.isfinite(var[0:6]).any(), np.isfinite(var[6:12]).any()
     return Prior(t0 if use_t0 else None, t1 if use_t1 else None), components
 
@@ -359,7 +389,7 @@ def _axis_words(v: np.ndarray) -> str:
     return f'[{v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}]'
 
 
-def describe(u12: np.ndarray) -> tuple[str, str]:
+def describe_direction(u12: np.ndarray) -> tuple[str, str]:
     """
     Say a direction of the (T0, T1) layout in words, and what would determine it.
 
@@ -423,7 +453,7 @@ def report(found: Undetermined, params: Parameters, components: list,
             norm = np.linalg.norm(u12) or 1.0
             u12 = u12 / norm
             u12 *= np.sign(u12[np.argmax(np.abs(u12))])  # a sign users can compare
-            description, determine = describe(u12)
+            description, determine = describe_direction(u12)
             i = components[k] if kind == 'held' else int(np.argmax(np.abs(u12)))
             block, axis, unit = COMPONENTS[i]
             held_at = {'component': f'{block} {axis}', 'value': float(values[i]), 'unit': unit,

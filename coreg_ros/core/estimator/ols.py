@@ -60,7 +60,7 @@ def _ols_normal(problem: Problem, params: Parameters, residuals: Optional[np.nda
     return H, g, cost
 
 
-def information(problem: Problem, params: Parameters) -> np.ndarray:
+def ols_information(problem: Problem, params: Parameters) -> np.ndarray:
     """
     Return the whitened JᵀJ of the problem at φ (its priors included), shape (P, P).
 

@@ -5,7 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core.calibration.observability import refuse_if_nothing_moved
+from coreg_ros.core.calibration import observability
+from coreg_ros.core.calibration.observability import (
+    refuse_if_nothing_moved,
+    undetermined_in_tangent,
+)
 from coreg_ros.core.errors import InputError, UnobservableError
 from coreg_ros.core.live.guidance.feed import PairBatch
 from coreg_ros.core.live.guidance.fisher import (
@@ -34,6 +38,7 @@ from coreg_ros.core.live.guidance.keys import (
     KEY_WORST_RATIO,
 )
 from coreg_ros.core.live.guidance.motions import candidate_motions
+from coreg_ros.core.models import SPECS
 from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import MODELS
 import numpy as np
@@ -92,11 +97,15 @@ class Guidance:
     ready : bool
         Every σ is within its target.
     determined : bool
-        The motion determines every parameter: it rotates the tool about two axes at least
-        (``observability.check_motion`` on the pairs so far) and no σ is near the weak
-        prior's.
+        The motion determines every parameter the rig can determine: nothing is left
+        undetermined by the pairs so far (``observability.undetermined_in_tangent``), or,
+        for a rig that cannot move in every direction, only what it cannot show (``held``),
+        and no σ is near the weak prior's.
     reason : str
         Why not determined (empty when determined).
+    held : tuple of str
+        What a restricted rig cannot determine (``motion_limits``), in words: left out of
+        the σ, the targets and the suggestions.
     options : tuple of MotionOption
         The candidate motions, best first.
     summary : str
@@ -117,6 +126,7 @@ class Guidance:
     options: tuple
     summary: str
     reason: str = ''
+    held: tuple = ()
 
     @property
     def suggestion(self) -> Optional[MotionOption]:
@@ -173,6 +183,16 @@ def _worst(ratios: dict) -> tuple[str, float]:
     return label, float(ratios[name][axis])
 
 
+#: What a rig can do (``GuidanceAccumulator.motion_limits``).
+MOTION_LIMITS = ('free', 'auto', 'restricted')
+#: With ``motion_limits='auto'``, a direction still undetermined after this much recording (s)
+#: is taken as one the rig cannot show.
+AUTO_RESTRICTED_S = 60.0
+#: A candidate motion whose information along a held direction exceeds this share of the
+#: largest (unit-diagonal scale, as ``observability``) would determine it: the rig cannot
+#: make it.
+CANNOT_MAKE_SHARE = 10.0 * observability.WEAK_SHARE
+
 # --------------------------------------------------------------------------- accumulator
 
 
@@ -196,6 +216,15 @@ class GuidanceAccumulator:
         uncertainty).
     tls : bool
         Errors in both devices (the calibration's ``method == 'tls'``).
+    motion_limits : {'free', 'auto', 'restricted'}
+        What the rig can do. ``'free'`` (the default): it can move and turn in every
+        direction, so a direction the pairs leave undetermined is motion still to make (not
+        ready; the suggestions ask for it). ``'restricted'`` (a SCARA arm, a mobile robot, a
+        gantry, a turntable): the motions it has shown are all it can do; what they leave
+        undetermined is held, as the calibration holds it, ready means the rest meets the
+        targets, and a motion that would determine a held direction (one the rig cannot
+        make) is never suggested. ``'auto'``: free until ``AUTO_RESTRICTED_S`` of recording
+        has left a direction undetermined, then restricted.
 
     Notes
     -----
@@ -209,9 +238,13 @@ class GuidanceAccumulator:
     def __init__(self, model: str, sigma_a, sigma_b, target_sigma_position: float,
                  target_sigma_rotation: float, target_sigma_time: Optional[float] = None,
                  estimate_time_offset: bool = True, tls: bool = True,
-                 max_stored: int = MAX_STORED_PAIRS):
+                 max_stored: int = MAX_STORED_PAIRS, motion_limits: str = 'free'):
         if model not in MODELS:
             raise InputError(f'model {model!r} is unknown; use one of {", ".join(MODELS)}')
+        if motion_limits not in MOTION_LIMITS:
+            raise InputError(f'motion_limits {motion_limits!r} is unknown; use one of '
+                             f'{", ".join(MOTION_LIMITS)}')
+        self.motion_limits = motion_limits
         if not (target_sigma_position > 0 and target_sigma_rotation > 0):
             raise InputError('target_sigma_position and target_sigma_rotation must be > 0')
         if target_sigma_time is not None and not target_sigma_time > 0:
@@ -301,8 +334,38 @@ class GuidanceAccumulator:
 
     # -- output
 
-    def _covariance(self, info: np.ndarray) -> np.ndarray:
-        return np.linalg.inv(info + _weak_prior(self.model, self.with_time))
+    def _covariance(self, info: np.ndarray, held: Optional[np.ndarray] = None) -> np.ndarray:
+        """(info + weak prior)⁻¹; with ``held`` directions (ψ, D×k) projected out of it."""
+        cov = np.linalg.inv(info + _weak_prior(self.model, self.with_time))
+        if held is None or not held.shape[1]:
+            return cov
+        proj = np.eye(len(cov))
+        proj[:len(held), :len(held)] -= held @ held.T
+        return proj @ cov @ proj
+
+    def _undetermined(self, duration: float):
+        """Find what the pairs so far leave undetermined; tell whether the rig is restricted."""
+        D = CRLB_DIMENSION[self.model]
+        found = undetermined_in_tangent(self.info[:D, :D], None, self.sigma_rot_a)
+        restricted = not found.empty and (
+            self.motion_limits == 'restricted'
+            or (self.motion_limits == 'auto' and duration >= AUTO_RESTRICTED_S))
+        return found, restricted
+
+    def _cannot_make(self, add: np.ndarray, found) -> bool:
+        """Whether a candidate's information ``add`` would determine a held direction."""
+        D = CRLB_DIMENSION[self.model]
+        scale = np.where(found.scale > 0, found.scale, 1.0)
+        v = found.held * scale[:, None]
+        v /= np.linalg.norm(v, axis=0)
+        along = v.T @ (add[:D, :D] / np.outer(scale, scale)) @ v
+        top = np.linalg.eigvalsh(self.info[:D, :D] / np.outer(scale, scale))[-1]
+        return bool(np.linalg.eigvalsh(along)[-1] > CANNOT_MAKE_SHARE * top)
+
+    def _words(self, u: np.ndarray) -> str:
+        """Say a ψ direction in words (``observability.describe_direction``)."""
+        u12, _ = observability.pose_layout(u, SPECS[self.model])
+        return observability.describe_direction(u12 / (np.linalg.norm(u12) or 1.0))[0]
 
     def rate(self) -> float:
         """Pairs per second so far (Hz; 0 before two pairs)."""
@@ -327,17 +390,25 @@ class GuidanceAccumulator:
         """
         if self.estimate is None:
             raise InputError('no estimate yet: set_estimate first (Estimate.from_pairs)')
-        cov = self._covariance(self.info)
+        duration = 0.0 if self.first_stamp is None else (
+            (self.last_stamp - self.first_stamp) * 1e-9)
+        found, restricted = self._undetermined(duration)
+        held = found.held if restricted else None
+        cov = self._covariance(self.info, held)
         sigma = sigma_groups(self.model, cov, self.with_time)
         ratios = _ratios(sigma, self.targets)
         worst, worst_ratio = _worst(ratios)
         ready = worst_ratio <= 1.0
         prior_sd = np.sqrt(np.diag(np.linalg.inv(_weak_prior(self.model, self.with_time))))
-        determined = bool(np.all(np.sqrt(np.diag(cov)) < 0.1 * prior_sd))
+        sd = np.sqrt(np.diag(cov))
+        determined = bool(np.all((sd < 0.1 * prior_sd) | (sd == 0.0)))
         reason = '' if determined else 'some σ are still at the weak prior'
+        if not found.empty and not restricted:
+            determined = False
+            reason = f'{self._words(found.held[:, 0])} (the motion so far cannot show it)'
         if self._n_store and not self._motion_ok:
             try:
-                # the store is an even sample of the motion: enough to judge its rotations
+                # the store is an even sample of the motion: enough to judge whether it moved
                 stored = np.concatenate(self._store)
                 refuse_if_nothing_moved(stored[:, 0:3], stored[:, 3:7],
                                         (self.sigma_pos_a, self.sigma_rot_a))
@@ -353,13 +424,13 @@ class GuidanceAccumulator:
                                   cand.velocity if self.with_time else None, self.cov_a,
                                   self.cov_b, None, self.tls)
                 add *= cand.n_pairs / len(cand.pos_a)
-                c_sigma = sigma_groups(self.model, self._covariance(self.info + add),
+                if restricted and self._cannot_make(add, found):
+                    continue  # a motion the rig cannot make: it would determine a held one
+                c_sigma = sigma_groups(self.model, self._covariance(self.info + add, held),
                                        self.with_time)
                 c_worst, c_ratio = _worst(_ratios(c_sigma, self.targets))
                 options.append(MotionOption(cand.name, cand.description, c_ratio, c_worst))
             options.sort(key=lambda o: o.worst_ratio)
-        duration = 0.0 if self.first_stamp is None else (
-            (self.last_stamp - self.first_stamp) * 1e-9)
         name = worst.split()[0]
         axis = worst.split()[1] if ' ' in worst else ''
         sd = sigma[name][AXES.index(axis) if axis else 0]
@@ -375,5 +446,9 @@ class GuidanceAccumulator:
                        f' (target {_format_sigma(name, target)})')
             if options:
                 summary += f'; next: {options[0].description}'
+        words = tuple(self._words(found.held[:, k]) for k in range(found.held.shape[1])
+                      ) if restricted else ()
+        if words:
+            summary += f'; held (the rig cannot show it): {"; ".join(words)}'
         return Guidance(self.model, self.n_pairs, duration, sigma, cov, self.targets, worst,
-                        worst_ratio, ready, determined, tuple(options), summary, reason)
+                        worst_ratio, ready, determined, tuple(options), summary, reason, words)
