@@ -51,7 +51,7 @@ def _rot(axis, angle):
 
 def family(rig: str, motion, truth):
     """
-    The exact family of calibrations that give the same measurements as ``truth`` on ``rig``.
+    Return the exact family of calibrations that measure like ``truth`` on ``rig``.
 
     Returns ``move(theta) -> (p0, q0, p1, q1)`` and the number of parameters k.
     """
@@ -100,7 +100,7 @@ def gauged_nees(move, k, result) -> tuple:
 
 def null_space(move, k, at) -> np.ndarray:
     """
-    The family's tangent at ``move(at)`` in the (T0, T1) layout, orthonormal (12, k).
+    Return the family's tangent at ``move(at)`` in the (T0, T1) layout, orthonormal (12, k).
 
     Where the family turns (a turntable), its tangent depends on the point of it: the held
     directions are compared with the tangent at the truth moved to the estimate's gauge.
