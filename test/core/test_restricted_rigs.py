@@ -175,9 +175,8 @@ def test_a_partial_prior_determines_the_held_directions_consistently(rig, method
     for _ in range(TRIALS):
         noisy, _, _ = simulate_pairs(rng, PAIRS, 'full_pose', sigma_a=sa, sigma_b=SIGMA_B,
                                      truth=truth, motion=motion)
-        prior = Prior(tool_to_marker=UncertainPose(truth.markers[0] + rng.normal(scale=sp,
-                                                                                size=3),
-                                                   truth.q1, cov))
+        drawn = truth.markers[0] + rng.normal(scale=sp, size=3)  # the prior's own error
+        prior = Prior(tool_to_marker=UncertainPose(drawn, truth.q1, cov))
         result = calibrate(noisy, settings, prior)
         assert result.success and not result.held
         assert result.unobservable and all(u.by == 'prior' for u in result.unobservable)
