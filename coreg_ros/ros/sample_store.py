@@ -111,7 +111,7 @@ class SampleStore:
 
     @property
     def raw(self) -> bool:
-        """True if the subscriptions are to be raw (the callbacks take CDR bytes)."""
+        """Tell whether the subscriptions take CDR bytes, not deserialised messages."""
         return self.intake is not None
 
     def callback(self, topic: str) -> Callable:

@@ -33,7 +33,7 @@ samples that arrived since the last tick by the one pairing rule (``pending_pair
 vectorised and publishes: with a rate limit the newest pair only, at most ``fused_rate_limit``
 times per second; with 0 every pair, in batches every ``DRAIN_PERIOD`` s. The fused markers
 follow at most ``MARKER_MAX_RATE`` (10 Hz). A backlog larger than the windows (the services
-thread was busy with a calibration) is skipped, not published late.
+thread was busy, e.g. with an automatic calibration) is skipped, not published late.
 """
 
 from __future__ import annotations
