@@ -13,7 +13,8 @@ callbacks), ``LiveChecks.tick``:
    (``Estimate.from_pairs`` on an evenly decimated store, every ``ESTIMATE_PERIOD`` s), then
    the calibration's. Publishes the status ``<node>: guidance`` (level OK, message the
    summary, values ``Guidance.diagnostic_values()``). With ``auto_calibrate`` the node
-   calibrates (its ``~/calibrate`` path) once the targets are met and no calibration exists;
+   calibrates (``Calibrator.calibrate_and_publish``, in this thread) once the targets are met
+   and no calibration exists;
 3. watchdog (parameter ``watchdog``): once a calibration is published (or a stored one
    republished at start-up), checks every new pair against it (``watchdog.Watchdog``) and
    publishes ``<node>: watchdog`` (level, message and values of the ``WatchState``). A stale
@@ -41,11 +42,13 @@ from coreg_ros.core.live import guidance as gd
 from coreg_ros.core.live import watchdog as wd
 from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import CalibrationResult, PoseStream, TimeOffset, UncertainPose
+from coreg_ros.ros.calibrator import Calibrator
 from coreg_ros.ros.interface import LATCHED_QOS
+from coreg_ros.ros.parameters import ParameterView
 from coreg_ros.ros.throttle import Throttle
+from coreg_ros.ros.uncertainty_outputs import UncertaintyOutputs
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 import numpy as np
-from rclpy.node import Node
 from std_msgs.msg import Bool
 
 #: B samples before the last paired stamp paired again each tick, s (their A neighbours may
@@ -143,20 +146,39 @@ def _status(name: str, hardware_id: str, level: int, message: str, values) -> Di
 
 class LiveChecks:
     """
-    Guidance and watchdog of a ``CoregNode`` (see the module docstring).
+    Guidance and watchdog of coreg_node (see the module docstring).
 
     Parameters
     ----------
-    node : coreg_ros.ros.node.CoregNode
-        Provides ``buffers``, ``config``, ``current_settings()``, ``uncertainty`` (its clock
-        offset and the fused-pose switch) and ``calibrate_and_publish``; the ``LIVE_KEYS``
-        parameters are declared on it.
+    node_name : str
+        The node's name (the statuses are ``<node>: guidance`` and ``<node>: watchdog``).
+    topics : sequence of str
+        A's topic, then B's (the statuses' hardware id).
+    params : ParameterView
+        The current settings and the ``LIVE_KEYS`` parameters (and ``fuse_when_stale``).
+    buffers : dict of str to StreamBuffer
+        The held samples, per topic (``SampleStore.buffers``).
+    calibrator : Calibrator
+        The published calibration's clock offset (``timing``) and ``calibrate_and_publish``.
+    outputs : UncertaintyOutputs
+        Told when the calibration is stale (``set_stale``).
+    pub_stale : rclpy.publisher.Publisher
+        Publisher of ``~/calibration_stale`` (std_msgs/Bool, ``STALE_QOS``).
+    logger : rclpy.impl.rcutils_logger.RcutilsLogger
+        The node's logger.
 
     """
 
-    def __init__(self, node: Node):
-        self.node = node
-        self.pub_stale = node.create_publisher(Bool, '~/calibration_stale', STALE_QOS)
+    def __init__(self, node_name: str, topics, params: ParameterView, buffers: dict,
+                 calibrator: Calibrator, outputs: UncertaintyOutputs, pub_stale, logger):
+        self.node_name = node_name
+        self.topics = tuple(topics)
+        self.params = params
+        self.buffers = buffers
+        self.calibrator = calibrator
+        self.outputs = outputs
+        self.pub_stale = pub_stale
+        self.logger = logger
         self.poses: Optional[PublishedPoses] = None
         self.watch: Optional[wd.Watchdog] = None
         self.state: Optional[wd.WatchState] = None
@@ -170,24 +192,21 @@ class LiveChecks:
 
     # --- set-up ----------------------------------------------------------------------------
 
-    def _param(self, name: str):
-        return self.node.get_parameter(name).value
-
     def _targets(self) -> tuple:
-        tim = float(self._param('target_sigma_time'))
-        return (float(self._param('target_sigma_position')),
-                float(self._param('target_sigma_rotation')), tim if tim > 0 else None)
+        tim = float(self.params('target_sigma_time'))
+        return (float(self.params('target_sigma_position')),
+                float(self.params('target_sigma_rotation')), tim if tim > 0 else None)
 
     def reset(self) -> None:
         """Start pairing and guidance afresh (at start-up and on ``~/reset``)."""
-        settings = self.node.current_settings()
+        settings = self.params.settings()
         self.settings = settings
         self.feed = gd.PairFeed(max_gap=settings.max_gap)
         self.guide = gd.GuidanceAccumulator(
             settings.model, settings.sigma_a, settings.sigma_b, *self._targets(),
             estimate_time_offset=settings.estimate_time_offset, tls=settings.method == 'tls')
         self.guidance: Optional[gd.Guidance] = None
-        self._marks = dict.fromkeys(self.node.buffers, 0)  # since(0): every sample held
+        self._marks = dict.fromkeys(self.buffers, 0)  # since(0): every sample held
         self._last_stamp: Optional[int] = None
         self._store: list = []     # evenly decimated batches for the closed-form estimate
         self._n_store = 0
@@ -217,14 +236,14 @@ class LiveChecks:
             self.guide.set_estimate(calibration.estimate)
 
     def _watch(self, calibration: wd.Calibration, chi2_dof: float) -> None:
-        s = self.settings = self.node.current_settings()
+        s = self.settings = self.params.settings()
         self.watch = wd.Watchdog(calibration, s.sigma_a, s.sigma_b, tls=s.method == 'tls',
                                  noise_scale=max(1.0, float(chi2_dof)))
         self.state = None
         self._set_stale(False)
 
     def _set_stale(self, stale: bool) -> None:
-        self.node.uncertainty.stale = stale
+        self.outputs.set_stale(stale)
         if stale != self.stale or self.state is None:
             self.pub_stale.publish(Bool(data=bool(stale)))
         self.stale = stale
@@ -240,38 +259,38 @@ class LiveChecks:
         except Exception as e:  # never end the diagnostics timer: say it, keep the node up
             self._error = f'live checks failed: {type(e).__name__}: {e}'
             if self._log_throttle.ready():
-                self.node.get_logger().error(f'{self._error}\n{traceback.format_exc()}')
-            name = self.node.get_name()
+                self.logger.error(f'{self._error}\n{traceback.format_exc()}')
+            name = self.node_name
             out = [_status(f'{name}: {gd.STATUS_NAME}', self._hardware_id(), 2, self._error,
                            [])]
         self.seconds = time.monotonic() - t0
         return out
 
     def _hardware_id(self) -> str:
-        return ' + '.join(self.node.topics)
+        return ' + '.join(self.topics)
 
     def _tick(self) -> list:
-        guidance_on = bool(self._param('guidance'))
-        watchdog_on = bool(self._param('watchdog')) and self.watch is not None
+        guidance_on = bool(self.params('guidance'))
+        watchdog_on = bool(self.params('watchdog')) and self.watch is not None
         if not (guidance_on or watchdog_on):
             if self.stale:
                 self._set_stale(False)
             return []
         batch = self._new_batch()
         out = []
-        name, hw = self.node.get_name(), self._hardware_id()
+        name, hw = self.node_name, self._hardware_id()
         if guidance_on:
             status = self._guidance(batch)
             out.append(_status(f'{name}: {gd.STATUS_NAME}', hw, *status))
         if watchdog_on:
             st = self.state = self.watch.update(batch)
-            fuse = bool(self.node.get_parameter('fuse_when_stale').value)
+            fuse = bool(self.params('fuse_when_stale'))
             self._set_stale(st.stale)
             message = st.message
             if st.stale:
                 message += ('; ~/fused_pose goes on (fuse_when_stale), flagged on '
                             '~/calibration_stale' if fuse else '; ~/fused_pose stopped')
-                if bool(self._param('auto_recalibrate')):
+                if bool(self.params('auto_recalibrate')):
                     message += f'; {self._recalibrate(st)}'
             out.append(_status(f'{name}: {wd.STATUS_NAME}', hw, st.level, message,
                                st.diagnostic_values()))
@@ -281,8 +300,8 @@ class LiveChecks:
 
     def _new_batch(self) -> Optional[gd.PairBatch]:
         """Pair the recent slice of the buffers; return the pairs the feed releases."""
-        settings = self.node.current_settings()
-        buffers = self.node.buffers
+        settings = self.params.settings()
+        buffers = self.buffers
         start_b = None if self._last_stamp is None else (
             self._last_stamp - int(OVERLAP_S * 1e9))
         ends, streams_b = {}, []
@@ -293,7 +312,7 @@ class LiveChecks:
             return self.feed.push(None, final=True)  # the streams paused: release all held
         if ends[settings.topic_b[0]] == self._marks[settings.topic_b[0]]:
             return self.feed.push(None, final=True)
-        timing = self.node.uncertainty.timing
+        timing = self.calibrator.timing
         first_b = int(min(int(s.stamps[0]) for s in streams_b))
         offset_ns = (settings.time_offset_ns if timing is None
                      else timing.offset_ns_at(first_b))
@@ -354,7 +373,7 @@ class LiveChecks:
         if g.ready and self.poses is not None:  # not 'calibrate now': one is published
             values = [(k, 'ready: a calibration is published (~/calibrate refits on all the '
                           'pairs held)' if k == gd.KEY_NEXT_TEXT else v) for k, v in values]
-        if g.ready and self.poses is None and bool(self._param('auto_calibrate')):
+        if g.ready and self.poses is None and bool(self.params('auto_calibrate')):
             message += f'; auto_calibrate: {self._auto_calibrate()}'
         return 0, message, values
 
@@ -363,7 +382,7 @@ class LiveChecks:
         if now < self._next_auto:
             return 'retrying later'
         self._next_auto = now + RETRY_PERIOD
-        ok, message = self.node.calibrate_and_publish(what='auto_calibrate')
+        ok, message = self.calibrator.calibrate_and_publish(what='auto_calibrate')
         return 'calibrated' if ok else f'refused ({message})'
 
     # --- watchdog --------------------------------------------------------------------------
@@ -385,16 +404,16 @@ class LiveChecks:
         if now < self._next_recalibration:
             return 'auto_recalibrate: retrying later'
         self._next_recalibration = now + RECALIBRATE_RETRY
-        settings = self.node.current_settings()
-        timing = self.node.uncertainty.timing
+        settings = self.params.settings()
+        timing = self.calibrator.timing
         offset_ns = settings.time_offset_ns if timing is None else timing.offset_ns()
         streams = {}
-        for topic, b in self.node.buffers.items():
+        for topic, b in self.buffers.items():
             s = b.snapshot()
             start = (st.change_stamp if topic in settings.topic_b else
                      st.change_stamp - offset_ns - settings.max_gap_ns - int(1e9))
             streams[topic] = s.take(s.stamps >= start)
-        ok, message = self.node.calibrate_and_publish(
+        ok, message = self.calibrator.calibrate_and_publish(
             streams=streams, prior=prior, what='auto_recalibrate')
         if ok:
             return f'recalibrated: {message}'

@@ -12,9 +12,14 @@ from dataclasses import dataclass
 import os
 
 from coreg_ros.core.config_schema import check_parameters, DEFAULTS, example, RANGES
-from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.errors import ConfigError, CoregError
 from coreg_ros.core.settings import Settings, settings_from_mapping
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -274,6 +279,50 @@ def settings_from_values(values: dict) -> Settings:
     """Build Settings from parameter values; raises ConfigError naming the bad key."""
     return settings_from_mapping({k: _plain(v) for k, v in values.items()
                                   if k in CALIBRATION_KEYS})
+
+
+class ParameterView:
+    """
+    The current values of a node's parameters, for the collaborators that follow run-time changes.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node the parameters are declared on (``declare_parameters``).
+
+    """
+
+    def __init__(self, node: Node):
+        self._node = node
+
+    def __call__(self, name: str):
+        """Return the current value of parameter ``name``."""
+        return self._node.get_parameter(name).value
+
+    def settings(self) -> Settings:
+        """Calibration settings from the current parameter values."""
+        return settings_from_values({k: self(k) for k in CALIBRATION_KEYS})
+
+    def check_change(self, params) -> SetParametersResult:
+        """
+        Refuse a run-time change that would make invalid Settings (on-set-parameters callback).
+
+        Parameters
+        ----------
+        params : list of rclpy.parameter.Parameter
+            The parameters about to be set.
+
+        """
+        changed = {p.name: p.value for p in params if p.name in CALIBRATION_KEYS}
+        if not changed:
+            return SetParametersResult(successful=True)
+        values = {k: self(k) for k in CALIBRATION_KEYS if self._node.has_parameter(k)}
+        values.update(changed)
+        try:
+            settings_from_values(values)
+        except CoregError as e:
+            return SetParametersResult(successful=False, reason=str(e))
+        return SetParametersResult(successful=True)
 
 
 def read_config(node: Node) -> NodeConfig:

@@ -33,7 +33,7 @@ samples that arrived since the last tick by the one pairing rule (``pending_pair
 vectorised and publishes: with a rate limit the newest pair only, at most ``fused_rate_limit``
 times per second; with 0 every pair, in batches every ``DRAIN_PERIOD`` s. The fused markers
 follow at most ``MARKER_MAX_RATE`` (10 Hz). A backlog larger than the windows (the services
-thread was busy with a calibration) is skipped, not published late.
+thread was busy, e.g. with an automatic calibration) is skipped, not published late.
 """
 
 from __future__ import annotations
@@ -49,10 +49,10 @@ from coreg_ros.core.types import CalibrationResult, Pairs, TimeOffset, Uncertain
 from coreg_ros.files.results import result_to_dict
 from coreg_ros.ros.interface import LATCHED_QOS
 from coreg_ros.ros.messages import ns_to_stamp, uncertain_pose_to_msg
+from coreg_ros.ros.parameters import NodeConfig, ParameterView
 from coreg_ros.ros.throttle import Throttle
-from geometry_msgs.msg import Point, PoseWithCovarianceStamped
+from geometry_msgs.msg import Point
 import numpy as np
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
@@ -196,22 +196,38 @@ def stored_result_dict(result: CalibrationResult) -> dict:
 
 class UncertaintyOutputs:
     """
-    Publish ``~/fused_pose`` and ``~/uncertainty_markers`` for a ``CoregNode``.
+    Publish ``~/fused_pose`` and ``~/uncertainty_markers`` once a calibration exists.
 
     Parameters
     ----------
-    node : coreg_ros.ros.node.CoregNode
-        Provides ``buffers``, ``config``, ``current_settings()`` and the parameters of
-        ``OUTPUT_KEYS``; the publishers and the timer are created on it (services thread).
+    config : NodeConfig
+        The frames of the poses and markers, B's first topic.
+    params : ParameterView
+        The current settings and the parameters of ``OUTPUT_KEYS``.
+    buffers : dict of str to StreamBuffer
+        The held samples, per topic (``SampleStore.buffers``).
+    pub_fused, pub_markers : rclpy.publisher.Publisher
+        Publishers of ``~/fused_pose`` (``FUSED_QOS``) and ``~/uncertainty_markers``
+        (``MARKER_QOS``).
+    timer : rclpy.timer.Timer
+        A cancelled timer of the services thread whose callback calls ``tick``; its period and
+        state follow the parameters and the calibration.
+    clock : rclpy.clock.Clock
+        Stamps the calibration's markers.
+    logger : rclpy.impl.rcutils_logger.RcutilsLogger
+        The node's logger.
 
     """
 
-    def __init__(self, node: Node):
-        self.node = node
-        self.pub_fused = node.create_publisher(PoseWithCovarianceStamped, '~/fused_pose',
-                                               FUSED_QOS)
-        self.pub_markers = node.create_publisher(MarkerArray, '~/uncertainty_markers',
-                                                 MARKER_QOS)
+    def __init__(self, config: NodeConfig, params: ParameterView, buffers: dict, pub_fused,
+                 pub_markers, timer, clock, logger):
+        self.config = config
+        self.params = params
+        self.buffers = buffers
+        self.pub_fused = pub_fused
+        self.pub_markers = pub_markers
+        self.clock = clock
+        self.logger = logger
         self.calibration: Optional[FusionCalibration] = None
         #: the clock offset of the calibration: fusion pairs A and B as the calibration did
         self.timing: Optional[TimeOffset] = None
@@ -223,14 +239,14 @@ class UncertaintyOutputs:
         #: the watchdog found the calibration stale (``ros.live_checks``): no fused poses
         #: unless ``fuse_when_stale``
         self.stale = False
-        values = {k: node.get_parameter(k).value for k in OUTPUT_KEYS}
+        values = {k: params(k) for k in OUTPUT_KEYS}
         self.fused_on = bool(values['publish_fused_pose'])
         self.markers_on = bool(values['publish_markers'])
         self.rate = float(values['fused_rate_limit'])
         self.magnification = float(values['marker_magnification'])
         self.fuse_when_stale = bool(values['fuse_when_stale'])
-        self.timer = node.create_timer(self._period(), self._tick, autostart=False)
-        node.add_post_set_parameters_callback(self._on_parameters)
+        self.timer = timer
+        self._update_timer()
 
     # --- calibration -----------------------------------------------------------------------
 
@@ -252,7 +268,7 @@ class UncertaintyOutputs:
     def set_calibration(self, calibration: FusionCalibration) -> None:
         """Start fusing with ``calibration`` from the newest samples on; publish its markers."""
         self.calibration = calibration
-        b = self.node.buffers[self.node.config.settings.topic_b[0]]
+        b = self.buffers[self.config.settings.topic_b[0]]
         newest = b.tail(1).stamps
         self._cursor = int(newest[0]) if len(newest) else None
         self._build_calibration_markers()
@@ -261,11 +277,11 @@ class UncertaintyOutputs:
         self._update_timer()
 
     def _build_calibration_markers(self) -> None:
-        cal, config = self.calibration, self.node.config
+        cal, config = self.calibration, self.config
         if cal is None:
             self._calibration_markers = []
             return
-        stamp = self.node.get_clock().now().to_msg()
+        stamp = self.clock.now().to_msg()
         self._calibration_markers = (
             pose_markers(cal.base_to_base, config.frame_base_b, stamp, 'base_to_base',
                          magnification=self.magnification)
@@ -287,7 +303,8 @@ class UncertaintyOutputs:
         elif not active and not self.timer.is_canceled():
             self.timer.cancel()
 
-    def _on_parameters(self, params) -> None:
+    def on_parameters(self, params) -> None:
+        """Follow a change of the ``OUTPUT_KEYS`` parameters (post-set-parameters callback)."""
         changed = {p.name: p.value for p in params if p.name in OUTPUT_KEYS}
         if not changed:
             return
@@ -308,13 +325,18 @@ class UncertaintyOutputs:
 
     # --- the tick --------------------------------------------------------------------------
 
-    def _tick(self) -> None:
+    def set_stale(self, stale: bool) -> None:
+        """Say whether the watchdog finds the calibration stale (no fused poses unless asked)."""
+        self.stale = stale
+
+    def tick(self) -> None:
+        """Fuse and publish what is new (the timer); a failure is logged, throttled."""
         try:
             self.fuse_and_publish()
         except Exception as e:  # never let a bug stop the services thread's executor
             if self._log_throttle.ready():
                 detail = str(e) if isinstance(e, CoregError) else traceback.format_exc()
-                self.node.get_logger().error(f'fused pose: {detail}')
+                self.logger.error(f'fused pose: {detail}')
 
     def fuse_and_publish(self) -> int:
         """
@@ -329,8 +351,8 @@ class UncertaintyOutputs:
         cal = self.calibration
         if cal is None or not (self.fused_on or self.markers_on):
             return 0
-        settings = self.node.current_settings()  # sigmas, gap and offset may change live
-        buffers = self.node.buffers
+        settings = self.params.settings()  # sigmas, gap and offset may change live
+        buffers = self.buffers
         stream_a = buffers[settings.topic_a].tail(A_WINDOW)
         streams_b = [buffers[t].tail(B_WINDOW) for t in settings.topic_b]
         newest = streams_b[0].stamps
@@ -345,7 +367,7 @@ class UncertaintyOutputs:
         if self.rate > 0:
             pairs = _last_pair(pairs)
         fused = fused_stream(cal, pairs, settings.sigma_a, settings.sigma_b)
-        frame = self.node.config.frame_base_b
+        frame = self.config.frame_base_b
         n = 0
         if self.fused_on and not (self.stale and not self.fuse_when_stale):
             publish = self.pub_fused.publish

@@ -155,8 +155,8 @@ def test_echo_prints_diagnostics_readably(ros_domain, ros_session):
     assert 'paired: 3000' in stdout
 
 
-def test_echo_shows_the_nodes_diagnostics(ros_domain, start_node):
-    node = start_node()
+def test_echo_shows_the_nodes_diagnostics(ros_domain, start_node_here):
+    node = start_node_here()
     result = run_cli(ros_domain, 'echo', '/diagnostics', '--once', '--timeout', 20)
     assert result.returncode == 0, result.stderr + node.log()
     assert '] coreg_node' in result.stdout and 'received: 0' in result.stdout

@@ -1,8 +1,9 @@
 """
 Integration tests of coreg_node with real rclpy.
 
-The node runs in a subprocess, the test
-process publishes as the tracker drivers and calls the services. Each test has its own domain.
+The node runs in the test's process (``start_node_here``: its own context) or, where a signal
+or the executable's exit is the point, in a subprocess (``start_node``); the test process
+publishes as the tracker drivers and calls the services. Each test has its own domain.
 """
 
 import json
@@ -27,7 +28,9 @@ from coreg_ros.ros.tools import (
 from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
+from rcl_interfaces.srv import GetParameters
 from rosproc import publishers, run_cli, wait_counts
+from std_srvs.srv import Trigger
 import yaml
 
 A, B = '/device_a/pose', '/device_b/pose'
@@ -98,13 +101,13 @@ def test_drivers_calibrate_latched_sigterm_and_restart(ros_session, start_node):
     assert len(_sample_bags(again)) == 1  # nothing received: no new bag
 
 
-def test_play_into_node_matches_offline_calibration(ros_domain, ros_session, start_node,
-                                                    tmp_path):
+def test_play_into_node_matches_offline_calibration(ros_domain, ros_session,
+                                                    start_node_here, tmp_path):
     rec = simulate_recording(11, 4.0)
     bag = tmp_path / 'rec'
     write_pose_bag(bag, rec.streams)
     n = {t: len(s) for t, s in rec.streams.items()}
-    node = start_node({'qos_reliable': True})
+    node = start_node_here({'qos_reliable': True})
     played = run_cli(ros_domain, 'play', bag, '--rate', 4, '--wait', 20)
     assert played.returncode == 0, played.stderr + node.log()
     wait_counts(ros_session, {f'{A} accepted': n[A], f'{B} accepted': n[B]}, timeout=10)
@@ -165,8 +168,38 @@ def test_sigint_during_accumulation_leaves_a_bag(ros_session, start_node):
         assert saved[topic].frame_id == rec.streams[topic].frame_id
 
 
-def test_calibrate_refusals_are_answered(ros_domain, ros_session, start_node):
-    node = start_node({'qos_reliable': True})
+def test_calibrate_fits_off_the_executor_thread(ros_session, start_node_here):
+    # A long fit (300 000 pairs) runs in a worker thread: the services executor goes on
+    # meanwhile, so the node answers other requests while ~/calibrate waits for its fit (with
+    # the fit in the executor thread, they would wait for the calibration).
+    node = start_node_here({'buffer_capacity': 400000})
+    rec = simulate_recording(5, 600.0, rate_a=500.0, rate_b=500.0)
+    for topic, s in rec.streams.items():  # straight into the store: no need to send them
+        node.node.store.buffers[topic].push_many(s.stamps, s.stamps, s.position, s.quat_wxyz,
+                                                 s.frame_id)
+    n = {t: len(s) for t, s in rec.streams.items()}
+    wait_counts(ros_session, {f'{t} held': n[t] for t in (A, B)}, timeout=60)
+    session = ros_session.node
+    calibrate = session.create_client(Trigger, CALIBRATE)
+    get = session.create_client(GetParameters, '/coreg_node/get_parameters')
+    assert ros_session.spin_until(lambda: calibrate.service_is_ready()
+                                  and get.service_is_ready(), 20)
+    calibrating = calibrate.call_async(Trigger.Request())
+    ros_session.spin_until(lambda: False, 0.3)  # the fit has begun
+    assert not calibrating.done(), 'the fit was too short to show anything'
+    asked = get.call_async(GetParameters.Request(names=['method']))
+    assert ros_session.spin_until(asked.done, 30)
+    assert asked.result().values[0].string_value == 'tls'
+    assert not calibrating.done()  # answered while the fit went on
+    assert ros_session.spin_until(calibrating.done, 120)
+    answer = calibrating.result()
+    assert answer.success, answer.message
+    assert int(answer.message.split(' pairs')[0]) > 0.99 * n[B], answer.message
+    assert node.alive()
+
+
+def test_calibrate_refusals_are_answered(ros_domain, ros_session, start_node_here):
+    node = start_node_here({'qos_reliable': True})
     ok, message = call_trigger(ros_session, CALIBRATE, timeout=20, wait_service=20)
     assert not ok and message
     # Too few pairs: a tenth of a second of data.
@@ -236,8 +269,8 @@ def _fuzz_messages(seed, n):
     return messages, expect
 
 
-def test_fuzzed_bad_input_is_counted_and_survived(ros_session, start_node):
-    node = start_node({'qos_reliable': True})
+def test_fuzzed_bad_input_is_counted_and_survived(ros_session, start_node_here):
+    node = start_node_here({'qos_reliable': True})
     # The first message of each topic fixes its frame: make it a good one.
     messages, expect = _fuzz_messages(20240601, 1500)
     first = [(t, make_pose_stamped(1_000_000_000, f, (0, 0, 0), (1, 0, 0, 0)))

@@ -1,8 +1,9 @@
 """
 The node's faults of issue 12.
 
-Each reproduced with a real coreg_node in a subprocess on a private domain, real publishers
-in the test process and real bags on disk.
+Each reproduced with a real coreg_node on a private domain (in the test's process, or in a
+subprocess where the executable's exit, QoS across processes or SIGKILL is the point), real
+publishers in the test process and real bags on disk.
 
 1. a failing ~/save_samples (storage_dir under a regular file) must not kill the services;
 2. a stored result is republished only by a node of the same configuration, with its stamp;
@@ -77,10 +78,11 @@ def _assert_same_samples(saved, rec, n=None):
 
 # --------------------------------------------------------------------- 1. storage failures
 
-def test_failing_save_samples_answers_and_keeps_the_samples(ros_session, start_node, tmp_path):
+def test_failing_save_samples_answers_and_keeps_the_samples(ros_session, start_node_here,
+                                                            tmp_path):
     blocker = tmp_path / 'a_file'
     blocker.write_text('storage_dir points below a regular file\n')
-    node = start_node({'qos_reliable': True, 'storage_dir': str(blocker / 'store')})
+    node = start_node_here({'qos_reliable': True, 'storage_dir': str(blocker / 'store')})
     rec = simulate_recording(4, 1.0)
     _play(ros_session, rec)
     n = {t: len(s) for t, s in rec.streams.items()}
@@ -107,7 +109,7 @@ def test_failing_save_samples_answers_and_keeps_the_samples(ros_session, start_n
         _play(ros_session, more)
         wait_counts(ros_session, {f'{A} accepted': n[A] + len(more.streams[A])})
         assert node.alive()
-        assert node.stop(signal.SIGINT) == 0, node.log()
+        assert node.stop() == 0, node.log()  # as main on SIGINT
         log = node.log()
         assert 'Traceback' not in log, log
         last = re.findall(r'saved \d+ samples to (\S+)', log)[-1]
@@ -117,10 +119,11 @@ def test_failing_save_samples_answers_and_keeps_the_samples(ros_session, start_n
         shutil.rmtree(fallback.parent, ignore_errors=True)
 
 
-def test_storage_lost_during_the_session_moves_the_journal(ros_session, start_node, tmp_path):
+def test_storage_lost_during_the_session_moves_the_journal(ros_session, start_node_here,
+                                                           tmp_path):
     # A mount that disappears: storage_dir becomes unusable after start-up.
     storage = tmp_path / 'mount'
-    node = start_node({'qos_reliable': True, 'storage_dir': str(storage)})
+    node = start_node_here({'qos_reliable': True, 'storage_dir': str(storage)})
     rec = simulate_recording(9, 1.0)
     _play(ros_session, rec)
     wait_counts(ros_session, {f'{B} accepted': len(rec.streams[B])})
@@ -158,23 +161,23 @@ def _offline_result(seed=3):
     return stored_result_dict(result)
 
 
-def test_stored_result_is_republished_only_for_its_configuration(ros_session, start_node,
-                                                                 tmp_path):
+def test_stored_result_is_republished_only_for_its_configuration(ros_session,
+                                                                 start_node_here, tmp_path):
     storage = tmp_path / 'shared'
     # As an older version stored it (result.yaml), for a rig of other topics and frames.
     other = dict(Settings().as_dict(), topic_a='/robot/pose')
     path = persistence.save_result(str(storage), _offline_result(), dict(FRAMES, base_b='vicon'),
                                    other)
     doc, _, _ = persistence.load_result(str(storage))
-    node = start_node({'storage_dir': str(storage)})
+    node = start_node_here({'storage_dir': str(storage)})
     assert wait_for_result(ros_session, f'{NODE}/base_to_base', timeout=8) is None, node.log()
     assert node.alive()
     assert node.stop() == 0
     assert 'not republishing' in node.log() and str(path) in node.log(), node.log()
 
     # The configuration it was made for republishes it, stamped with its calibration time.
-    same = start_node({'storage_dir': str(storage), 'topic_a': '/robot/pose',
-                       'frame_base_b': 'vicon'}, name='same')
+    same = start_node_here({'storage_dir': str(storage), 'topic_a': '/robot/pose',
+                            'frame_base_b': 'vicon'}, name='same')
     msg = wait_for_result(ros_session, f'{NODE}/base_to_base', timeout=20)
     assert msg is not None, same.log()
     assert msg.header.frame_id == 'vicon'
@@ -182,9 +185,9 @@ def test_stored_result_is_republished_only_for_its_configuration(ros_session, st
     assert same.stop() == 0
 
 
-def test_live_result_is_stored_per_configuration(ros_session, start_node, tmp_path):
+def test_live_result_is_stored_per_configuration(ros_session, start_node_here, tmp_path):
     storage = str(tmp_path / 'shared')
-    node = start_node({'storage_dir': storage, 'qos_reliable': True})
+    node = start_node_here({'storage_dir': storage, 'qos_reliable': True})
     rec = simulate_recording(3, 3.0)
     _play(ros_session, rec)
     wait_counts(ros_session, {f'{t} accepted': len(s) for t, s in rec.streams.items()})
@@ -194,12 +197,12 @@ def test_live_result_is_stored_per_configuration(ros_session, start_node, tmp_pa
     assert node.stop() == 0
     time.sleep(1.1)  # a republication stamped "now" would differ
 
-    other = start_node({'storage_dir': storage, 'frame_base_b': 'tracker'}, name='other')
+    other = start_node_here({'storage_dir': storage, 'frame_base_b': 'tracker'}, name='other')
     assert wait_for_result(ros_session, f'{NODE}/base_to_base', timeout=8) is None
     assert other.stop() == 0
     assert 'not republishing' in other.log(), other.log()
 
-    again = start_node({'storage_dir': storage}, name='again')
+    again = start_node_here({'storage_dir': storage}, name='again')
     msg = wait_for_result(ros_session, f'{NODE}/base_to_base', timeout=20)
     assert msg is not None, again.log()
     assert msg.header.stamp == first.header.stamp
@@ -300,8 +303,9 @@ def test_minus_p_override_of_the_wrong_type_is_one_line(ros_domain, tmp_path):
 
 # ---------------------------------------------------------------------- 4. lost messages
 
-def test_messages_missing_from_the_stamps_are_counted_and_warned(ros_session, start_node):
-    start_node({'qos_reliable': True})
+def test_messages_missing_from_the_stamps_are_counted_and_warned(ros_session,
+                                                                 start_node_here):
+    start_node_here({'qos_reliable': True})
     period = 1_000_000  # 1 kHz stamps
     t0 = 1_700_000_000 * 10**9
     holes = {100, 101, 102, 250, 400, 401, 402, 403, 404, 405}  # 10 messages never sent
@@ -420,8 +424,8 @@ def test_sigkill_loses_at_most_a_second_and_the_node_resumes(ros_domain, ros_ses
 
 # ---------------------------------------------------------------- 6. swapped frame ids
 
-def test_swapped_devices_are_warned_about(ros_session, start_node):
-    node = start_node({'qos_reliable': True})
+def test_swapped_devices_are_warned_about(ros_session, start_node_here):
+    node = start_node_here({'qos_reliable': True})
     pubs = publishers(ros_session, (A, B))
     t0 = 1_700_000_000 * 10**9
     for k in range(200):  # each device's stream on the other's topic
@@ -443,8 +447,8 @@ def test_swapped_devices_are_warned_about(ros_session, start_node):
 
 # ------------------------------------------------------------- 7. wrong message types
 
-def test_wrong_message_type_on_a_topic_is_reported(ros_session, start_node):
-    node = start_node()
+def test_wrong_message_type_on_a_topic_is_reported(ros_session, start_node_here):
+    node = start_node_here()
     pub_b = ros_session.node.create_publisher(PoseWithCovarianceStamped, B, 10)
     pub_a = ros_session.node.create_publisher(TransformStamped, A, 10)
     status = _diag(ros_session, lambda s: all(diagnostics_values(s)[f'{t} type problem']

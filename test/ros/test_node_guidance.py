@@ -1,8 +1,8 @@
 """
 Guidance and the watchdog in the live node, with real rclpy.
 
-Recordings played into coreg_node
-(``coreg play``), /diagnostics and ``~/fused_pose`` read as a user would.
+Recordings played (``coreg play``, a process) into coreg_node (in the test's process),
+/diagnostics and ``~/fused_pose`` read as a user would.
 """
 
 import subprocess
@@ -121,10 +121,10 @@ def _calibrate(domain, node):
 
 
 def test_guidance_sigma_is_the_calibrations_and_a_stable_recording_raises_no_alarm(
-        ros_domain, ros_session, start_node, tmp_path):
+        ros_domain, ros_session, start_node_here, tmp_path):
     rec = simulate_recording(71, 90.0, rate_a=RATE, rate_b=RATE)
     collecting, stable = _bags(tmp_path, rec, [0.0, 30.0, 90.0])
-    node = start_node({'qos_reliable': True})
+    node = start_node_here({'qos_reliable': True})
     watch = Collector(ros_session)
     watch.play(ros_domain, collecting, rate=4.0)
     guidance = watch.settled_guidance()
@@ -182,21 +182,22 @@ def _true_size(change: dict, key: str) -> float:
 
 @pytest.mark.parametrize('spec, kind, key, text', STEPS)
 def test_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_session,
-                                                              start_node, tmp_path, spec, kind,
-                                                              key, text):
+                                                              start_node_here, tmp_path, spec,
+                                                              kind, key, text):
     change_s = 43.0
     rec = apply_changes(simulate_recording(72, 56.0, rate_a=RATE, rate_b=RATE),
                         [f'{spec}@{change_s}'], seed=72)
     change = rec.truth.effects[-1]
     before, after = _bags(tmp_path, rec, [0.0, 40.0, 56.0])
-    first = start_node({'qos_reliable': True})
+    first = start_node_here({'qos_reliable': True})
     watch = Collector(ros_session)
     watch.play(ros_domain, before, rate=4.0)
     watch.spin(2.0)
     _calibrate(ros_domain, first)
     assert first.stop() == 0, first.log()
     # a restarted node watches the stored calibration it republishes
-    node = start_node({'qos_reliable': True, 'storage_dir': str(first.storage)}, name='again')
+    node = start_node_here({'qos_reliable': True, 'storage_dir': str(first.storage)},
+                           name='again')
     assert wait_for_result(ros_session, f'/{NODE}/base_to_base', timeout=20) is not None
     n0 = len(watch.statuses[wd.STATUS_NAME])
     watch.play(ros_domain, after, rate=1.0)  # real time: the node checks once a second
@@ -231,13 +232,13 @@ def test_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_se
 
 
 def test_auto_calibrate_then_auto_recalibrate_after_a_t0_step(ros_domain, ros_session,
-                                                              start_node, tmp_path):
+                                                              start_node_here, tmp_path):
     rec = apply_changes(simulate_recording(73, 75.0, rate_a=RATE, rate_b=RATE),
                         ['t0_step=2mm@45'], seed=73)
     change = rec.truth.effects[-1]
     (bag,) = _bags(tmp_path, rec, [0.0, 75.0])
-    node = start_node({'qos_reliable': True, 'auto_calibrate': True,
-                       'auto_recalibrate': True})
+    node = start_node_here({'qos_reliable': True, 'auto_calibrate': True,
+                            'auto_recalibrate': True})
     watch = Collector(ros_session)
     bases = []
     ros_session.node.create_subscription(PoseWithCovarianceStamped, f'/{NODE}/base_to_base',

@@ -5,7 +5,8 @@ Bulk validation equals one-by-one, the raw path stores the same samples as the p
 and 2 x 2 kHz arrive without a loss.
 
 The buffer and intake tests run real code on real CDR bytes without ROS; the node tests run
-coreg_node in a subprocess with real rclpy (both paths: ``COREG_NODE_PLAIN=1`` is the plain one).
+coreg_node with real rclpy, in the test's process (both paths: ``COREG_NODE_PLAIN=1`` is the
+plain one) or, for the loss at 2 x 2 kHz across processes, in a subprocess.
 """
 
 import time
@@ -196,15 +197,15 @@ def _saved(session, node, sent) -> tuple[dict, dict]:
     return counts, samples
 
 
-def test_raw_and_plain_paths_store_the_same_samples(ros_session, start_node, monkeypatch):
+def test_raw_and_plain_paths_store_the_same_samples(ros_session, start_node_here, monkeypatch):
     # The same messages with every kind of bad one, into a node on each path in turn.
     monkeypatch.setenv(PLAIN_ENV, '0')
-    raw_node = start_node({'qos_reliable': True})
+    raw_node = start_node_here({'qos_reliable': True})
     sent = _play_bad_streams(ros_session)
     raw = _saved(ros_session, raw_node, sent)
     raw_node.stop()
     monkeypatch.setenv(PLAIN_ENV, '1')
-    plain_node = start_node({'qos_reliable': True})
+    plain_node = start_node_here({'qos_reliable': True})
     assert _play_bad_streams(ros_session) == sent
     plain = _saved(ros_session, plain_node, sent)
     assert raw[0] == plain[0]

@@ -47,10 +47,10 @@ def _feed(ros_domain, ros_session, start_node, bag, n, params=None):
     return node
 
 
-def test_node_and_cli_agree_on_offset_and_rejected_pairs(ros_domain, ros_session, start_node,
-                                                         tmp_path):
+def test_node_and_cli_agree_on_offset_and_rejected_pairs(ros_domain, ros_session,
+                                                         start_node_here, tmp_path):
     bag, n = _recording(tmp_path, 61, outliers=0.02, effects=['time_offset=0.025'])
-    node = _feed(ros_domain, ros_session, start_node, bag, n)
+    node = _feed(ros_domain, ros_session, start_node_here, bag, n)
     called = run_cli(ros_domain, 'call', 'calibrate', '--timeout', 60)
     assert called.returncode == 0 and 'success' in called.stdout, called.stdout + node.log()
     cli, offline = _cli_json(bag, tmp_path)
@@ -75,12 +75,12 @@ def test_node_and_cli_agree_on_offset_and_rejected_pairs(ros_domain, ros_session
                                                                             rel=1e-5)
 
 
-def test_node_refuses_an_inconsistent_fit_unless_asked(ros_domain, ros_session, start_node,
-                                                       tmp_path):
+def test_node_refuses_an_inconsistent_fit_unless_asked(ros_domain, ros_session,
+                                                       start_node_here, tmp_path):
     # B's noise understated twofold: the fit contradicts the stated noise everywhere
     bag, n = _recording(tmp_path, 62)
     params = {'sigma_b': [0.00025, 0.001]}
-    node = _feed(ros_domain, ros_session, start_node, bag, n, params)
+    node = _feed(ros_domain, ros_session, start_node_here, bag, n, params)
     called = run_cli(ros_domain, 'call', 'calibrate', '--timeout', 60)
     assert 'not published' in called.stdout and 'does not match the stated noise' in \
         called.stdout, called.stdout + node.log()
@@ -90,7 +90,7 @@ def test_node_refuses_an_inconsistent_fit_unless_asked(ros_domain, ros_session, 
     assert offline['rescaled_covariance']['factor'] > 1.5
     node.stop()
     # with publish_inconsistent the same fit is published, flagged
-    node = _feed(ros_domain, ros_session, start_node, bag, n,
+    node = _feed(ros_domain, ros_session, start_node_here, bag, n,
                  {**params, 'publish_inconsistent': True})
     called = run_cli(ros_domain, 'call', 'calibrate', '--timeout', 60)
     assert 'PUBLISHED ALTHOUGH INCONSISTENT' in called.stdout, called.stdout + node.log()

@@ -1,8 +1,8 @@
 """
 Integration tests of the node's uncertainty outputs (``~/fused_pose``, ``~/uncertainty_markers``).
 
-With real rclpy: coreg_node runs in a subprocess on a private domain, the test process plays
-the two devices, calibrates, subscribes and sets parameters.
+With real rclpy: coreg_node runs in the test's process with its own context on a private
+domain; the test plays the two devices, calibrates, subscribes and sets parameters.
 """
 
 import math
@@ -124,8 +124,8 @@ def _check_pose_markers(markers, pose, frame):
         np.testing.assert_allclose(pts, expect.reshape(-1, 3), rtol=1e-12, atol=1e-12)
 
 
-def test_fused_pose_and_markers_after_calibration(ros_session, start_node):
-    node = start_node({'qos_reliable': True})
+def test_fused_pose_and_markers_after_calibration(ros_session, start_node_here):
+    node = start_node_here({'qos_reliable': True})
     rec = _calibrate(ros_session, node)
     fused = Collector(ros_session, PoseWithCovarianceStamped, FUSED)
     live = _more(rec, 31, 2.0, after_s=5.0)
@@ -179,8 +179,8 @@ def test_fused_pose_and_markers_after_calibration(ros_session, start_node):
 
 
 def test_parameters_switch_outputs_and_restart_fuses_from_the_stored_result(ros_session,
-                                                                            start_node):
-    node = start_node({'qos_reliable': True, 'fused_rate_limit': 0.0})
+                                                                            start_node_here):
+    node = start_node_here({'qos_reliable': True, 'fused_rate_limit': 0.0})
     rec = _calibrate(ros_session, node, seed=5)
     fused = Collector(ros_session, PoseWithCovarianceStamped, FUSED)
     markers = Collector(ros_session, MarkerArray, MARKERS, MARKER_QOS)
@@ -224,7 +224,8 @@ def test_parameters_switch_outputs_and_restart_fuses_from_the_stored_result(ros_
     assert len(stored['cov_joint']) == 144
     node.stop()
     fused.msgs.clear()
-    again = start_node({'qos_reliable': True, 'storage_dir': str(node.storage)}, name='again')
+    again = start_node_here({'qos_reliable': True, 'storage_dir': str(node.storage)},
+                            name='again')
     first = wait_for_message(ros_session, MarkerArray, MARKERS, MARKER_QOS, timeout=20)
     assert first is not None, again.log()
     assert {m.ns for m in first.markers} == {'base_to_base', 'tool_to_marker'}

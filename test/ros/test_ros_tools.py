@@ -110,7 +110,7 @@ def test_node_reads_config_file_and_refuses_bad_changes(ros_domain, tmp_path):
         out_of_range = node.set_parameters([Parameter('max_gap', value=100.0)])[0]
         assert not out_of_range.successful
         assert node.set_parameters([Parameter('method', value='ols')])[0].successful
-        assert node.current_settings().method == 'ols'
+        assert node.params.settings().method == 'ols'
         read_only = node.set_parameters([Parameter('topic_a', value='/x')])[0]
         assert not read_only.successful
         node.destroy_node()
