@@ -44,6 +44,7 @@ def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
     from coreg_ros.core.errors import BagError
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.ros.lifecycle import record_stop_signals
     from coreg_ros.ros.persistence import read_journal, SampleJournal
     from coreg_ros.ros.session import RosSession
     from coreg_ros.ros.tools import record_streams
@@ -63,8 +64,14 @@ def cmd_record(args) -> int:
         # written as it goes (a killed recorder loses at most a second), merged at the end
         journal = SampleJournal(partial, storage='mcap')
         print(f'recording to {out} (written as it goes to {partial})')
+        # Ctrl-C stops the recording through ROS only: a KeyboardInterrupt could reach the
+        # main thread after the block that expects the stop, and the samples would not be
+        # written (what coreg_node does too, lifecycle.record_stop_signals)
+        stops = record_stop_signals()
         try:
             with RosSession('coreg_record') as session:
+                if stops:  # a signal before rclpy's handlers: it did not reach ROS
+                    session.interrupt()
                 streams = record_streams(session, args.topics, duration=args.duration,
                                          on_flush=journal.append, flush_period=1.0)
         except KeyboardInterrupt:

@@ -39,7 +39,10 @@ def test_sigint_while_starting(command, delay):
             pytest.fail(f'{command[0]} did not exit within 20 s of SIGINT: {err[-500:]}')
     assert 'Traceback' not in err, err
     if proc.returncode != 0:  # it may also have finished, or shut down cleanly on the signal
-        assert proc.returncode in (1, 130, 143), (proc.returncode, err)
+        # -2: the signal came while the interpreter was ending (its handlers are the default
+        # ones then; coreg calibrate of the sample takes under a second), with nothing printed
+        assert proc.returncode in (1, 130, 143) or (proc.returncode == -2 and not err), (
+            proc.returncode, err)
         if command[0] == 'coreg':  # the node may have logged its start-up already
             assert err.strip().count('\n') <= 1, err
 
