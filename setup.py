@@ -16,7 +16,7 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.11', 'rosbags>=0.10', 'PyYAML',
+    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.9.2', 'rosbags>=0.10', 'PyYAML',
                       'rich>=13', 'threadpoolctl>=3'],
     extras_require={'test': ['pytest', 'hypothesis', 'ruff', 'pytest-xdist'],
                     'report': ['matplotlib'],
