@@ -64,25 +64,6 @@ def format_pose(name: str, meaning: str, pose, rotation_known: bool = True,
     return '\n'.join(lines)
 
 
-def determined_covariance(result):
-    """
-    Return the joint 12×12 covariance of the part the motion determines (None: none held).
-
-    The published covariance less what it says along the held directions: its orthogonal
-    projection onto their complement. The σ printed per axis are this part's; the held
-    directions are said on their own lines (``format_unobservable``).
-    """
-    held = [u.direction for u in result.unobservable if u.by == 'held']
-    if not held or result.cov_joint is None:
-        return None
-    q, _ = np.linalg.qr(np.array(held, dtype=float).T)
-    proj = np.eye(12) - q @ q.T
-    out = proj @ np.asarray(result.cov_joint, dtype=float) @ proj
-    unknown = np.diag(result.cov_joint) < 0  # components the model does not have stay -1
-    out[unknown, unknown] = np.diag(result.cov_joint)[unknown]
-    return out
-
-
 def format_unobservable(u) -> str:
     """One line on a direction the motion does not determine (``types.Unobservable``)."""
     at = u.held_at
@@ -118,7 +99,7 @@ def format_result(result, report=None) -> str:
         out.append(f"prior: chi2 = {pc['chi2']:.2f} for {pc['dof']} dof, p = "
                    f"{pc['p_value']:.3g}: {'agrees' if pc['consistent'] else 'DISAGREES'} "
                    f'with the data')
-    determined = determined_covariance(result)
+    determined = result.cov_determined
     blocks = (None, None) if determined is None else (determined[0:6, 0:6],
                                                       determined[6:12, 6:12])
     out.append(format_pose('base_to_base', "pose of device A's base frame in device B's base "

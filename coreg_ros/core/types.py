@@ -358,8 +358,13 @@ class CalibrationResult:
     unobservable : tuple of Unobservable
         The directions the motion does not determine (a restricted rig: a SCARA arm, a mobile
         robot, a gantry, a turntable), held or determined by the prior; empty when the motion
-        determines everything. The covariances carry ``observability.UNKNOWN_VARIANCE``
-        along the held ones.
+        determines everything. The published covariances (``cov_joint``, the poses') carry
+        ``observability.UNKNOWN_VARIANCE`` along the held ones; ``param_cov`` is the fit's,
+        the held directions pinned in it.
+    cov_determined : ndarray, shape (12, 12), optional
+        With directions held: the joint covariance of the part the motion determines (the
+        published one less what it says along them). What propagates through the model
+        (``cov_for_propagation``), which a held direction does not change.
 
     """
 
@@ -390,6 +395,7 @@ class CalibrationResult:
     prior_check: Optional[dict] = None
     direction_check: Optional[object] = None
     unobservable: tuple = ()
+    cov_determined: Optional[np.ndarray] = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -400,6 +406,16 @@ class CalibrationResult:
         """Return the text ``coreg calibrate`` prints (with the pairing report, if given)."""
         from coreg_ros.core.result_text import format_result
         return format_result(self, pairing)
+
+    @property
+    def cov_for_propagation(self) -> Optional[np.ndarray]:
+        """
+        Return the joint covariance to carry through the model (``T0 · T_A · T1``).
+
+        ``cov_determined`` when directions are held (a held direction does not change any
+        prediction, and its unknown variance must not leak into them), else ``cov_joint``.
+        """
+        return self.cov_joint if self.cov_determined is None else self.cov_determined
 
     @property
     def held(self) -> tuple:

@@ -12,6 +12,7 @@ Layout (relied upon by checks)::
                             the covariances multiplied by chi2/dof),
      "prior_check": {"chi2", "dof", "p_value", "consistent"} (with a prior),
      "cov_joint": [144 numbers] (12×12 of (T0, T1), ROS layout, when estimated),
+     "cov_determined": [144 numbers] (with directions held: the determined part of it),
      "base_to_base": {"position": [x, y, z], "orientation": {"w", "x", "y", "z"},
                       "covariance": [36 numbers, ROS row-major layout]},
      "tool_to_marker": {same},
@@ -83,6 +84,8 @@ def result_to_dict(result: CalibrationResult) -> dict:
     }
     if result.cov_joint is not None:
         out['cov_joint'] = [float(v) for v in np.ravel(result.cov_joint)]
+    if result.cov_determined is not None:
+        out['cov_determined'] = [float(v) for v in np.ravel(result.cov_determined)]
     if result.time_offset is not None:
         out['time_offset'] = result.time_offset.as_dict()
         if result.time_offset.drift_dict() is not None:

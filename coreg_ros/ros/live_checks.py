@@ -114,7 +114,7 @@ def stored_calibration(doc: dict, base_to_base: UncertainPose,
     r = doc.get('result', {})
     model = r.get('model', 'full_pose')
     d = CRLB_DIMENSION[model]
-    joint = r.get('cov_joint')
+    joint = r.get('cov_determined', r.get('cov_joint'))  # held directions: left out
     if joint is not None:
         c12 = np.asarray(joint, dtype=float).reshape(12, 12)
     else:

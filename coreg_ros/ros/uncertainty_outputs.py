@@ -260,7 +260,8 @@ class UncertaintyOutputs:
         """Use a stored calibration (``persistence.load_result``); cov_joint if it was stored."""
         r = doc.get('result', {})
         self.timing = TimeOffset.from_dict(r.get('time_offset'), r.get('clock_drift'))
-        joint = r.get('cov_joint')
+        # held directions (a restricted rig) change no pose: their unknown variance stays out
+        joint = r.get('cov_determined', r.get('cov_joint'))
         self.set_calibration(FusionCalibration.from_poses(
             base_to_base, tool_to_marker, r.get('model', 'full_pose'),
             None if joint is None else np.asarray(joint, dtype=float).reshape(12, 12)))

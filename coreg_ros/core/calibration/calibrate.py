@@ -17,8 +17,8 @@ from coreg_ros.core.calibration import observability, screening
 from coreg_ros.core.calibration.initialize import initialize
 from coreg_ros.core.calibration.observability import (
     hold_prior,
-    published_covariance,
     refuse_if_nothing_moved,
+    result_covariances,
     Undetermined,
     undetermined,
 )
@@ -48,7 +48,6 @@ from coreg_ros.core.estimator import (
     without_pairs,
 )
 from coreg_ros.core.estimator.linearized import PairData, reference_squares
-from coreg_ros.core.estimator.posterior import result_poses
 from coreg_ros.core.estimator.priors import Prior, prior_rows
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.settings import Settings
@@ -500,10 +499,7 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
 
 def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int,
             found: Undetermined) -> CalibrationResult:
-    published = sol.cov
-    if sol.cov is not None and found.held.shape[1]:
-        published = published_covariance(sol.cov, sol.params, found.held)
-    t0, t1, joint = result_poses(sol.params, published)
+    t0, t1, joint, determined = result_covariances(sol.params, sol.cov, found.held)
     dof = sol.n_rows - spec.n_params
     p_value = float(stats.chi2.sf(sol.chi2, dof)) if dof > 0 else float('nan')
     message = sol.message if sol.cov is not None else (
@@ -514,4 +510,4 @@ def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int,
         markers=sol.params.markers.copy(), params=sol.params.phi.copy(), param_cov=sol.cov,
         chi2=float(sol.chi2), dof=int(dof), p_value=p_value, residuals=sol.residuals,
         iterations=sol.iterations, cov_joint=joint, input_residuals=sol.input_residuals,
-        charts=tuple(sol.params.charts))
+        charts=tuple(sol.params.charts), cov_determined=determined)

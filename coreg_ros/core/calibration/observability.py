@@ -26,7 +26,7 @@ closed-form start's value (a gauge: an internal prior far tighter than the data 
 component alone, ``hold_prior``), so that the observable part is estimated as if the direction
 did not exist: its posterior covariance is exact, the same for any choice of the held
 component. Every published covariance carries ``UNKNOWN_VARIANCE`` along a held direction
-(``published_covariance``).
+(``held_covariances``).
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import UnobservableError
+from coreg_ros.core.estimator.posterior import joint_pose_covariance, result_poses
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import Parameters, S0, S1, tangent_of_chart
 from coreg_ros.core.types import UncertainPose, Unobservable
@@ -346,13 +347,14 @@ def hold_prior(found: Undetermined, start: Parameters, at: Optional[Prior] = Non
     return Prior(t0 if use_t0 else None, t1 if use_t1 else None), components
 
 
-def published_covariance(cov: np.ndarray, params: Parameters, held: np.ndarray) -> np.ndarray:
+def held_covariances(cov: np.ndarray, params: Parameters, held: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """
-    Return φ's covariance with every held direction unknown (observable part + UNKNOWN_VARIANCE).
+    Return φ's covariance published with every held direction unknown, and its determined part.
 
     The fit's covariance (the gauge's tight component included) is projected onto the
-    complement of the held directions in ψ, which is the observable part whatever component
-    pinned them, and ``UNKNOWN_VARIANCE`` is put along each held direction.
+    complement of the held directions in ψ: that is the determined part, whatever component
+    pinned them. The published covariance adds ``UNKNOWN_VARIANCE`` along each held direction.
 
     Parameters
     ----------
@@ -365,17 +367,63 @@ def published_covariance(cov: np.ndarray, params: Parameters, held: np.ndarray) 
 
     Returns
     -------
-    ndarray, shape (P, P)
+    published, determined : ndarray, shape (P, P)
         Chart coordinates, like ``cov``.
 
     """
     T = tangent_matrix(params)
     c = T @ cov @ T.T
     proj = np.eye(len(c)) - held @ held.T
-    c = proj @ c @ proj + UNKNOWN_VARIANCE * (held @ held.T)
+    determined = proj @ c @ proj
     T_inv = np.linalg.inv(T)
-    out = T_inv @ c @ T_inv.T
-    return 0.5 * (out + out.T)
+
+    def back(m):
+        out = T_inv @ m @ T_inv.T
+        return 0.5 * (out + out.T)
+
+    return back(determined + UNKNOWN_VARIANCE * (held @ held.T)), back(determined)
+
+
+def result_covariances(params: Parameters, cov: Optional[np.ndarray], held: np.ndarray):
+    """
+    Return the result's poses and covariances, the held directions unknown in them.
+
+    Returns
+    -------
+    t0, t1 : UncertainPose
+        The published poses (``posterior.result_poses``).
+    joint : ndarray, shape (12, 12) or None
+        The published joint covariance of (T0, T1).
+    determined : ndarray, shape (12, 12) or None
+        The joint covariance of the part the motion determines (None when nothing is held):
+        what propagates through the model (``CalibrationResult.cov_for_propagation``), which
+        does not change along a held direction.
+
+    """
+    if cov is None or not held.shape[1]:
+        t0, t1, joint = result_poses(params, cov)
+        return t0, t1, joint, None
+    published, determined = held_covariances(cov, params, held)
+    t0, t1, joint = result_poses(params, published)
+    return t0, t1, joint, joint_pose_covariance(params, determined)
+
+
+def held_basis(result, spec) -> np.ndarray:
+    """
+    Return the orthonormal held directions (ψ, P×k) of a result (``CalibrationResult.held``).
+
+    The inverse of ``pose_layout``: the (T0, T1) layout's components, and for three markers
+    the markers' part.
+    """
+    cols = []
+    for u in result.held:
+        if spec.n_markers == 3:
+            cols.append(np.concatenate([u.direction[0:6], u.markers]))
+        else:
+            cols.append(u.direction[:spec.n_params])
+    if not cols:
+        return np.zeros((spec.n_params, 0))
+    return np.linalg.qr(np.array(cols).T)[0]
 
 
 # ----------------------------------------------------------------------------- words

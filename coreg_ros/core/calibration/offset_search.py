@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 from coreg_ros.core.calibration.calibrate import calibrate, MAX_REJECTED_SHARE
+from coreg_ros.core.calibration.observability import held_basis, result_covariances
 from coreg_ros.core.calibration.pairing import pair_for, validated_streams
 from coreg_ros.core.clock.timing import (
     clock_step,
@@ -31,7 +32,7 @@ from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
 from coreg_ros.core.estimator import noise_covariance, output_covariance
 from coreg_ros.core.estimator.linearized import PairData
-from coreg_ros.core.estimator.posterior import result_poses, tangent_map
+from coreg_ros.core.estimator.posterior import tangent_map
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.settings import Settings
@@ -266,7 +267,8 @@ def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
     d = step.delta
     params = rnd.params.stepped(step.dphi @ d)
     cov = step.marginal_cov(result.param_cov)
-    t0, t1, joint = result_poses(params, cov)
+    t0, t1, joint, determined = result_covariances(params, cov,
+                                                   held_basis(result, params.spec))
     T, _ = tangent_map(params)
     cross = T @ (step.dphi @ step.cov)
     kappa = None if rnd.kappa is None else rnd.kappa + float(d[1])
@@ -281,4 +283,4 @@ def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
     p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
     return replace(result, base_to_base=t0, tool_to_marker=t1, markers=params.markers.copy(),
                    params=params.phi.copy(), param_cov=cov, cov_joint=joint, chi2=chi2,
-                   dof=dof, p_value=p_value, time_offset=timing)
+                   dof=dof, p_value=p_value, time_offset=timing, cov_determined=determined)

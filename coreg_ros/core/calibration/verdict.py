@@ -92,7 +92,7 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
                                             est[w].quat_wxyz)
     d = full[idx]
     c_prior = prior.covariance()[np.ix_(idx, idx)]
-    D = c_prior - result.cov_joint[np.ix_(idx, idx)]
+    D = c_prior - result.cov_for_propagation[np.ix_(idx, idx)]
     lam, U = np.linalg.eigh(0.5 * (D + D.T))
     keep = lam > 1e-9 * max(float(lam.max()), 0.0)
     if not keep.any():

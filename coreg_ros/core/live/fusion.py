@@ -65,7 +65,7 @@ class FusionCalibration:
     @classmethod
     def from_result(cls, result: CalibrationResult) -> FusionCalibration:
         """Take T0, T1 and their joint covariance (cross terms included) from a result."""
-        joint = result.cov_joint
+        joint = result.cov_for_propagation  # held directions (restricted rigs) change no pose
         if joint is None:
             joint = block_joint_covariance(result.base_to_base, result.tool_to_marker)
         return cls(result.base_to_base, result.tool_to_marker,

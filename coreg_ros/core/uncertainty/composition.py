@@ -208,8 +208,10 @@ def through_calibration_arrays(result: CalibrationResult, position_a, quat_a, co
     t0, t1 = result.base_to_base, result.tool_to_marker
     pa = np.asarray(position_a, dtype=float)
     qa = np.asarray(quat_a, dtype=float)
-    joint = (np.zeros((12, 12)) if result.cov_joint is None
-             else np.asarray(result.cov_joint, dtype=float))
+    # a held direction (a restricted rig) changes no prediction: its unknown variance stays out
+    # (``CalibrationResult.cov_for_propagation``; a ``FusionCalibration`` holds that already)
+    joint = getattr(result, 'cov_for_propagation', result.cov_joint)
+    joint = np.zeros((12, 12)) if joint is None else np.asarray(joint, dtype=float)
     shape = pa.shape[:-1]
     # X = T0 · T_A
     J0_x, Ja_x = compose_jacobians(t0.position, t0.quat_wxyz, pa)
