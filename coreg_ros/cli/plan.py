@@ -151,8 +151,7 @@ def format_plan(plan, source: str, note: str, model: str) -> str:
            'predicted 1σ accuracy (Cramér-Rao bound of the errors-in-variables model):']
     base = plan.baseline.prediction
     if base is None:
-        out.append('  UNOBSERVABLE: this motion cannot determine the calibration (it rotates '
-                   'about fewer than two axes)')
+        out.append('  UNOBSERVABLE: this motion determines nothing (the tool does not move)')
     else:
         for name in base.sigma:
             out.append(f'  {MEANING[name]:<38} σ {_sd_text(base, name)}')
@@ -160,6 +159,9 @@ def format_plan(plan, source: str, note: str, model: str) -> str:
                    f'{_reg_text(base)}')
         name, axis, sd = base.worst()
         out.append(f'  weakest: {MEANING[name]}, {"xyz"[axis]} axis, σ {sd * 1e3:.3f} mm')
+        for _, words, determine in base.unobservable:
+            out.append(f'  unobservable with this motion (the calibration holds it; σ above are '
+                       f'of the rest): {words}; to determine it: {determine}')
     rms = plan.rotation_spread
     out.append(f'rotation excited about the tool axes: RMS {np.degrees(rms[0]):.1f}°, '
                f'{np.degrees(rms[1]):.1f}°, {np.degrees(rms[2]):.1f}° (least about '
@@ -172,6 +174,9 @@ def format_plan(plan, source: str, note: str, model: str) -> str:
             out.append(f'  {i + 1}. {c.description}: still unobservable')
             continue
         gain = 'makes it observable' if not np.isfinite(c.gain) else f'×{c.gain:.2f} better'
+        if base is not None and len(pred.unobservable) < len(base.unobservable):
+            gain += ('; determines what this motion leaves unobservable, if the rig can make '
+                     'it')
         worst = max((k for k in pred.sigma if k.startswith('p')),
                     key=lambda k: float(np.max(pred.sigma[k])))
         out.append(f'  {i + 1}. {c.description}: registration {_reg_text(pred)} ({gain}); '
@@ -186,7 +191,10 @@ def plan_to_dict(plan, source: str, note: str) -> dict:
             return None
         return {'n_pairs': pred.n_pairs, 'duration': pred.duration,
                 'sigma': {k: v.tolist() for k, v in pred.sigma.items()},
-                'registration_rms': [float(v) for v in pred.registration_rms]}
+                'registration_rms': [float(v) for v in pred.registration_rms],
+                'unobservable': [{'direction': [float(v) for v in u], 'description': words,
+                                  'determine': determine}
+                                 for u, words, determine in pred.unobservable]}
 
     return {'source': source, 'note': note,
             'baseline': pred_dict(plan.baseline.prediction),

@@ -76,14 +76,25 @@ def test_more_of_the_same_scales_as_one_over_root_n():
 
 
 def test_single_axis_motion_is_unobservable_and_the_plan_says_how_to_fix_it():
+    """One direction unobservable: named before recording, the rest bounded, the fix found."""
     truth = random_truth(np.random.default_rng(6))
     pos, q = motion_samples('single_axis')
     plan = plan_recording('full_pose', truth.p0, truth.q0, truth.markers, pos, q, COV_A, COV_B,
                           rate=50.0)
-    assert plan.baseline.prediction is None
-    assert plan.best.name == 'rotate_weakest_axis'
-    assert np.isinf(plan.best.gain) and plan.best.prediction is not None
-    assert all(c.prediction is None for c in plan.candidates[1:])
+    base = plan.baseline.prediction
+    assert base is not None and len(base.unobservable) == 1
+    direction, words, determine = base.unobservable[0]
+    assert "T1's position" in words and "T0's translation" in words
+    assert 'rotating the tool about a second axis' in determine
+    # the tool axis it turns about: T1's offset along it is what the motion cannot show
+    _, axes = rotation_spread(q)
+    assert abs(abs(direction[6:9] @ axes[0]) / np.linalg.norm(direction[6:9]) - 1.0) < 1e-6
+    # the bound of the rest is finite; rotating about the weakest axis determines it all, and
+    # more of the same motion never does
+    assert all(np.isfinite(v).all() for v in base.sigma.values())
+    by_name = {c.name: c.prediction for c in plan.candidates}
+    assert by_name['rotate_weakest_axis'].unobservable == ()
+    assert len(by_name['longer'].unobservable) == 1
 
 
 def test_weakest_axis_is_the_one_not_rotated_about():
@@ -147,4 +158,7 @@ def test_plan_is_registered_in_coreg(capsys):
 
     assert main(['plan', '--sigma-a', '2e-4', '5e-4', '--sigma-b', '5e-4', '2e-3',
                  '--duration', '10', '--motion', 'single_axis']) == 0
-    assert 'UNOBSERVABLE' in capsys.readouterr().out
+    assert 'unobservable with this motion' in capsys.readouterr().out
+    assert main(['plan', '--sigma-a', '2e-4', '5e-4', '--sigma-b', '5e-4', '2e-3',
+                 '--duration', '10', '--motion', 'static']) == 0
+    assert 'UNOBSERVABLE: this motion determines nothing' in capsys.readouterr().out

@@ -107,6 +107,34 @@ def model_jacobians(model: str, p0, q0, markers, pos_a, quat_a):
     return f_psi, f_x
 
 
+def fisher_information(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
+                       a_var_scale: Optional[np.ndarray] = None) -> np.ndarray:
+    """
+    Fisher information of ψ for N pairs with noise on both devices (``cramer_rao_bound``).
+
+    Returns
+    -------
+    ndarray, shape (d, d)
+        The Schur complement at the truth, coordinates of the module table (singular where
+        the motion leaves a direction undetermined).
+
+    """
+    cov_a = np.asarray(cov_a, dtype=float).reshape(6, 6)
+    cov_b = np.asarray(cov_b, dtype=float).reshape(6, 6)
+    f_psi, f_x = model_jacobians(model, p0, q0, markers, pos_a, quat_a)
+    m = f_psi.shape[1]
+    if model == 'full_pose':
+        sigma_b = cov_b
+    else:
+        sigma_b = np.kron(np.eye(m // 3), cov_b[0:3, 0:3])
+    scale = (np.ones(len(f_x)) if a_var_scale is None
+             else np.asarray(a_var_scale, dtype=float))
+    M = sigma_b + scale[:, None, None] * (f_x @ cov_a @ f_x.transpose(0, 2, 1))
+    Minv_f = np.linalg.solve(M, f_psi)
+    info = np.einsum('nmi,nmj->ij', f_psi, Minv_f)
+    return 0.5 * (info + info.T)
+
+
 def cramer_rao_bound(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
                      a_var_scale: Optional[np.ndarray] = None):
     """
@@ -136,18 +164,5 @@ def cramer_rao_bound(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
         Fisher information (the Schur complement at the truth).
 
     """
-    cov_a = np.asarray(cov_a, dtype=float).reshape(6, 6)
-    cov_b = np.asarray(cov_b, dtype=float).reshape(6, 6)
-    f_psi, f_x = model_jacobians(model, p0, q0, markers, pos_a, quat_a)
-    m = f_psi.shape[1]
-    if model == 'full_pose':
-        sigma_b = cov_b
-    else:
-        sigma_b = np.kron(np.eye(m // 3), cov_b[0:3, 0:3])
-    scale = (np.ones(len(f_x)) if a_var_scale is None
-             else np.asarray(a_var_scale, dtype=float))
-    M = sigma_b + scale[:, None, None] * (f_x @ cov_a @ f_x.transpose(0, 2, 1))
-    Minv_f = np.linalg.solve(M, f_psi)
-    info = np.einsum('nmi,nmj->ij', f_psi, Minv_f)
-    info = 0.5 * (info + info.T)
+    info = fisher_information(model, p0, q0, markers, pos_a, quat_a, cov_a, cov_b, a_var_scale)
     return np.linalg.inv(info), info

@@ -29,8 +29,9 @@ from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibration import observability
-from coreg_ros.core.errors import InputError
-from coreg_ros.core.planning.crlb import cramer_rao_bound, CRLB_DIMENSION, model_jacobians
+from coreg_ros.core.errors import InputError, UnobservableError
+from coreg_ros.core.models import SPECS
+from coreg_ros.core.planning.crlb import CRLB_DIMENSION, fisher_information, model_jacobians
 from coreg_ros.core.types import MODELS
 import numpy as np
 
@@ -61,6 +62,10 @@ class AccuracyPrediction:
         RMS over the workspace (default: the motion) of the error of B's marker pose predicted
         from A through the calibration (calibration error only): position m, rotation rad
         (NaN unless full_pose).
+    unobservable : tuple of (ndarray (12,), str, str)
+        What the motion leaves undetermined (a restricted rig): each direction in the (T0, T1)
+        layout, in words, and what would determine it. ``crlb`` and ``sigma`` are then those
+        of the part it determines (the calibration holds the rest and says so).
 
     """
 
@@ -70,6 +75,7 @@ class AccuracyPrediction:
     crlb: np.ndarray
     sigma: dict
     registration_rms: np.ndarray
+    unobservable: tuple = ()
 
     def worst(self) -> tuple[str, int, float]:
         """Return the position component with the largest σ: (name, axis 0-2, σ in m)."""
@@ -176,7 +182,7 @@ def predict_accuracy(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
     Raises
     ------
     InputError
-        If the motion leaves the calibration unobservable (singular information).
+        If the motion determines nothing (the tool does not move).
 
     """
     if model not in MODELS:
@@ -186,15 +192,29 @@ def predict_accuracy(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
     if len(pos_a) * (6 if model == 'full_pose' else 3) < CRLB_DIMENSION[model]:
         raise InputError(f'{len(pos_a)} pairs cannot determine {CRLB_DIMENSION[model]} '
                          'parameters; record longer')
-    try:
-        crlb, info = cramer_rao_bound(model, p0, q0, markers, pos_a, quat_a, cov_a, cov_b)
-    except np.linalg.LinAlgError as e:
-        raise InputError('the motion leaves the calibration unobservable (singular Fisher '
-                         'information); rotate the tool about at least two axes') from e
-    ev = np.linalg.eigvalsh(info)
-    if ev[0] <= ev[-1] * 1e-12:
-        raise InputError('the motion leaves the calibration unobservable (singular Fisher '
-                         'information); rotate the tool about at least two axes')
+    cov_a6 = np.asarray(cov_a, dtype=float).reshape(6, 6)
+    try:  # the calibration's own refusal: a tool that never moved determines nothing
+        observability.refuse_if_nothing_moved(
+            pos_a, quat_a, np.sqrt(np.max(np.diag(cov_a6).reshape(2, 3), axis=1)))
+    except UnobservableError as e:
+        raise InputError(str(e)) from e
+    info = fisher_information(model, p0, q0, markers, pos_a, quat_a, cov_a, cov_b)
+    # what the motion leaves undetermined (a restricted rig): the bound of the rest, as the
+    # calibration holds those directions and determines the others
+    found = observability.undetermined_in_tangent(info, None,
+                                                  float(np.sqrt(cov_a6[3:6, 3:6].max())))
+    held = found.held
+    if held.shape[1]:
+        proj = np.eye(len(info)) - held @ held.T
+        crlb = np.linalg.pinv(proj @ info @ proj, rcond=1e-12, hermitian=True)
+    else:
+        crlb = np.linalg.inv(info)
+    spec = SPECS[model]
+    unobservable = []
+    for k in range(held.shape[1]):
+        u12, _ = observability.pose_layout(held[:, k], spec)
+        u12 /= np.linalg.norm(u12) or 1.0
+        unobservable.append((u12, *observability.describe_direction(u12)))
     ws_p, ws_q = (pos_a, quat_a) if workspace is None else workspace
     f_psi, _ = model_jacobians(model, p0, q0, markers, np.asarray(ws_p, dtype=float),
                                np.asarray(ws_q, dtype=float))
@@ -206,7 +226,8 @@ def predict_accuracy(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b,
     return AccuracyPrediction(model=model, n_pairs=len(pos_a),
                               duration=float('nan') if duration is None else float(duration),
                               crlb=crlb, sigma=_sigma_blocks(model, crlb),
-                              registration_rms=np.array([rms_pos, rms_rot]))
+                              registration_rms=np.array([rms_pos, rms_rot]),
+                              unobservable=tuple(unobservable))
 
 
 def _resample(pos_a, quat_a, n: int):
