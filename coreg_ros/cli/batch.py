@@ -123,8 +123,8 @@ def cmd_batch(args) -> int:
     bags = find_bags(root)
     settings = settings_from_args(args)
     if args.what == 'calibrate':
-        from coreg_ros.files.results import load_prior
-        prior = load_prior(args.prior) if args.prior else None
+        from coreg_ros.cli.options import prior_from_args
+        prior = prior_from_args(args)
         fn, extra = calibrate_one, (settings, prior, config_frames(args),
                                     not args.no_direction_check)
     else:
@@ -178,8 +178,8 @@ def register(sub) -> None:
         q.add_argument('--quiet', action='store_true', help='no progress bar')
         add_calibration_options(q, bag=False)
         if name == 'calibrate':
-            q.add_argument('--prior', metavar='FILE',
-                           help='a previous result or partial prior, the same for every bag')
+            from coreg_ros.cli.options import add_prior_options
+            add_prior_options(q, 'a previous result or partial prior, the same for every bag')
             q.add_argument('--no-direction-check', action='store_true',
                            help='do not check, after a bad fit, whether a stream should be '
                                 'inverted')

@@ -13,8 +13,10 @@ from typing import Any
 from coreg_ros.cli.argtypes import finite
 from coreg_ros.cli.options import (
     add_calibration_options,
+    add_prior_options,
     config_frames,
     EXIT_INCONSISTENT,
+    prior_from_args,
     settings_from_args,
 )
 from coreg_ros.cli.policy import PROG
@@ -106,14 +108,13 @@ def cmd_calibrate(args) -> int:
 
     from coreg_ros.core.result_text import format_result
     from coreg_ros.files.atomic import write_json
-    from coreg_ros.files.results import load_prior
     from coreg_ros.report.calibration_report import points_from_flat
 
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
     out = sys.stderr if args.json == '-' else sys.stdout
     settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
-    prior = load_prior(args.prior) if args.prior else None
+    prior = prior_from_args(args)
     run = calibrate_bag(args.bag, settings, prior, frames=config_frames(args),
                         direction_check=not args.no_direction_check)
     result, report, check = run.result, run.report, run.check
@@ -146,10 +147,9 @@ def register(sub) -> None:
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT',
                    help='also write the result as JSON (atomically); - for stdout')
-    p.add_argument('--prior', metavar='FILE',
-                   help="a previous result (--json output or the node's result.yaml) or a "
-                        'partial prior (base_to_base / tool_to_marker with sigma per axis) '
-                        'that this recording refines (Ikits B.3)')
+    add_prior_options(p, "a previous result (--json output or the node's result.yaml) or a "
+                         'partial prior (base_to_base / tool_to_marker with sigma per axis) '
+                         'that this recording refines (Ikits B.3)')
     p.add_argument('--no-direction-check', action='store_true',
                    help='do not check, after a bad fit, whether a stream should be inverted')
     p.add_argument('--report', metavar='DIR',

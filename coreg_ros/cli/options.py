@@ -101,3 +101,30 @@ def config_frames(args) -> tuple:
         values = load_parameters(args.config)
     frames = tuple(values.get(k, NODE_DEFAULTS[k]) for k in ('frame_base_a', 'frame_base_b'))
     return frames if all(isinstance(f, str) and f for f in frames) else None
+
+
+#: σ (rad) of ``--gravity-aligned`` given without a value: about half a degree of tilt.
+GRAVITY_SIGMA = 0.01
+
+
+def add_prior_options(p: argparse.ArgumentParser, prior_help: str) -> None:
+    """Add ``--prior FILE`` and ``--gravity-aligned [SIGMA_RAD]`` (``prior_from_args``)."""
+    p.add_argument('--prior', metavar='FILE', help=prior_help)
+    p.add_argument('--gravity-aligned', nargs='?', type=positive, const=GRAVITY_SIGMA,
+                   metavar='SIGMA_RAD',
+                   help='both devices report z up (a VIO against motion capture): T0 keeps '
+                        "A's base z on B's, within SIGMA_RAD of tilt (default "
+                        f'{GRAVITY_SIGMA:g}); a yaw-only alignment (4 DOF)')
+
+
+def prior_from_args(args):
+    """Return the prior of ``--prior`` and ``--gravity-aligned`` (None when neither)."""
+    from dataclasses import replace
+
+    from coreg_ros.core.estimator.priors import Prior
+    from coreg_ros.files.results import load_prior
+
+    prior = load_prior(args.prior) if args.prior else None
+    if args.gravity_aligned is not None:
+        prior = replace(prior or Prior(), gravity_sigma=float(args.gravity_aligned))
+    return prior

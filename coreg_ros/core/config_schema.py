@@ -27,6 +27,7 @@ from coreg_ros.core.settings import Settings
 NODE_DEFAULTS = {
     'prior_file': '',
     'use_last_result_as_prior': False,
+    'gravity_aligned_sigma': 0.0,
     'publish_inconsistent': False,
     'buffer_capacity': 200_000,
     'qos_reliable': False,
@@ -42,6 +43,7 @@ NODE_DEFAULTS = {
     'marker_magnification': 1.0,
     'fuse_when_stale': False,
     'guidance': True,
+    'motion_limits': 'auto',
     'target_sigma_position': 1e-4,
     'target_sigma_rotation': 1e-3,
     'target_sigma_time': 0.0,
@@ -65,6 +67,12 @@ RANGES = {
     'target_sigma_position': (1e-9, 10.0),
     'target_sigma_rotation': (1e-9, 3.2),
     'target_sigma_time': (0.0, 10.0),
+    'gravity_aligned_sigma': (0.0, 3.2),
+}
+
+#: Allowed values of the string keys of the node that name a choice.
+CHOICES = {
+    'motion_limits': ('free', 'auto', 'restricted'),
 }
 
 #: Keys ROS itself gives every node (not ours, never warned about), all booleans.
@@ -174,6 +182,9 @@ def check_value(key: str, value: Any, where: str = '') -> Any:
     if kind == 'str':
         if not isinstance(value, str):
             raise refuse()
+        if key in CHOICES and value not in CHOICES[key]:
+            raise ConfigError(f'{where}{key} must be one of {" | ".join(CHOICES[key])}, got '
+                              f'{value!r}; e.g. {example(key)}')
         return value
     if kind == 'str_list':
         if isinstance(value, str):

@@ -18,6 +18,7 @@ stamped with its calibration time (the listeners get ``set_stored``).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 import os
 from pathlib import Path
 import threading
@@ -27,6 +28,7 @@ from typing import Optional
 
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import CoregError
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.types import TimeOffset
 from coreg_ros.files.results import load_prior
 from coreg_ros.ros import persistence
@@ -189,15 +191,23 @@ class Calibrator:
         return False, f'internal error ({type(error).__name__}: {error}); see the node log'
 
     def _prior(self):
-        """Return the prior of the next calibration: prior_file, else the stored result."""
+        """
+        Return the prior of the next calibration.
+
+        prior_file, else the stored result (``use_last_result_as_prior``), with the gravity
+        alignment of ``gravity_aligned_sigma`` when it is set.
+        """
+        prior = None
         path = str(self.params('prior_file')).strip()
+        stored = Path(self.config.storage_dir) / self.result_name
         if path:
-            return load_prior(os.path.expanduser(path))
-        if bool(self.params('use_last_result_as_prior')):
-            stored = Path(self.config.storage_dir) / self.result_name
-            if stored.is_file():
-                return load_prior(stored)
-        return None
+            prior = load_prior(os.path.expanduser(path))
+        elif bool(self.params('use_last_result_as_prior')) and stored.is_file():
+            prior = load_prior(stored)
+        gravity = float(self.params('gravity_aligned_sigma'))
+        if gravity > 0:
+            prior = replace(prior or Prior(), gravity_sigma=gravity)
+        return prior
 
     def _publish(self, settings, result, report, seconds: float, what: str) -> tuple[bool, str]:
         """Judge a fit; publish, hand on and store it if it passes; return the answer."""

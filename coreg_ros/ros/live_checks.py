@@ -67,7 +67,7 @@ RECALIBRATE_AFTER_S = 10.0
 #: Seconds between two automatic recalibration attempts on the same change.
 RECALIBRATE_RETRY = 30.0
 #: Node parameters of the live checks (changeable at run time; the targets apply at once).
-LIVE_KEYS = ('guidance', 'target_sigma_position', 'target_sigma_rotation',
+LIVE_KEYS = ('guidance', 'motion_limits', 'target_sigma_position', 'target_sigma_rotation',
              'target_sigma_time', 'auto_calibrate', 'watchdog', 'auto_recalibrate')
 
 #: QoS of ~/calibration_stale: the result topics' (late subscribers get the last state).
@@ -204,7 +204,8 @@ class LiveChecks:
         self.feed = gd.PairFeed(max_gap=settings.max_gap)
         self.guide = gd.GuidanceAccumulator(
             settings.model, settings.sigma_a, settings.sigma_b, *self._targets(),
-            estimate_time_offset=settings.estimate_time_offset, tls=settings.method == 'tls')
+            estimate_time_offset=settings.estimate_time_offset, tls=settings.method == 'tls',
+            motion_limits=str(self.params('motion_limits')))
         self.guidance: Optional[gd.Guidance] = None
         self._marks = dict.fromkeys(self.buffers, 0)  # since(0): every sample held
         self._last_stamp: Optional[int] = None
@@ -347,7 +348,8 @@ class LiveChecks:
     def _guidance(self, batch: Optional[gd.PairBatch]) -> tuple:
         """Update guidance; return (level, message, values) of its status."""
         guide = self.guide
-        guide.targets = self._targets()  # targets may change at run time
+        guide.targets = self._targets()  # targets and limits may change at run time
+        guide.motion_limits = str(self.params('motion_limits'))
         if batch is not None and len(batch):
             guide.add(batch)
             if self.poses is None:

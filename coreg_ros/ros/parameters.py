@@ -11,7 +11,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 import os
 
-from coreg_ros.core.config_schema import check_parameters, DEFAULTS, example, RANGES
+from coreg_ros.core.config_schema import (
+    check_parameters,
+    check_value,
+    CHOICES,
+    DEFAULTS,
+    example,
+    RANGES,
+)
 from coreg_ros.core.errors import ConfigError, CoregError
 from coreg_ros.core.settings import Settings, settings_from_mapping
 from rcl_interfaces.msg import (
@@ -78,6 +85,10 @@ PARAMETERS = (
     ('use_last_result_as_prior', DEFAULTS['use_last_result_as_prior'],
      _desc("refine the node's own stored result (its result_<node>_<hash>.yaml in "
            'storage_dir) when no prior_file is given')),
+    ('gravity_aligned_sigma', DEFAULTS['gravity_aligned_sigma'],
+     _desc('both devices report z up (a VIO against motion capture): T0 keeps A base z on B '
+           'base z within this tilt sigma (rad), a yaw-only alignment; 0.0 = off',
+           floats=_float_range(*RANGES['gravity_aligned_sigma']))),
     ('publish_inconsistent', DEFAULTS['publish_inconsistent'],
      _desc('publish a calibration whose fit contradicts the stated noise (it is refused by '
            'default: ~/calibrate answers success=false with the reason)')),
@@ -117,6 +128,11 @@ PARAMETERS = (
     ('guidance', DEFAULTS['guidance'],
      _desc('publish guidance while collecting on /diagnostics: the sigma a calibration would '
            'have now against the targets, and the motion that helps most')),
+    ('motion_limits', DEFAULTS['motion_limits'],
+     _desc('what the rig can move: free (guidance may ask for any motion), restricted (a SCARA '
+           'arm, mobile robot, gantry or turntable: never ask for a motion that would determine '
+           'what the recording leaves undetermined), auto (free until a direction stays '
+           'undetermined for a minute of recording)', constraints='free | auto | restricted')),
     ('target_sigma_position', DEFAULTS['target_sigma_position'],
      _desc('guidance target: sigma of every position component, m',
            floats=_float_range(*RANGES['target_sigma_position']))),
@@ -313,6 +329,12 @@ class ParameterView:
             The parameters about to be set.
 
         """
+        for p in params:  # a choice (motion_limits) no descriptor can state
+            if p.name in CHOICES:
+                try:
+                    check_value(p.name, p.value)
+                except CoregError as e:
+                    return SetParametersResult(successful=False, reason=str(e))
         changed = {p.name: p.value for p in params if p.name in CALIBRATION_KEYS}
         if not changed:
             return SetParametersResult(successful=True)

@@ -54,6 +54,8 @@ def test_accepted_values_are_converted(values, expected):
     ('robust', 'yes', 'robust must be true or false'),
     ('topic_b', [1], 'topic_b must be a list of names'),
     ('storage_dir', None, 'got nothing'),
+    ('motion_limits', 'scara', 'motion_limits must be one of free | auto | restricted'),
+    ('motion_limits', 3, 'motion_limits must be a string'),
 ])
 def test_wrong_types_are_one_line_with_an_example(key, value, words):
     with pytest.raises(ConfigError) as err:

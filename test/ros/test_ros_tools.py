@@ -113,6 +113,14 @@ def test_node_reads_config_file_and_refuses_bad_changes(ros_domain, tmp_path):
         assert node.params.settings().method == 'ols'
         read_only = node.set_parameters([Parameter('topic_a', value='/x')])[0]
         assert not read_only.successful
+        # a choice no descriptor states (issue 22): refused in one line, a valid one taken
+        limits = node.set_parameters([Parameter('motion_limits', value='scara')])[0]
+        assert not limits.successful and 'free | auto | restricted' in limits.reason
+        assert node.set_parameters([Parameter('motion_limits', value='restricted')])[0].successful
+        tilt = node.set_parameters([Parameter('gravity_aligned_sigma', value=-1.0)])[0]
+        assert not tilt.successful
+        assert node.set_parameters([Parameter('gravity_aligned_sigma', value=0.01)])[0].successful
+        assert node.calibrator._prior().gravity_sigma == 0.01
         node.destroy_node()
     finally:
         session.close()

@@ -23,6 +23,7 @@ from coreg_ros.core.calibration.observability import (
     undetermined,
 )
 from coreg_ros.core.calibration.pair_input import validated_arrays
+from coreg_ros.core.calibration.turn_family import turn_axis, turned
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
@@ -35,6 +36,7 @@ from coreg_ros.core.estimator import (
     InputState,
     noise_covariance,
     normal_equations,
+    ols_cost,
     ols_information,
     output_covariance,
     paused,
@@ -81,6 +83,8 @@ WARM_DAMPING = 1e-9
 #: Pairs (every k-th) the information is taken on to see what the data determine: the
 #: eigenvalue shares of the scaled information do not depend on N.
 OBSERVABILITY_SAMPLE = 25_000
+#: Pairs (every k-th) the turns of a turntable's start are compared on (``along_the_turn``).
+TURN_SAMPLE = 2_000
 #: Times the held directions are looked for again at the solution (a start far from it may
 #: name them a little differently); the fit is repeated when they changed.
 HOLD_ROUNDS = 2
@@ -182,11 +186,34 @@ class _Fitter:
         """
         found = self.undetermined_at(start, keep)
         if found.by_prior.shape[1]:
+            turned = self.along_the_turn(start, keep)
+            if turned is not start:  # the directions turn with the calibration
+                start, found = turned, self.undetermined_at(turned, keep)
             start = self.towards_prior(found, start, keep)
         self.found = found
         if found.held.shape[1]:
             self.hold(found, start)
         return start
+
+    def along_the_turn(self, start: Parameters, keep: np.ndarray) -> Parameters:
+        """
+        Return the member of a turntable's curve of calibrations the prior prefers.
+
+        On a turntable the start's turn about the tool's axis is arbitrary, and a prior that
+        fixes it may lie half a turn away, beyond what linear steps travel
+        (``turn_family``). The data and prior cost of every ``TURN_SAMPLE``-th pair at
+        ``turn_family.TURN_ANGLES`` turns of the start; off a turntable the turned starts
+        no longer fit the data, and the start itself is returned.
+        """
+        idx = np.flatnonzero(keep)
+        idx = idx[::max(1, len(idx) // TURN_SAMPLE)]
+        axis = turn_axis(self.pos_a[idx], self.quat_a[idx])
+        if axis is None:
+            return start
+        problem = self.everything.subset(idx, self.priors)
+        costs = [ols_cost(problem, p) for p in turned(start, axis)]
+        best = int(np.argmin(costs))
+        return start if best == 0 else turned(start, axis)[best]
 
     def towards_prior(self, found: Undetermined, start: Parameters,
                       keep: np.ndarray) -> Parameters:

@@ -108,13 +108,64 @@ def _translations(R0: np.ndarray, Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.n
     return sol[0:3], sol[3:].reshape(k, 3)
 
 
+#: A direction of A's positions counts as moving apart from A's rotations when its RMS, after
+#: what the rotations (and a constant) explain is taken out, is at least this share of the
+#: positions' largest RMS spread.
+LIFT_SHARE = 1e-2
+
+
 def _lifted_rotation(Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray) -> np.ndarray:
-    """R0 from the linear lifting of the position-only model (13 regressors per axis)."""
+    """
+    R0 from the linear lifting of the position-only model (13 regressors per axis).
+
+    When the tool turns about one axis a (a SCARA arm, a mobile robot, a turntable), the
+    lifting gives R0 only along the directions in which A's positions move apart from what
+    A's rotations explain (its other columns are noise: a mobile robot's constant height is
+    the intercept's); R0 then also takes a to the normal b of the circle B's marker
+    describes (``_axis_correspondence``). On a turntable (the tool's positions turn with its
+    rotations) the rotation about b is what the data leave open, and the fit holds it.
+    """
     n = len(Ra)
     Phi = np.concatenate([np.ones((n, 1)), pos_a, Ra.reshape(n, 9)], axis=1)
     scale = np.maximum(np.abs(Phi).max(axis=0), 1e-12)  # column scaling for conditioning
     theta = np.linalg.lstsq(Phi / scale, pos_b, rcond=1e-12)[0] / scale[:, None]
-    return project_to_so3(theta[1:4].T)
+    M = theta[1:4].T
+    if not turns_about_one_axis(Ra):
+        return project_to_so3(M)
+    others = np.concatenate([np.ones((n, 1)), Ra.reshape(n, 9)], axis=1)
+    apart = pos_a - others @ np.linalg.lstsq(others, pos_a, rcond=1e-9)[0]
+    _, sv, vt = np.linalg.svd(apart, full_matrices=False)
+    spread = np.linalg.svd(pos_a - pos_a.mean(axis=0), compute_uv=False)[0]
+    moving = sv > LIFT_SHARE * max(float(spread), 1e-300)
+    if moving.all():
+        return project_to_so3(M)
+    M = M @ (vt[moving].T @ vt[moving])  # the lifting's R0 along these directions only
+    pair = _axis_correspondence(Ra, pos_b)
+    if pair is not None:
+        a, b = pair
+        M = M + np.outer(b, a)
+    return project_to_so3(M)  # two directions fix R0 (the third by the determinant)
+
+
+def _axis_correspondence(Ra: np.ndarray, pos_b: np.ndarray):
+    """
+    Return (a, b): A's rotation axis a (A's base frame) and b = R0 a, or None.
+
+    For a tool that turns about one axis a (``turns_about_one_axis``), the marker's positions
+    in B describe ``c + cos θ U + sin θ V`` (θ the angle about a) with ``U × V`` along
+    ``R0 a``: the marker's offset from the axis turns about it. None when the tool does not
+    turn, or the marker does not go round (it sits on the axis).
+    """
+    a, angle = principal_axis(Ra)
+    if float(np.sqrt(np.mean(angle ** 2))) < TURNING_RAD:
+        return None
+    Z = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle)], axis=1)
+    coef = np.linalg.lstsq(Z, pos_b, rcond=1e-9)[0]
+    b = np.cross(coef[1], coef[2])
+    norm = float(np.linalg.norm(b))
+    if norm <= 1e-12:
+        return None
+    return a, b / norm
 
 
 #: Angles tried about the rotation axis when the rotations leave R0 open about it (0.1°; the
@@ -124,7 +175,7 @@ AXIS_ANGLES = 3600
 TURNING_RAD = 0.02
 
 
-def _principal_axis(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def principal_axis(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     Return the axis (base frame) rotations R (N, 3, 3) turn about most, and the angles about it.
 
@@ -135,6 +186,18 @@ def _principal_axis(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rel = rel - rel.mean(axis=0)
     _, _, vt = np.linalg.svd(rel, full_matrices=False)
     return vt[0], rel @ vt[0]
+
+
+#: The tool turns about one axis when the rotation vectors' second principal spread is below
+#: this share of the first.
+ONE_AXIS_SHARE = 1e-2
+
+
+def turns_about_one_axis(R: np.ndarray) -> bool:
+    """Tell whether rotations R (N, 3, 3) turn about one axis only (``ONE_AXIS_SHARE``)."""
+    rel = quat.log(quat.from_matrix(R @ R[0].T))
+    sv = np.linalg.svd(rel - rel.mean(axis=0), compute_uv=False)
+    return bool(sv[0] > 0 and sv[1] <= ONE_AXIS_SHARE * sv[0])
 
 
 def _rotation_taking(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -163,8 +226,8 @@ def _axis_aligned_r0(Ra: np.ndarray, Rb: np.ndarray, pos_a: np.ndarray,
     angles for nothing. Where the positions do not determine φ either (a turntable), any
     angle is as good, and the fit holds that direction.
     """
-    a, angle_a = _principal_axis(Ra)
-    b, angle_b = _principal_axis(Rb)
+    a, angle_a = principal_axis(Ra)
+    b, angle_b = principal_axis(Rb)
     if np.dot(angle_a, angle_b) < 0:  # the two axes' signs must turn the same way
         b = -b
     base = _rotation_taking(a, b)

@@ -499,8 +499,8 @@ def report(found: Undetermined, params: Parameters, components: list,
         for k in range(basis.shape[1]):
             u12, markers = pose_layout(basis[:, k], spec)
             norm = np.linalg.norm(u12) or 1.0
+            norm *= np.sign(u12[np.argmax(np.abs(u12))])  # a sign users can compare
             u12 = u12 / norm
-            u12 *= np.sign(u12[np.argmax(np.abs(u12))])  # a sign users can compare
             description, determine = describe_direction(u12)
             i = components[k] if kind == 'held' else int(np.argmax(np.abs(u12)))
             block, axis, unit = COMPONENTS[i]

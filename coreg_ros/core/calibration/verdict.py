@@ -15,7 +15,8 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional
 
-from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core import quaternion as quat
+from coreg_ros.core.estimator.priors import gravity_tilt, Prior
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
@@ -75,6 +76,9 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
     """
     Test a prior against the data: ``d = x̂ - x_prior`` has covariance ``C_prior - C_post``.
 
+    The rows are the constrained components of the prior's poses and, with
+    ``gravity_sigma``, the tilt of T0 between the two z axes (``gravity_tilt``; prior 0).
+
     Returns
     -------
     dict or None
@@ -90,9 +94,19 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
     for w, p in prior.poses():
         full[6 * w:6 * w + 6] = -pose_error(p.position, p.quat_wxyz, est[w].position,
                                             est[w].quat_wxyz)
+    M = np.eye(12)[idx]  # the rows tested, as maps of the 12 (T0, T1) errors
     d = full[idx]
-    c_prior = prior.covariance()[np.ix_(idx, idx)]
-    D = c_prior - result.cov_for_propagation[np.ix_(idx, idx)]
+    c_prior = prior.covariance()[np.ix_(idx, idx)] if len(idx) else np.zeros((0, 0))
+    if prior.gravity_sigma is not None:
+        tilt, rows = gravity_tilt(quat.to_matrix(est[0].quat_wxyz))
+        G = np.zeros((2, 12))
+        G[:, 3:6] = rows
+        M, d = np.vstack([M, G]), np.concatenate([d, tilt])
+        c_prior = np.block([[c_prior, np.zeros((len(idx), 2))],
+                            [np.zeros((2, len(idx))), prior.gravity_sigma ** 2 * np.eye(2)]])
+    if not len(d):
+        return None
+    D = c_prior - M @ result.cov_for_propagation @ M.T
     lam, U = np.linalg.eigh(0.5 * (D + D.T))
     keep = lam > 1e-9 * max(float(lam.max()), 0.0)
     if not keep.any():

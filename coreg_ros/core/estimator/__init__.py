@@ -26,7 +26,7 @@ and time is O(N) per iteration.
 """
 
 from coreg_ros.core.estimator.lm import MESSAGES, XTOL
-from coreg_ros.core.estimator.ols import ols_information, solve_ols
+from coreg_ros.core.estimator.ols import ols_cost, ols_information, solve_ols
 from coreg_ros.core.estimator.posterior import Solution
 from coreg_ros.core.estimator.priors import PriorTerm
 from coreg_ros.core.estimator.problem import (
@@ -68,6 +68,7 @@ __all__ = [
     'CHUNK',
     'DAMPING_SHARE',
     'heading',
+    'ols_cost',
     'ols_information',
     'InputState',
     'MESSAGES',

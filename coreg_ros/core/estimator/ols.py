@@ -70,6 +70,11 @@ def ols_information(problem: Problem, params: Parameters) -> np.ndarray:
     return _ols_normal(problem, params)[0]
 
 
+def ols_cost(problem: Problem, params: Parameters) -> float:
+    """Return the whitened OLS cost at φ (its priors included): one pass over the pairs."""
+    return _ols_normal(problem, params)[2]
+
+
 def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
               normal: Optional[NormalEquations] = None) -> Solution:

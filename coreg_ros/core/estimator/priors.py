@@ -63,11 +63,18 @@ class Prior:
     two 6×6 blocks: a previous calibration's T0 and T1 are correlated, and dropping the cross
     terms would misstate the information the prior carries. For models that do not estimate
     q1, only the position part of a T1 prior is used; an infinite variance leaves an axis free.
+
+    ``gravity_sigma`` (rad), when given, says that both devices report z up (against gravity,
+    e.g. a visual-inertial odometry against motion capture): T0 takes A's base z to B's base
+    z, within that σ of tilt, whatever its yaw (``gravity_term``). With it a yaw-only
+    alignment (4 DOF: the translation and the yaw) is determined by a motion that turns
+    about z alone.
     """
 
     base_to_base: Optional[UncertainPose] = None
     tool_to_marker: Optional[UncertainPose] = None
     joint_cov: Optional[np.ndarray] = None
+    gravity_sigma: Optional[float] = None
 
     def poses(self) -> list:
         """(which, pose) for the poses given: 0 for T0, 1 for T1."""
@@ -76,7 +83,8 @@ class Prior:
 
     def axes(self, spec: ModelSpec) -> np.ndarray:
         """Constrained components among the 12 of (T0, T1) (``constrained_axes`` of each)."""
-        return np.concatenate([6 * w + constrained_axes(p, spec, w) for w, p in self.poses()])
+        return np.concatenate([np.zeros(0, dtype=int)]
+                              + [6 * w + constrained_axes(p, spec, w) for w, p in self.poses()])
 
     def covariance(self) -> np.ndarray:
         """12×12 covariance of (T0, T1): ``joint_cov`` or the blocks (inf where not given)."""
@@ -93,8 +101,9 @@ class Prior:
 
     def terms(self, spec: ModelSpec) -> list:
         """Prior terms for the estimator: callables φ -> (whitened rows, Jacobian)."""
+        out = [] if self.gravity_sigma is None else [gravity_term(spec, self.gravity_sigma)]
         if not self.poses():
-            return []
+            return out
         keep = self.axes(spec)
         cov = self.covariance()[np.ix_(keep, keep)]
         try:
@@ -110,7 +119,58 @@ class Prior:
                 e[6 * w:6 * w + 6], J[6 * w:6 * w + 6] = fn(params)
             return L @ e[keep], L @ J[keep]
 
-        return [term]
+        return [term] + out
+
+
+def gravity_term(spec: ModelSpec, sigma: float):
+    """
+    Build the prior term that T0 takes A's base z to B's base z: both devices report z up.
+
+    The rows are the x and y components of ``R0 e_z`` (the tilt between the two z axes, rad
+    for small tilts) over ``sigma``; their Jacobian with respect to a rotation ``R0 ← Exp(δθ)
+    R0`` is ``-[R0 e_z]×`` (rows x, y), through the chart of q0 (``tangent_of_chart``).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model (for the length of φ).
+    sigma : float
+        σ of the tilt between the two z axes, rad (> 0).
+
+    """
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(f'the gravity alignment needs a σ > 0 (rad), got {sigma!r}; e.g. '
+                         f'0.01 for about half a degree of tilt between the two z axes')
+
+    def term(params: Parameters):
+        tilt, rows = gravity_tilt(params.R0)
+        J = np.zeros((2, spec.n_params))
+        J[:, S0] = rows @ tangent_of_chart(params.q0, params.dq0) / sigma
+        return tilt / sigma, J
+
+    return term
+
+
+def gravity_tilt(R0: np.ndarray) -> tuple:
+    """
+    Return the tilt between the two bases' z axes and its Jacobian.
+
+    Parameters
+    ----------
+    R0 : ndarray, shape (3, 3)
+        T0's rotation (A's base in B's).
+
+    Returns
+    -------
+    tilt : ndarray, shape (2,)
+        The x and y components of ``R0 e_z`` (rad, for small tilts).
+    jacobian : ndarray, shape (2, 3)
+        With respect to a rotation ``R0 ← Exp(δθ) R0`` about B's fixed axes (the layout of
+        the published covariance): rows x, y of ``-[R0 e_z]×``.
+
+    """
+    z = np.asarray(R0, dtype=float)[:, 2]  # R0 e_z: A's base z in B's base frame
+    return z[0:2].copy(), np.array([[0.0, z[2], -z[1]], [-z[2], 0.0, z[0]]])
 
 
 def constrained_axes(pose: UncertainPose, spec: ModelSpec, which: int) -> np.ndarray:
