@@ -136,6 +136,76 @@ def _windowed_correlation(a: np.ndarray, b: np.ndarray, min_overlap: int):
     return lags, r, n / min(la, lb)
 
 
+@dataclass(frozen=True)
+class SpeedCorrelation:
+    """
+    The devices' speeds cross-correlated over every lag at which they overlap enough.
+
+    Attributes
+    ----------
+    lags : ndarray of int, shape (L,)
+        Lag in grid steps (B's grid shifted against A's).
+    r : ndarray, shape (L,)
+        Pearson correlation at each lag; -inf where the overlap is too short.
+    overlap : ndarray, shape (L,)
+        Overlap as a share of the shorter signal.
+    step_s : float
+        Grid step, s.
+    base_s : float
+        τ (s) at lag 0: B's grid start minus A's, each on its own clock.
+
+    """
+
+    lags: np.ndarray
+    r: np.ndarray
+    overlap: np.ndarray
+    step_s: float
+    base_s: float
+
+    def tau(self, k: int) -> float:
+        """τ (s) at index ``k``, refined to a fraction of the step by a parabola through it."""
+        y0, y1, y2 = self.r[k - 1], self.r[k], self.r[k + 1]
+        curve = y0 - 2 * y1 + y2
+        frac = 0.5 * (y0 - y2) / curve if curve < 0 and np.isfinite(y0 + y2) else 0.0
+        return self.base_s + (self.lags[k] + float(np.clip(frac, -0.5, 0.5))) * self.step_s
+
+    def peaks(self) -> np.ndarray:
+        """Return the indices of the local maxima, strongest first (r·√(overlap share))."""
+        r = self.r
+        inner = (r[1:-1] >= r[:-2]) & (r[1:-1] > r[2:]) & np.isfinite(r[1:-1])
+        peaks = np.flatnonzero(inner) + 1
+        # a peak over a short overlap is a weaker witness: rank by r·√(overlap share)
+        strength = r[peaks] * np.sqrt(self.overlap[peaks])
+        return peaks[np.argsort(strength)[::-1]]
+
+
+def speed_correlation(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
+                      angular: bool, trajectory_a: Optional[Trajectory] = None
+                      ) -> Optional[SpeedCorrelation]:
+    """
+    Cross-correlate the devices' speeds at every lag where they overlap, whatever the stamps.
+
+    Each device's speed is sampled on a grid from its own first stamp, so two clocks that
+    share no stamps (minutes or hours apart, boot time against epoch time) are compared
+    like any others. None when a signal is too short or constant. Arguments as
+    ``coarse_offsets``.
+    """
+    streams_b = list(streams_b)
+    step = _grid_step(stream_a, *streams_b)
+    if min(len(stream_a), len(streams_b[0])) < 4:
+        return None
+    ta, a = _speed(stream_a, int(stream_a.stamps[0]), step, angular, trajectory_a)
+    b_arg = streams_b if len(streams_b) == 3 else streams_b[0]
+    tb, b = _speed(b_arg, int(streams_b[0].stamps[0]), step, angular)
+    if len(a) < 8 or len(b) < 8 or np.std(a) == 0 or np.std(b) == 0:
+        return None
+    min_overlap = max(8, int(MIN_OVERLAP_SHARE * min(len(a), len(b))))
+    lags, r, overlap = _windowed_correlation(a - a.mean(), b - b.mean(), min_overlap)
+    base = float(int(streams_b[0].stamps[0]) - int(stream_a.stamps[0])) * 1e-9
+    base += float(tb[0] - ta[0])
+    return SpeedCorrelation(lags, r, overlap, step, base)
+
+
 def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
                    angular: bool, max_candidates: int = MAX_CANDIDATES,
                    trajectory_a: Optional[Trajectory] = None) -> list:
@@ -163,33 +233,10 @@ def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
         step by a parabola through the peak.
 
     """
-    streams_b = list(streams_b)
-    step = _grid_step(stream_a, *streams_b)
-    if min(len(stream_a), len(streams_b[0])) < 4:
+    corr = speed_correlation(stream_a, streams_b, angular=angular, trajectory_a=trajectory_a)
+    if corr is None:
         return []
-    ta, a = _speed(stream_a, int(stream_a.stamps[0]), step, angular, trajectory_a)
-    b_arg = streams_b if len(streams_b) == 3 else streams_b[0]
-    tb, b = _speed(b_arg, int(streams_b[0].stamps[0]), step, angular)
-    if len(a) < 8 or len(b) < 8 or np.std(a) == 0 or np.std(b) == 0:
-        return []
-    min_overlap = max(8, int(MIN_OVERLAP_SHARE * min(len(a), len(b))))
-    lags, r, overlap = _windowed_correlation(a - a.mean(), b - b.mean(), min_overlap)
-    inner = (r[1:-1] >= r[:-2]) & (r[1:-1] > r[2:]) & np.isfinite(r[1:-1])
-    peaks = np.flatnonzero(inner) + 1
-    if peaks.size == 0:
-        return []
-    # a peak over a short overlap is a weaker witness: rank by r·√(overlap share)
-    strength = r[peaks] * np.sqrt(overlap[peaks])
-    peaks = peaks[np.argsort(strength)[::-1][:max_candidates]]
-    base = float(int(streams_b[0].stamps[0]) - int(stream_a.stamps[0])) * 1e-9
-    base += float(tb[0] - ta[0])
-    out = []
-    for k in peaks:
-        y0, y1, y2 = r[k - 1], r[k], r[k + 1]
-        curve = y0 - 2 * y1 + y2
-        frac = 0.5 * (y0 - y2) / curve if curve < 0 and np.isfinite(y0 + y2) else 0.0
-        out.append((base + (lags[k] + float(np.clip(frac, -0.5, 0.5))) * step, float(y1)))
-    return out
+    return [(corr.tau(k), float(corr.r[k])) for k in corr.peaks()[:max_candidates]]
 
 
 def offsets_by_block(stream_a: PoseStream, streams_b: Sequence[PoseStream], *, angular: bool,
