@@ -19,19 +19,18 @@ from typing import Optional
 from coreg_ros.core.calibration.calibrate import calibrate, MAX_REJECTED_SHARE
 from coreg_ros.core.calibration.observability import held_basis, result_covariances
 from coreg_ros.core.calibration.pairing import pair_for, validated_streams
-from coreg_ros.core.clock.coarse_peak import CoarsePeak, main_peak, SAME_PEAK_WIDTHS
-from coreg_ros.core.clock.timing import (
+from coreg_ros.core.clock.coarse import (
     clock_step,
+    CoarsePeak,
+    lever_speed_correlation,
+    main_peak,
     MAX_CANDIDATES,
-    MIN_SIGNAL_TO_NOISE,
-    offset_step,
     offsets_by_block,
-    OffsetStep,
-    query_seconds,
+    SAME_PEAK_WIDTHS,
     speed_correlation,
     SpeedCorrelation,
-    velocity_noise_cov,
 )
+from coreg_ros.core.clock.timing import OffsetStep, query_seconds, velocity_step
 from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
 from coreg_ros.core.estimator import noise_covariance, output_covariance
@@ -59,13 +58,9 @@ TRIAL_ITERATIONS = 8
 STEP_TOLERANCE_S = 0.1
 #: Candidates closer than this (s) are one.
 SAME_CANDIDATE_S = 2e-3
-#: Longest half window (s) of A's velocity in the offset step: where A's stated noise
-#: dominates the short window's velocity, the window is doubled up to this (human and robot
-#: motions keep their shape over it; a still recording stays at its noise at every window).
-MAX_VELOCITY_HALF_WINDOW = 0.8
-#: A longer window is used once its velocity carries this many times the information A's
-#: noise alone would (the noise inflates τ's information by its share).
-LONG_WINDOW_SIGNAL_TO_NOISE = 16.0
+#: A further search's lag is a new candidate only this far (s) from every other: within a
+#: correlation peak's width it is the same lag, which the fit refines anyway.
+NEW_LAG_S = 0.25
 #: The coarse estimate replaces the given offset only if it lies more than this many of its
 #: σ from it (otherwise the given value is kept, as the motion cannot tell them apart).
 COARSE_EXCLUDES_SIGMAS = 3.0
@@ -181,23 +176,9 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
                         ctx.origin_ns)
     since = None if kappa is None else (stamps - np.int64(ctx.reference_ns)).astype(
         float) * 1e-9
-    prior_information = _prior_information(ctx, params)
-
-    def step_over(half):
-        v, w = ctx.trajectory.velocity(t_a, half, max_gap=settings.max_gap)
-        return offset_step(params, data, np.hstack([v, w]), since, result.param_cov,
-                           velocity_noise_cov(ctx.cov_a, half), prior_information)
-
-    step, half = step_over(ctx.half), ctx.half
-    longer = ctx.half
-    while step.signal_to_noise < MIN_SIGNAL_TO_NOISE and 2.0 * longer <= MAX_VELOCITY_HALF_WINDOW:
-        # the stillness test judges the motion recorded: a velocity at the level of A's
-        # stated noise over a short window may be a clear motion over a longer one (noisy
-        # trackers, low rates); white noise stays at its level at every window
-        longer *= 2.0
-        candidate = step_over(longer)
-        if candidate.cov is not None and candidate.signal_to_noise >= LONG_WINDOW_SIGNAL_TO_NOISE:
-            step, half = candidate, longer
+    step, half = velocity_step(ctx.trajectory, t_a, ctx.half, settings.max_gap, params, data,
+                               since, result.param_cov, ctx.cov_a,
+                               _prior_information(ctx, params))
     return _Round(result, report, pairs, params, step, tau, kappa, half)
 
 
@@ -243,6 +224,15 @@ def _candidates(ctx: _Context) -> tuple[list, Optional[SpeedCorrelation]]:
     for tau in [float(ctx.settings.time_offset)] + found:
         if all(abs(tau - t) > SAME_CANDIDATE_S for t in out):
             out.append(tau)
+    if ctx.settings.model == 'position_only':
+        # the tool origin's speed may miss the marker's lag (a long lever, much rotation):
+        # the lags where some point of the tool moves as the marker does, if new
+        lever = lever_speed_correlation(ctx.stream_a, ctx.streams_b[0],
+                                        trajectory_a=ctx.trajectory)
+        for k in [] if lever is None else lever.peaks()[:MAX_CANDIDATES]:
+            tau = lever.tau(k)
+            if all(abs(tau - t) > NEW_LAG_S for t in out):
+                out.append(tau)
     return out, corr
 
 
