@@ -273,7 +273,13 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
             result, report = fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
                 given, message='not estimated: no offset within the overlap gave a fit'))
         except TooFewPairsError as e:
-            raise _no_offset_error(e, given, main_peak(corr), failures) from e
+            error = _no_offset_error(e, given, main_peak(corr), failures)
+            if corr is None and settings.model == 'full_pose' and np.ptp(
+                    ctx.streams_b[0].quat_wxyz, axis=0).max() == 0.0:
+                error = error.with_message(
+                    f"{error}; device B's orientation never changes: a position-only tracker "
+                    f'needs --model position_only')
+            raise error from e
         return result, report
     try:
         full = _refine(ctx, ctx.streams_b,

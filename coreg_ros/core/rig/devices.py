@@ -100,3 +100,74 @@ def checked_devices(stream_a: PoseStream, devices: Sequence[RigDevice]) -> list:
                 raise InputError(f'devices {d.name} and {e.name} are the same stream; give '
                                  f'each device its own topic')
     return devices
+
+
+@dataclass(frozen=True)
+class DeviceSpec:
+    """
+    A device B_k as a configuration names it, before its samples are read.
+
+    Attributes
+    ----------
+    name : str
+    topics : tuple of str
+        Its PoseStamped topic(s): three for ``three_marker``.
+    model : str
+    sigma : tuple of float, optional
+        Its noise (position m, rotation rad); None: the two-device ``sigma_b``.
+    base : str, optional
+        Devices with the same base are sensors of one device.
+
+    """
+
+    name: str
+    topics: tuple
+    model: str
+    sigma: Optional[tuple] = None
+    base: Optional[str] = None
+
+    def with_streams(self, streams: Sequence[PoseStream]) -> RigDevice:
+        """Return the device with its samples (one stream per topic)."""
+        return RigDevice(self.name, tuple(streams), self.model, self.sigma, self.base,
+                         tuple(self.topics))
+
+
+def device_specs(values: dict, model: str) -> list:
+    """
+    Read a rig's devices from checked parameters (``config_schema.check_rig_value``).
+
+    Parameters
+    ----------
+    values : dict
+        ``devices`` (the names, in order) and ``device.<name>.<field>`` keys.
+    model : str
+        The model of a device that names none (the two-device ``model``).
+
+    Returns
+    -------
+    list of DeviceSpec
+        Empty when no ``devices`` are given (the two-device keys apply).
+
+    Raises
+    ------
+    ConfigError
+        A device without a topic, a device key of a name that ``devices`` does not list.
+
+    """
+    names = list(values.get('devices') or [])
+    listed = {k.split('.')[1] for k in values if k.startswith('device.')}
+    stray = sorted(listed - set(names))
+    if stray:
+        raise ConfigError(f'device.{stray[0]}.* is given but {stray[0]!r} is not in devices '
+                          f'{names}; add it to devices or remove its keys')
+    out = []
+    for name in names:
+        topics = values.get(f'device.{name}.topic')
+        if not topics:
+            raise ConfigError(f'device {name} has no topic; add device.{name}.topic: '
+                              f'[/{name}/pose]')
+        sigma = values.get(f'device.{name}.sigma')
+        out.append(DeviceSpec(name, tuple(topics), values.get(f'device.{name}.model', model),
+                              None if sigma is None else tuple(sigma),
+                              values.get(f'device.{name}.base')))
+    return out

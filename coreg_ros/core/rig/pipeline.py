@@ -25,12 +25,13 @@ from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.calibration.verdict import CONSISTENT_P
 from coreg_ros.core.errors import CoregError, UnobservableError
 from coreg_ros.core.estimator import noise_covariance, output_covariance, whitening
-from coreg_ros.core.estimator.posterior import result_poses, tangent_map
+from coreg_ros.core.estimator.posterior import result_poses, tangent_map, UNKNOWN
 from coreg_ros.core.estimator.problem import Problem
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.rig.devices import checked_devices, RigDevice
 from coreg_ros.core.rig.joint import solve_rig
 from coreg_ros.core.rig.layout import RigLayout, RigParameters
+from coreg_ros.core.rig.loops import direct_fits, loop_report
 from coreg_ros.core.rig.posterior import (
     ATrajectory,
     Clock,
@@ -48,8 +49,11 @@ from scipy import stats
 
 
 def device_settings(settings: Settings, device: RigDevice) -> Settings:
-    """Return the settings of one device's fit: its model and noise, the rest the rig's."""
-    return settings.updated(model=device.model, sigma_b=tuple(
+    """Return the settings of one device's fit: its model, noise and topics, the rest the rig's."""
+    n = 3 if device.model == 'three_marker' else 1
+    topics = tuple(device.topics) if len(device.topics) == n else tuple(
+        f'/{device.name}/marker{j + 1}' if n == 3 else f'/{device.name}' for j in range(n))
+    return settings.updated(model=device.model, topic_b=topics, sigma_b=tuple(
         settings.sigma_b if device.sigma_b is None else device.sigma_b))
 
 
@@ -98,6 +102,27 @@ def _clocks(layout: RigLayout, alone: list, settings: Settings) -> tuple[list, l
     return clocks, device_clock
 
 
+def _one_device(device: RigDevice, result: CalibrationResult, report, settings: Settings
+                ) -> RigResult:
+    """Wrap the two-device calibration as a rig of one device, its result unchanged."""
+    t = result.time_offset
+    cov = None
+    if result.cov_joint is not None:
+        cov = np.zeros((13, 13))
+        cov[:12, :12] = result.cov_joint
+        cov[12, 12] = t.sigma_s ** 2 if t is not None and t.estimated else UNKNOWN
+        if t is not None and t.cross_cov is not None:
+            cov[:12, 12] = cov[12, :12] = t.cross_cov[:, 0]
+    ratio = np.where(np.diag(result.cov_joint) > 0, 1.0, np.nan) if cov is not None else (
+        np.full(12, np.nan))
+    d = DeviceResult(device.name, tuple(device.topics), device.base_name, result, result,
+                     report, 1.0, ratio)
+    return RigResult(bool(result.success), int(result.status), result.message,
+                     settings.method, (d,), float(result.chi2), int(result.dof),
+                     float(result.p_value), bool(result.fit_consistent), result.verdict, cov,
+                     iterations=int(result.iterations))
+
+
 def _moved(clock: Clock, delta: np.ndarray) -> Clock:
     """Return the clock with its parameters moved by the joint step (τ s[, κ])."""
     if clock.n_time == 0:
@@ -128,7 +153,7 @@ def _query_ns(stamps: np.ndarray, timing: TimeOffset) -> np.ndarray:
 
 
 def calibrate_rig(stream_a: PoseStream, devices: Sequence[RigDevice], settings: Settings,
-                  frames: Optional[tuple] = None) -> RigResult:
+                  frames: Optional[tuple] = None, loops: bool = False) -> RigResult:
     """
     Calibrate device A and the devices B_k jointly (the module docstring says how).
 
@@ -143,6 +168,10 @@ def calibrate_rig(stream_a: PoseStream, devices: Sequence[RigDevice], settings: 
         and noise are its own).
     frames : (str, str), optional
         The configured base frames, as ``calibrate_streams``.
+    loops : bool
+        Also calibrate every two devices directly (a full-pose device as the reference) and
+        check the rig's loops against them (``loops.loop_report``); the devices' fits with A
+        alone are checked in any case.
 
     Returns
     -------
@@ -158,6 +187,8 @@ def calibrate_rig(stream_a: PoseStream, devices: Sequence[RigDevice], settings: 
     devices = checked_devices(stream_a, devices)
     own = [device_settings(settings, d) for d in devices]
     fits = [_alone(stream_a, d, s, frames) for d, s in zip(devices, own, strict=True)]
+    if len(devices) == 1:
+        return _one_device(devices[0], *fits[0], settings)
     alone = [f[0] for f in fits]
     layout = RigLayout.build([d.name for d in devices], [d.model for d in devices],
                              [d.base_name for d in devices])
@@ -192,9 +223,11 @@ def calibrate_rig(stream_a: PoseStream, devices: Sequence[RigDevice], settings: 
     sol = replace(sol, params=sol.params.stepped(step[:layout.n_params]).recharted(),
                   chi2=max(0.0, sol.chi2 - float(step @ np.linalg.solve(cov, step))))
     clocks = [_moved(c, step[tc]) for c, tc in zip(clocks, time_cols, strict=True)]
-    return _assemble(layout, devices, alone, reports, sol, cov, time_cols, clocks,
-                     device_clock, settings, ros_covariance(cov, sol.params, device_clock,
-                                                            time_cols), query)
+    rig = _assemble(layout, devices, alone, reports, sol, cov, time_cols, clocks,
+                    device_clock, settings, ros_covariance(cov, sol.params, device_clock,
+                                                           time_cols), query)
+    return replace(rig, loops=loop_report(rig, direct_fits(devices, settings) if loops
+                                          else None))
 
 
 def _with_clocks(stream_a, problems, stamps, metrics, sol, clocks, device_clock, cov_a,

@@ -83,6 +83,8 @@ class RigResult:
     shared_instants : tuple of tuple of str
         Groups of devices that measure the body at the same instants (one input pose each).
     iterations : int
+    loops : LoopReport, optional
+        The rig against its pairwise calibrations (``loops.loop_report``).
 
     """
 
@@ -99,6 +101,7 @@ class RigResult:
     cov_joint: Optional[np.ndarray]
     shared_instants: tuple = ()
     iterations: int = 0
+    loops: Optional[object] = None
 
     @property
     def names(self) -> tuple:

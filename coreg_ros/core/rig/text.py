@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from coreg_ros.core.result_text import fit_verdict, format_pose, format_time_offset
+from coreg_ros.core.rig.loops import relative_base
 import numpy as np
 
 
@@ -45,6 +46,30 @@ def format_rig(rig) -> str:
                                'base frame', r.base_to_base))
         out.append(format_pose('tool_to_marker', f"pose of {d.name}'s marker in device A's "
                                'tool frame', r.tool_to_marker, r.model == 'full_pose'))
+    names = rig.names
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            if rig.cov_joint is not None and rig.devices[i].base != rig.devices[j].base:
+                out.append('')
+                out.append(format_pose(f'{names[i]} in {names[j]}', f"pose of {names[i]}'s base "
+                                       f"frame in {names[j]}'s base frame, from the rig",
+                                       relative_base(rig, i, j)))
+    if rig.loops is not None:
+        out.append('')
+        out.append(f'loops: {rig.loops.message}')
+        for c in rig.loops.checks:
+            out.append('  ' + _check_line(c))
     out.append('σ are 1-sigma marginals of the joint posterior (Ikits B.4.2) over every '
                "device's transforms and clock offset; layout geometry_msgs/PoseWithCovariance.")
     return '\n'.join(out)
+
+
+def _check_line(c) -> str:
+    """One line of the loop report: what was compared, and how far apart."""
+    what = (f'{c.devices[0]} with A alone against the rig' if c.what == 'alone' else
+            f'{c.devices[1]} calibrated against {c.devices[0]} directly, against the rig')
+    if not np.isfinite(c.chi2):
+        return f'{what}: not compared ({c.note})'
+    verdict = 'agree' if c.consistent else 'DISAGREE'
+    return (f'{what}: chi2 {c.chi2:.1f} for {c.dof} dof, p = {c.p_value:.2g}: {verdict} '
+            f'(up to {c.error_mm_deg[0]:.3g} mm, {c.error_mm_deg[1]:.3g}°)')
