@@ -19,6 +19,12 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional
 
+from coreg_ros.core.calibration.observability import (
+    MOTION_SAMPLE,
+    rotation_spread,
+    STILL_M,
+    STILL_RAD,
+)
 from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.calibration.pairing import pair_for, validate_stream
 from coreg_ros.core.calibration.pipeline import calibrate_streams
@@ -57,8 +63,29 @@ def device_settings(settings: Settings, device: RigDevice) -> Settings:
         settings.sigma_b if device.sigma_b is None else device.sigma_b))
 
 
+def _refuse_if_still(device: RigDevice, sigma_b) -> None:
+    """
+    Refuse a device that did not move: it does not watch the body A tracks.
+
+    The same noise-level limits as A's (``observability.refuse_if_nothing_moved``): below
+    them its fit would only match A's motion to its noise.
+    """
+    first = device.streams[0]
+    step = max(1, len(first) // MOTION_SAMPLE)
+    pos = np.asarray(first.position)[::step]
+    moved = float(np.sqrt(np.mean(np.sum((pos - pos.mean(axis=0)) ** 2, axis=1))))
+    turned = float(rotation_spread(np.asarray(first.quat_wxyz)[::step])[0][0]) if (
+        device.model == 'full_pose') else 0.0
+    if moved < max(STILL_M, 10.0 * sigma_b[0]) and turned < max(STILL_RAD, 5.0 * sigma_b[1]):
+        raise UnobservableError(
+            f'device {device.name} did not move ({moved * 1e3:.2f} mm RMS translation, '
+            f"{np.degrees(turned):.2f}° RMS rotation) while device A's tool did: it does not "
+            f'watch the body A tracks; check its topic and its mount, or leave it out')
+
+
 def _alone(stream_a: PoseStream, device: RigDevice, settings: Settings, frames):
     """Calibrate the device with A alone; a refusal names the device."""
+    _refuse_if_still(device, settings.sigma_b)
     try:
         result, report = calibrate_streams(stream_a, list(device.streams), settings,
                                            frames=frames)
@@ -297,6 +324,7 @@ def _assemble(layout, devices, alone, reports, sol, cov, time_cols, clocks, devi
                              drift_sigma_ppm=(float(np.sqrt(tcov[1, 1])) * 1e6
                                               if clock.n_time == 2 else None))
         chi2_k = float(sol.device_chi2[k])
+        total = float(np.sum(sol.device_chi2))
         dof_k = _device_dof(layout, k, n_rows[k], clock)
         p_k = float(stats.chi2.sf(chi2_k, dof_k)) if dof_k > 0 else float('nan')
         consistent = not (np.isfinite(p_k) and p_k < CONSISTENT_P)
@@ -318,7 +346,7 @@ def _assemble(layout, devices, alone, reports, sol, cov, time_cols, clocks, devi
             input_residuals=None, charts=tuple(params.charts), inliers=None, time_offset=timing,
             fit_consistent=consistent, verdict=verdict, cov_determined=None)
         out.append(DeviceResult(d.name, tuple(d.topics), d.base_name, result, alone[k],
-                                reports[k], chi2_k / sol.chi2 if sol.chi2 > 0 else 0.0,
+                                reports[k], chi2_k / total if total > 0 else 0.0,
                                 _sigma_ratio(result, alone[k])))
     consistent = not (np.isfinite(p_value) and p_value < CONSISTENT_P) and not off
     reasons = list(off)

@@ -1,0 +1,123 @@
+"""`coreg calibrate` of a rig (issue 23): several B topics, a devices list, bad input."""
+
+import json
+
+from coreg_ros.cli.main import main
+from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.sim.rig import SimDevice, simulate_rig
+import numpy as np
+import pytest
+
+A = '/robot/tool'
+DEVICES = (SimDevice('optical', 'full_pose', 60.0, (3e-4, 1e-3), 0.004),
+           SimDevice('em', 'position_only', 40.0, (5e-4, 2e-3), 125.0),
+           SimDevice('camera', 'full_pose', 30.0, (1e-3, 4e-3), 3600.0))
+
+
+@pytest.fixture(scope='module')
+def rig_bag(tmp_path_factory):
+    rig = simulate_rig(7, 20.0, DEVICES, sigma_a=(2e-4, 5e-4))
+    streams = {A: rig.stream_a}
+    for d, s in zip(DEVICES, rig.streams, strict=True):
+        streams[f'/{d.name}/pose'] = s[0]
+    path = tmp_path_factory.mktemp('rig') / 'bag'
+    write_pose_bag(path, streams)
+    return str(path), rig
+
+
+def _config(tmp_path, extra=''):
+    path = tmp_path / 'rig.yaml'
+    path.write_text(
+        'coreg_node:\n  ros__parameters:\n    topic_a: /robot/tool\n'
+        '    devices: [optical, em, camera]\n    device:\n'
+        '      optical: {topic: [/optical/pose], sigma: [0.0003, 0.001]}\n'
+        '      em: {topic: /em/pose, model: position_only, sigma: [0.0005, 0.002]}\n'
+        '      camera: {topic: [/camera/pose], sigma: [0.001, 0.004]}\n' + extra)
+    return str(path)
+
+
+def test_devices_list_in_the_config_gives_every_device_and_the_joint_covariance(
+        tmp_path, rig_bag, capsys):
+    bag, rig = rig_bag
+    assert main(['calibrate', bag, '--config', _config(tmp_path), '--json', '-']) == 0
+    captured = capsys.readouterr()
+    data = json.loads(captured.out)
+    assert [d['name'] for d in data['devices']] == ['optical', 'em', 'camera']
+    assert [d['model'] for d in data['devices']] == ['full_pose', 'position_only', 'full_pose']
+    for d, sim, truth in zip(data['devices'], DEVICES, rig.truths, strict=True):
+        t = d['time_offset']
+        assert t['estimated'] and abs(t['value_s'] - sim.clock_offset) < 3 * t['sigma_s']
+        p0 = np.array(d['base_to_base']['position'])
+        sd = np.sqrt(np.diag(np.reshape(d['base_to_base']['covariance'], (6, 6)))[:3])
+        assert np.all(np.abs(p0 - truth.p0) < 4 * sd)
+        assert 0 < d['chi2_share'] < 1 and d['alone']['model'] == d['model']
+    assert abs(sum(d['chi2_share'] for d in data['devices']) - 1.0) < 1e-9
+    cov = data['cov_joint']
+    assert len(cov['labels']) == 39 and len(cov['values']) == 39 ** 2
+    assert cov['labels'][12] == 'em.base_to_base.x' and cov['labels'][37] == 'em.time_offset'
+    assert {(r['from'], r['to']) for r in data['relative_bases']} == {
+        ('optical', 'em'), ('optical', 'camera'), ('em', 'camera')}
+    assert 'device camera (/camera/pose)' in captured.err
+
+
+def test_several_topics_and_a_shared_base(tmp_path, capsys):
+    # two EM sensors on one tool: one field generator (one base, one clock), the same instants
+    devices = (SimDevice('s1', 'full_pose', 40.0, (4e-4, 1.5e-3), 0.02, 'em'),
+               SimDevice('s2', 'full_pose', 40.0, (4e-4, 1.5e-3), 0.02, 'em'))
+    rig = simulate_rig(8, 20.0, devices, sigma_a=(1e-3, 3e-3))
+    path = tmp_path / 'em'
+    write_pose_bag(path, {A: rig.stream_a, '/em/s1': rig.streams[0][0],
+                          '/em/s2': rig.streams[1][0]})
+    args = ['calibrate', str(path), '--topic-a', A, '--topic-b', '/em/s1', '/em/s2',
+            '--sigma-a', '1e-3', '3e-3', '--sigma-b', '4e-4', '1.5e-3', '--json', '-']
+    assert main(args + ['--shared-base']) == 0
+    shared = json.loads(capsys.readouterr().out)
+    assert shared['shared_instants'] == [['/em/s1', '/em/s2']]
+    one, two = shared['devices']
+    assert one['base'] == two['base'] == 'shared'
+    assert one['base_to_base']['position'] == two['base_to_base']['position']
+    assert max(one['sigma_ratio'][:6] + two['sigma_ratio'][:6]) < 1.0  # they inform each other
+    assert main(args) == 0  # two devices of their own
+    apart = json.loads(capsys.readouterr().out)
+    assert apart['shared_instants'] == [] and 'relative_bases' in apart
+
+
+@pytest.mark.parametrize('argv, words', [
+    (['--topic-b', A, '/em/pose'], ['topic /robot/tool', 'against itself']),
+    (['--topic-b', '/em/pose', '/em/pose'], ['topic /em/pose', 'two devices B']),
+    (['--topic-b', '/optical/pose', '--shared-base'], ['--shared-base', 'two or more']),
+])
+def test_bad_rig_topics_are_one_line(rig_bag, capsys, argv, words):
+    bag, _ = rig_bag
+    assert main(['calibrate', bag, '--topic-a', A] + argv) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and all(w in err for w in words), err
+
+
+def test_bad_devices_in_the_config_are_one_line(tmp_path, rig_bag, capsys):
+    bag, _ = rig_bag
+    extra = '      lidar: {model: full_pose}\n'
+    assert main(['calibrate', bag, '--config', _config(tmp_path, extra)]) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and "'lidar' is not in devices" in err
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('coreg_node:\n  ros__parameters:\n    devices: [cam]\n    device:\n'
+                   '      cam: {topic: [/camera/pose], sigma: [1.0]}\n')
+    assert main(['calibrate', bag, '--config', str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'device.cam.sigma' in err and 'position m' in err
+
+
+def test_a_device_that_never_moves_with_the_others_is_refused_by_name(tmp_path, capsys):
+    # the camera filmed something else: its motion never overlaps the tool's
+    devices = (SimDevice('optical', 'full_pose', 50.0, (3e-4, 1e-3), 0.0),
+               SimDevice('camera', 'full_pose', 30.0, (1e-3, 4e-3), 0.0))
+    rig = simulate_rig(9, 20.0, devices)
+    static = simulate_rig(10, 20.0, devices, motion='static')
+    path = tmp_path / 'off'
+    write_pose_bag(path, {A: rig.stream_a, '/optical/pose': rig.streams[0][0],
+                          '/camera/pose': static.streams[1][0]})
+    assert main(['calibrate', str(path), '--topic-a', A, '--topic-b', '/optical/pose',
+                 '/camera/pose']) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'device /camera/pose did not move' in err
