@@ -8,7 +8,9 @@ A rig's streams in, its joint calibration out.
 2. The sensors of one base share one clock: their offsets are combined (inverse-variance),
    and every device is paired with A at its clock's offset, its outliers left out.
 3. The joint fit (``joint``) from the devices' own solutions, over φ with shared bases once;
-   the joint posterior over φ and the clocks (``posterior``).
+   the joint posterior over φ and the clocks (``posterior``). Devices that share neither a
+   base nor a clock are independent given A: their joint fit is their fits alone
+   (``_independent``), used as they are.
 4. Each device's result in the rig, its share of χ², the σ ratio against its fit alone, and
    the verdict naming any device whose fit does not match its stated noise.
 """
@@ -129,25 +131,48 @@ def _clocks(layout: RigLayout, alone: list, settings: Settings) -> tuple[list, l
     return clocks, device_clock
 
 
-def _one_device(device: RigDevice, result: CalibrationResult, report, settings: Settings
-                ) -> RigResult:
-    """Wrap the two-device calibration as a rig of one device, its result unchanged."""
-    t = result.time_offset
-    cov = None
-    if result.cov_joint is not None:
-        cov = np.zeros((13, 13))
-        cov[:12, :12] = result.cov_joint
-        cov[12, 12] = t.sigma_s ** 2 if t is not None and t.estimated else UNKNOWN
-        if t is not None and t.cross_cov is not None:
-            cov[:12, 12] = cov[12, :12] = t.cross_cov[:, 0]
-    ratio = np.where(np.diag(result.cov_joint) > 0, 1.0, np.nan) if cov is not None else (
-        np.full(12, np.nan))
-    d = DeviceResult(device.name, tuple(device.topics), device.base_name, result, result,
-                     report, 1.0, ratio)
-    return RigResult(bool(result.success), int(result.status), result.message,
-                     settings.method, (d,), float(result.chi2), int(result.dof),
-                     float(result.p_value), bool(result.fit_consistent), result.verdict, cov,
-                     iterations=int(result.iterations))
+def _independent(devices: list, fits: list, settings: Settings) -> RigResult:
+    """
+    Make the rig of devices sharing neither base nor clock: each device calibrated with A.
+
+    Given A's samples their information is block-diagonal (no shared parameter, no shared
+    instant: every device its own clock), so the joint fit is their fits alone, used as they
+    are, and the joint covariance has no cross terms between them. One device is today's
+    two-device calibration, unchanged.
+    """
+    K = len(devices)
+    cov = np.zeros((13 * K, 13 * K))
+    out, off = [], []
+    for k, (device, (result, report)) in enumerate(zip(devices, fits, strict=True)):
+        t = result.time_offset
+        if result.cov_joint is None:
+            cov = None
+        elif cov is not None:
+            cov[12 * k:12 * k + 12, 12 * k:12 * k + 12] = result.cov_joint
+            row = 12 * K + k
+            cov[row, row] = t.sigma_s ** 2 if t is not None and t.estimated else UNKNOWN
+            if t is not None and t.estimated and t.cross_cov is not None:
+                cov[12 * k:12 * k + 12, row] = cov[row, 12 * k:12 * k + 12] = t.cross_cov[:, 0]
+        ratio = (np.full(12, np.nan) if result.cov_joint is None else
+                 np.where(np.diag(result.cov_joint) > 0, 1.0, np.nan))
+        out.append(DeviceResult(device.name, tuple(device.topics), device.base_name, result,
+                                result, report, 0.0, ratio))
+        if not result.success:
+            off.append(f'device {device.name}: {result.verdict or result.message}')
+    chi2 = float(sum(r.chi2 for r, _ in fits))
+    dof = int(sum(r.dof for r, _ in fits))
+    out = [replace(d, chi2_share=d.result.chi2 / chi2 if chi2 > 0 else 0.0) for d in out]
+    if K == 1:
+        r = fits[0][0]
+        return RigResult(bool(r.success), int(r.status), r.message, settings.method, tuple(out),
+                         chi2, dof, float(r.p_value), bool(r.fit_consistent), r.verdict, cov,
+                         iterations=int(r.iterations))
+    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    status = min(int(r.status) for r, _ in fits)
+    return RigResult(not off, status, f'{K} devices that share neither base nor clock: each '
+                     f'calibrated with A', settings.method, tuple(out), chi2, dof, p_value,
+                     all(bool(r.fit_consistent) for r, _ in fits), '; '.join(off), cov,
+                     iterations=max(int(r.iterations) for r, _ in fits))
 
 
 def _moved(clock: Clock, delta: np.ndarray) -> Clock:
@@ -214,8 +239,10 @@ def calibrate_rig(stream_a: PoseStream, devices: Sequence[RigDevice], settings: 
     devices = checked_devices(stream_a, devices)
     own = [device_settings(settings, d) for d in devices]
     fits = [_alone(stream_a, d, s, frames) for d, s in zip(devices, own, strict=True)]
-    if len(devices) == 1:
-        return _one_device(devices[0], *fits[0], settings)
+    if len({d.base_name for d in devices}) == len(devices):
+        rig = _independent(devices, fits, settings)
+        return rig if len(devices) == 1 else replace(rig, loops=loop_report(
+            rig, direct_fits(devices, settings) if loops else None))
     alone = [f[0] for f in fits]
     layout = RigLayout.build([d.name for d in devices], [d.model for d in devices],
                              [d.base_name for d in devices])
