@@ -5,7 +5,8 @@ Device A at 100 Hz and each device B_k at 100 Hz with its own clock (offsets of 
 1 h), 250k samples each (2500 s), full pose, position only and full pose. Timed: what users
 call (``coreg_ros.calibrate`` runs these), the clock offsets found from no guess, the robust
 fits, the joint fit and its covariance; best of ``repeats``, the two alternating. The
-baseline is one pair (A and the first device) in the same run. Memory: the tracemalloc peak of the rig of 1, 2 and 3 devices.
+baseline is one pair (A and the first device) in the same run. Memory: the tracemalloc peak
+of the rig of 1, 2 and 3 devices.
 
 Goals (issue 23): A + 3 devices in at most 4× the time of one pair; memory linear in K (the
 peak of K devices at most K times the pair's, plus A's share).
