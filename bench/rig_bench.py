@@ -21,7 +21,6 @@ import json
 import os
 from pathlib import Path
 import sys
-import time
 
 # Before numpy is imported (the standard library above does not load BLAS).
 for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
@@ -31,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.estimator_bench import peak_bytes  # noqa: E402
+from bench.estimator_bench import best_time, peak_bytes  # noqa: E402
 from coreg_ros.core.calibration.pipeline import calibrate_streams  # noqa: E402
 from coreg_ros.core.rig.devices import RigDevice  # noqa: E402
 from coreg_ros.core.rig.pipeline import calibrate_rig  # noqa: E402
@@ -45,15 +44,6 @@ DEVICES = (SimDevice('optical', 'full_pose', 100.0, (3e-4, 1e-3), 0.004),
            SimDevice('camera', 'full_pose', 100.0, (1e-3, 4e-3), 3600.0))
 
 
-def _best(fn, repeats: int) -> tuple:
-    best, out = float('inf'), None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
-
-
 def run(samples: int = 250_000, repeats: int = 3, seed: int = 23) -> dict:
     """Return the pair's and the rig's times and peaks, their ratios and the goals."""
     rig = simulate_rig(seed, samples / 100.0, DEVICES, rate_a=100.0)
@@ -63,10 +53,10 @@ def run(samples: int = 250_000, repeats: int = 3, seed: int = 23) -> dict:
     first = settings.updated(sigma_b=DEVICES[0].sigma)
     pair_s = rig_s = float('inf')
     for _ in range(repeats):  # alternating, so that a busy moment slows both alike
-        t, (pair, _) = _best(lambda: calibrate_streams(rig.stream_a, list(devices[0].streams),
-                                                       first), 1)
+        t, (pair, _) = best_time(lambda: calibrate_streams(
+            rig.stream_a, list(devices[0].streams), first), 1)
         pair_s = min(pair_s, t)
-        t, result = _best(lambda: calibrate_rig(rig.stream_a, devices, settings), 1)
+        t, result = best_time(lambda: calibrate_rig(rig.stream_a, devices, settings), 1)
         rig_s = min(rig_s, t)
     peaks = [peak_bytes(lambda k=k: calibrate_rig(rig.stream_a, devices[:k], settings))
              for k in (1, 2, 3)]

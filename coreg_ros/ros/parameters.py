@@ -227,6 +227,7 @@ def declare_parameters(node: Node) -> list[str]:
     if isinstance(overrides, dict):
         values = {name: p.value for name, p in overrides.items()}
         checked, warnings = check_parameters(values, where='parameters: ')
+        refuse_rig(checked, 'parameters: ')
         for name, value in checked.items():
             if values[name] != value or type(values[name]) is not type(value):
                 overrides[name] = Parameter(name, value=value)
@@ -281,7 +282,20 @@ def check_params_files(args: list[str], node_name: str) -> None:
     from coreg_ros.files.parameters import load_parameters
 
     for path in params_files(args):
-        load_parameters(path, node_name, warn=lambda line: None)
+        refuse_rig(load_parameters(path, node_name, warn=lambda line: None), f'{path}: ')
+
+
+def refuse_rig(values: dict, where: str) -> None:
+    """
+    Refuse a rig's keys (``devices``): the node calibrates one device B, said in one line.
+
+    Silently calibrating only ``topic_b`` would ignore the devices the file names.
+    """
+    keys = sorted(k for k in values if k == 'devices' or k.startswith('device.'))
+    if keys:
+        raise ConfigError(f'{where}{keys[0]}: the node calibrates device A with one device B '
+                          f'(topic_b); a rig of several devices is calibrated offline: record '
+                          f'its topics (coreg record) and run coreg calibrate BAG --config FILE')
 
 
 def _plain(value):

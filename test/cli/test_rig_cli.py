@@ -121,3 +121,13 @@ def test_a_device_that_never_moves_with_the_others_is_refused_by_name(tmp_path, 
                  '/camera/pose']) == 1
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and 'device /camera/pose did not move' in err
+
+
+def test_the_node_refuses_a_devices_list_in_one_line(tmp_path):
+    # the node calibrates one device B: a rig's file is refused, not half used
+    from coreg_ros.core.errors import ConfigError
+    from coreg_ros.ros.parameters import check_params_files
+    path = _config(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        check_params_files(['coreg_node', '--ros-args', '--params-file', path], 'coreg_node')
+    assert 'coreg calibrate BAG --config FILE' in str(err.value) and '\n' not in str(err.value)

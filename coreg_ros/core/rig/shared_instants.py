@@ -13,9 +13,10 @@ couples the devices: each one's noise and information reach the others through x
 noise is counted once per instant, not once per device. Instants are the A-clock times at which
 A is interpolated (int64 ns): equal times are one instant.
 
-The blocks are formed from each device's own linearisation (``models.linearize``) and factored
-by the batched Cholesky of ``estimator.batched``; the input step is
-``estimator.tls.back_substitute`` on these factors (the generic layout of ``tls``).
+The blocks are formed from A's input blocks (``estimator.tls.input_blocks``) and each device's
+own linearisation (``models.linearize``), and factored by the batched Cholesky of
+``estimator.batched``; the input step is ``estimator.tls.back_substitute`` on these factors
+(the generic layout of ``tls``).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from typing import Optional
 from coreg_ros.core.estimator import batched
 from coreg_ros.core.estimator.problem import chunk_slices, pair_last, Problem
 from coreg_ros.core.estimator.state import InputState
-from coreg_ros.core.models import error_rotation_jacobian, linearize, Parameters
+from coreg_ros.core.estimator.tls import input_blocks
+from coreg_ros.core.models import linearize, Parameters
 import numpy as np
 
 
@@ -117,20 +119,6 @@ class SharedInstants:
         """Return the TLS inputs at A's measured poses."""
         return InputState(self.pos_a, self.quat_a)
 
-    def _input_blocks(self, x: InputState, sl: slice):
-        """A's whitened input residuals r_x (c, 6) and their Jacobian A_x (c, 6, 6)."""
-        ex_rot, dex = error_rotation_jacobian(x.quat[sl], self.quat_a[sl])
-        e_x = np.concatenate([x.pos[sl] - self.pos_a[sl], ex_rot], axis=1)
-        Lx = self.whiten_a
-        A_x = np.empty((len(e_x), 6, 6))
-        A_x[:, :, 0:3] = Lx[:, 0:3]
-        A_x[:, :, 3:6] = Lx[:, 3:6] @ dex
-        r_x = e_x @ Lx.T
-        if self.a_scale is not None:
-            w = 1.0 / np.sqrt(self.a_scale[sl])
-            r_x, A_x = r_x * w[:, None], A_x * w[:, None, None]
-        return r_x, A_x
-
     def linearize(self, params: Sequence[Parameters], x: InputState, lam: float,
                   keep_residuals: bool = False,
                   input_columns: Optional[np.ndarray] = None) -> GroupLinearization:
@@ -163,7 +151,7 @@ class SharedInstants:
         res = [pair_last(p.n, p.spec.n_res) for p in self.problems] if keep_residuals else None
         res_x = pair_last(self.n, 6) if keep_residuals else None
         for sl in chunk_slices(self.n):
-            r_x, A_x = self._input_blocks(x, sl)
+            r_x, A_x = input_blocks(self, x, sl)
             U = np.swapaxes(A_x, 1, 2) @ A_x
             Wg = np.zeros((sl.stop - sl.start, 6, P + n_t + 1))
             Wg[:, :, -1] = (np.swapaxes(A_x, 1, 2) @ r_x[:, :, None])[:, :, 0]
