@@ -1,9 +1,11 @@
 """`coreg calibrate` of a rig (issue 23): several B topics, a devices list, bad input."""
 
+import glob
 import json
+import os
 
 from coreg_ros.cli.main import main
-from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.files.bag.posebag import read_pose_bag, write_pose_bag
 from coreg_ros.sim.rig import SimDevice, simulate_rig
 import numpy as np
 import pytest
@@ -131,3 +133,53 @@ def test_the_node_refuses_a_devices_list_in_one_line(tmp_path):
     with pytest.raises(ConfigError) as err:
         check_params_files(['coreg_node', '--ros-args', '--params-file', path], 'coreg_node')
     assert 'coreg calibrate BAG --config FILE' in str(err.value) and '\n' not in str(err.value)
+
+
+#: Where the real three-phone recording lives on the team's machines (never committed).
+TANGO = '/work/shared/data/real/eth_hand_eye/tango_triplet_hard'
+
+
+@pytest.mark.skipif(not os.path.isdir(TANGO), reason='the real three-phone recording is absent')
+def test_real_three_phone_rig_from_csv_exports(tmp_path, capsys):
+    # three Tango phones on one mount, each with its own VIO pose and its own clock (stamps
+    # 125 s and 76 min apart, none shared): converted from their CSV exports into one bag and
+    # calibrated as a rig, CALIGULA as A, no offset given
+    files = [glob.glob(f'{TANGO}/{name}_*.csv')[0] for name in ('CALIGULA', 'MARS', 'NERO')]
+    bag = str(tmp_path / 'tango')
+    assert main(['convert', *files, bag, '--sort', '--topic-a', '/caligula/pose',
+                 '--topic-b', '/mars/pose', '/nero/pose']) == 0
+    err = capsys.readouterr().err
+    assert '/nero/pose and A do not overlap in time' in err and '--time-offset auto' in err
+    # VIO poses are noisy at the centimetre level; the fit's verdict is theirs to give
+    code = main(['calibrate', bag, '--topic-a', '/caligula/pose', '--topic-b', '/mars/pose',
+                 '/nero/pose', '--sigma-a', '0.05', '0.05', '--sigma-b', '0.05', '0.05',
+                 '--loops', '--json', '-'])
+    out = capsys.readouterr()
+    assert code in (0, 3), out.err
+    data = json.loads(out.out)
+    mars, nero = data['devices']
+    for d in (mars, nero):
+        paired = d['pairing']
+        assert d['time_offset']['estimated'] and paired['n_paired'] > 0.9 * paired['n_b']
+    # the coarse search's lags within a second, as for the pairs (test_own_clocks)
+    assert abs(mars['time_offset']['value_s'] - 125.1) < 1.0
+    assert abs(nero['time_offset']['value_s'] - 4583.4) < 1.0
+    # the clock loop: NERO calibrated against MARS directly finds the difference of the two
+    # offsets to the stamps' resolution (the exports print 10 ms)
+    from coreg_ros.core.calibration.pipeline import calibrate_streams
+    from coreg_ros.core.settings import Settings
+    streams = read_pose_bag(bag, ['/mars/pose', '/nero/pose'])
+    direct, _ = calibrate_streams(streams['/mars/pose'], [streams['/nero/pose']],
+                                  Settings(sigma_a=(0.05, 0.05), sigma_b=(0.05, 0.05)))
+    loop_s = (nero['time_offset']['value_s'] - mars['time_offset']['value_s']
+              - direct.time_offset.value_s)
+    assert abs(loop_s) < 0.02, loop_s
+    # the pose loop closes to well within the phones' drift (their fits' residuals are
+    # 0.1-0.2 m RMS); a wrong composition of the transforms would miss by the mount's lever
+    # arms (about a metre here)
+    (loop,) = [c for c in data['loops']['checks'] if c['what'] == 'loop']
+    assert loop['devices'] == ['/mars/pose', '/nero/pose']
+    assert loop['max_error']['position_mm'] < 50 and loop['max_error']['rotation_deg'] < 0.5
+    (rel,) = data['relative_bases']
+    assert np.all(np.isfinite(rel['covariance']))
+    assert 'device /mars/pose:' in out.err and 'loops:' in out.err

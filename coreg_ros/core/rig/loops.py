@@ -218,8 +218,9 @@ def loop_report(rig, direct: Optional[dict] = None) -> LoopReport:
                           f'(sigma) and stream, or run coreg diagnose on it')
     return LoopReport(tuple(checks), (),
                       f'the pairwise calibrations disagree with the rig ({what}) and cannot '
-                      f'tell which of {", ".join(suspects)} is off: a loop through a third '
-                      f'device would (calibrate with loops, a full-pose device as reference)')
+                      f'tell which of {", ".join(suspects)} is off (or their fits with A): '
+                      f'a further device on the body would, each loop through it testing one '
+                      f'of them (add its topic to the rig)')
 
 
 def _culprits(names: tuple, checks: list, bad: list) -> tuple:

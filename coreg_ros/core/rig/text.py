@@ -34,7 +34,9 @@ def format_rig(rig) -> str:
                    f'instants (one input pose each)')
     for d in rig.devices:
         r = d.result
-        topics = f' ({", ".join(d.topics)})' if d.topics else ''
+        # a device named by its topic (--topic-b T1 T2) is not named twice
+        topics = (f' ({", ".join(d.topics)})' if d.topics and tuple(d.topics) != (d.name,)
+                  else '')
         out.append('')
         out.append(f'device {d.name}{topics}: model {r.model}, base {d.base}; '
                    f'{d.pairing.summary()}')
