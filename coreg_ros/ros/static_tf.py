@@ -21,10 +21,8 @@ once and publishes its own topics as before. docs/tf.md has the details.
 
 from __future__ import annotations
 
-from typing import Optional
-
-from coreg_ros.core.config_schema import DEFAULTS
 from coreg_ros.core.types import UncertainPose
+from coreg_ros.files.export import frame_problem
 from coreg_ros.ros.messages import pose_to_transform
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -39,31 +37,6 @@ MISSING_TYPE = (
     'not broadcast on /tf_static; ~/base_to_base and ~/tool_to_marker still carry it. Fix: '
     '`make venv` (builds tf2_msgs into the venv), or with ROS installed: apt install '
     'ros-jazzy-tf2-ros-py; publish_tf:=false silences this')
-
-
-def frame_problem(frames: dict) -> Optional[str]:
-    """
-    Return why tf2 would refuse these frame ids, or None.
-
-    tf2 refuses an empty frame id, one that starts with '/' and a transform of a frame to
-    itself; the node then says so once and leaves /tf_static alone.
-
-    Parameters
-    ----------
-    frames : dict
-        ``{"base_a", "base_b", "tool", "marker"}`` (``NodeConfig.frames``).
-
-    """
-    for name, parent, child in (('T0', 'base_b', 'base_a'), ('T1', 'tool', 'marker')):
-        for key in (parent, child):
-            value = str(frames[key])
-            if not value.strip() or value.startswith('/'):
-                return (f'frame_{key} {value!r} is no tf2 frame id (tf2 refuses an empty one '
-                        f'and a leading /); e.g. frame_{key}: {DEFAULTS["frame_" + key]}')
-        if frames[parent] == frames[child]:
-            return (f'{name} would be a transform of {frames[parent]!r} to itself; give '
-                    f'frame_{parent} and frame_{child} distinct frame ids')
-    return None
 
 
 class StaticTf:
