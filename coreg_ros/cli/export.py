@@ -75,7 +75,11 @@ def register(sub) -> None:
     """Add ``export`` to the ``coreg`` subparsers."""
     p = sub.add_parser('export', help='a calibration as tf2 static publishers, a launch file, '
                                       'URDF, YAML or JSON',
-                       description=__doc__.strip())
+                       description='A calibration as a ROS system reads it, from a coreg '
+                                   "calibrate --json result or a node's result_*.yaml: tf2 "
+                                   'static transform publishers (their command lines or a '
+                                   'launch file), URDF, or YAML/JSON that --prior reads back. '
+                                   'Directions and formats: docs/tf.md.')
     p.add_argument('result', metavar='RESULT',
                    help="a `coreg calibrate --json` result or a node's result_*.yaml")
     p.add_argument('--format', choices=FORMATS, default='static-tf',

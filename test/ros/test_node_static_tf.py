@@ -20,12 +20,6 @@ import pytest
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosproc import wait_counts
 
-try:
-    from tf2_msgs.msg import TFMessage
-except ImportError as e:  # make venv builds it; without it this test cannot run
-    raise ImportError(f'tf2_msgs cannot be imported ({e}): run `make venv`, which builds it '
-                      f'(interfaces/build.sh)') from e
-
 pytestmark = pytest.mark.ros
 
 A, B = '/device_a/pose', '/device_b/pose'
@@ -38,14 +32,25 @@ FRAMES = {'frame_base_a': 'robot_base', 'frame_base_b': 'camera_base',
           'frame_tool': 'flange', 'frame_marker': 'target'}
 
 
+@pytest.fixture
+def tf_message():
+    """tf2_msgs/msg/TFMessage: make venv builds it; without it these tests fail, saying so."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError as e:
+        pytest.fail(f'tf2_msgs cannot be imported ({e}): run `make venv`, which builds it '
+                    f'(interfaces/build.sh)')
+    return TFMessage
+
+
 def _jazzy_hash() -> str:
     """RIHS01 hash of Jazzy's tf2_msgs/msg/TFMessage, computed by rosbags from its own store."""
     from rosbags.typesys import get_typestore, Stores
     return get_typestore(Stores.ROS2_JAZZY).hash_rihs01('tf2_msgs/msg/TFMessage')
 
 
-def _tf_static(session, accept=lambda m: True, timeout=20.0):
-    return wait_for_message(session, TFMessage, '/tf_static', LISTENER_QOS, timeout, accept)
+def _tf_static(session, msg_type, timeout=20.0):
+    return wait_for_message(session, msg_type, '/tf_static', LISTENER_QOS, timeout)
 
 
 def _by_child(msg) -> dict:
@@ -91,12 +96,13 @@ def _play_and_calibrate(session, rec):
     assert ok, message
 
 
-def test_tf_static_carries_the_calibration_at_start_up_and_after_each(ros_session, start_node):
+def test_tf_static_carries_the_calibration_at_start_up_and_after_each(ros_session, start_node,
+                                                                     tf_message):
     jazzy = _jazzy_hash()
     rec = simulate_recording(3, 3.0)
     node = start_node(FRAMES)
     _play_and_calibrate(ros_session, rec)
-    msg = _tf_static(ros_session)  # subscribed after the calibration: latched
+    msg = _tf_static(ros_session, tf_message)  # subscribed after the calibration: latched
     assert msg is not None, node.log()
     results = _assert_matches_results(ros_session, msg)
     (info,) = ros_session.node.get_publishers_info_by_topic('/tf_static')
@@ -113,14 +119,14 @@ def test_tf_static_carries_the_calibration_at_start_up_and_after_each(ros_sessio
 
     # A node restarted on the stored result broadcasts it at start-up ...
     again = start_node({**FRAMES, 'storage_dir': str(node.storage)}, name='restart')
-    stored = _tf_static(ros_session)
+    stored = _tf_static(ros_session, tf_message)
     assert stored is not None, again.log()
     _assert_matches_results(ros_session, stored)
     assert _by_child(stored)[FRAMES['frame_base_a']].transform == \
         tf[FRAMES['frame_base_a']].transform
     # ... and a listener that stays gets the next calibration (another rig: another truth).
     heard = []
-    sub = ros_session.node.create_subscription(TFMessage, '/tf_static', heard.append,
+    sub = ros_session.node.create_subscription(tf_message, '/tf_static', heard.append,
                                                LISTENER_QOS)
     assert ros_session.spin_until(lambda: bool(heard), 10.0)
     other = simulate_recording(5, 3.0)
