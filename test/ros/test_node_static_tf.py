@@ -96,8 +96,8 @@ def _play_and_calibrate(session, rec):
     assert ok, message
 
 
-def test_tf_static_carries_the_calibration_at_start_up_and_after_each(ros_session, start_node,
-                                                                     tf_message):
+def test_tf_static_carries_the_calibration_at_start_up_and_after_each(
+        ros_session, start_node, tf_message):
     jazzy = _jazzy_hash()
     rec = simulate_recording(3, 3.0)
     node = start_node(FRAMES)
