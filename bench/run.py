@@ -338,6 +338,11 @@ def main(argv=None) -> int:
         _section(results, 'rig', rig_bench.run, args.rig_samples)
         scale.append(('rig', 'A rig: A + 3 devices with their own clocks against one pair',
                       rig_bench))
+    if not args.no_calibrate_speed:
+        from bench import restricted_bench
+        _section(results, 'restricted', restricted_bench.run)
+        scale.append(('restricted', 'Restricted rigs: calibrate() against a full-rank '
+                      'recording of the same size', restricted_bench))
     if args.bag_messages > 0:
         from bench import bag_bench
         _section(results, 'bags', bag_bench.run, n=args.bag_messages,
