@@ -309,9 +309,7 @@ def clock_step(blocks: list, tolerance_s: float) -> Optional[str]:
     return None
 
 
-
 # --------------------------------------------------------------------------- the main peak
-
 
 @dataclass(frozen=True)
 class CoarsePeak:

@@ -143,8 +143,8 @@ def _units(layout: RigLayout, problems: list, query_ns: list) -> list:
             units.append(DeviceAlone(k, problems[k], layout.columns[k]))
         else:
             units.append(Together(group, [problems[k] for k in group],
-                                   [query_ns[k] for k in group],
-                                   [layout.columns[k] for k in group]))
+                                  [query_ns[k] for k in group],
+                                  [layout.columns[k] for k in group]))
     return units
 
 

@@ -73,7 +73,7 @@ class RigLayout:
 
     @property
     def base_names(self) -> tuple:
-        """The distinct bases, in the order of their T0 in φ."""
+        """Return the distinct bases, in the order of their T0 in φ."""
         return tuple(dict.fromkeys(self.bases))
 
     def sharing(self, k: int) -> int:
@@ -128,7 +128,7 @@ class RigParameters:
 
     @property
     def phi(self) -> np.ndarray:
-        """The rig's vector φ, shape (P,)."""
+        """Return the rig's vector φ, shape (P,)."""
         out = np.empty(self.layout.n_params)
         for p, cols in zip(self.devices, self.layout.columns, strict=True):
             out[cols] = p.phi
@@ -136,7 +136,7 @@ class RigParameters:
 
     @property
     def valid(self) -> bool:
-        """False if a reduced quaternion left its chart in any device (the step is refused)."""
+        """Tell whether every reduced quaternion stays in its chart (else the step is refused)."""
         return all(p.valid for p in self.devices)
 
     def stepped(self, delta: np.ndarray) -> RigParameters:

@@ -105,7 +105,7 @@ class RigResult:
 
     @property
     def names(self) -> tuple:
-        """The devices' names, in order."""
+        """Return the devices' names, in order."""
         return tuple(d.name for d in self.devices)
 
     def index(self, name: str) -> int:
