@@ -8,6 +8,7 @@ others belong to the node only.
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass
 import os
 
@@ -158,6 +159,11 @@ PARAMETERS = (
 if [name for name, _, _ in PARAMETERS] != list(DEFAULTS):  # one table of keys, one of types
     raise AssertionError('ros.parameters.PARAMETERS and core.config_schema.DEFAULTS differ')
 
+#: What ``ros2 param describe`` says of a rig's keys (declared only when given).
+RIG_DESCRIPTION = ('a rig (issue 23): devices lists the devices B_k, device.<name>.{topic,'
+                   'model,sigma,base} describes each; every device is calibrated with A, '
+                   'on ~/<name>/base_to_base, ~/<name>/tool_to_marker')
+
 #: Names of the calibration keys (those of Settings).
 CALIBRATION_KEYS = ('topic_a', 'topic_b', 'model', 'method', 'sigma_a', 'sigma_b', 'max_gap',
                     'time_offset', 'estimate_time_offset', 'estimate_clock_drift', 'robust',
@@ -185,6 +191,9 @@ class NodeConfig:
         Directory of the stored results, the journal and sample bags, user (~) expanded.
     resume_samples : bool
         Load the journal of an interrupted session at start-up.
+    devices : tuple of DeviceSpec
+        A rig's devices B_k (``devices``, ``device.<name>.*``), each calibrated with A; empty:
+        the one device B of ``topic_b``.
 
     """
 
@@ -198,6 +207,7 @@ class NodeConfig:
     storage_dir: str
     resume_samples: bool = False
     publish_tf: bool = True
+    devices: tuple = ()
 
     @property
     def frames(self) -> dict:
@@ -230,16 +240,22 @@ def declare_parameters(node: Node) -> list[str]:
     # later rclpy moves them, the declare-time exceptions below still give one line.
     overrides = getattr(node, '_parameter_overrides', None)
     warnings: list[str] = []
+    rig: list = []
     if isinstance(overrides, dict):
         values = {name: p.value for name, p in overrides.items()}
         checked, warnings = check_parameters(values, where='parameters: ')
-        refuse_rig(checked, 'parameters: ')
+        rig_devices(checked, 'parameters: ')
         for name, value in checked.items():
             if values[name] != value or type(values[name]) is not type(value):
                 overrides[name] = Parameter(name, value=value)
+        # a rig's devices (issue 23): declared as given, read-only (the node is built on them)
+        rig = [(k, v, ParameterDescriptor(read_only=True, description=RIG_DESCRIPTION))
+               for k, v in checked.items() if k == 'devices' or k.startswith('device.')]
     try:
         node.declare_parameters('', [(name, default, desc)
                                      for name, default, desc in PARAMETERS])
+        if rig:
+            node.declare_parameters('', rig)
     except ParameterException as e:
         raise ConfigError(_one_line(e)) from None
     return warnings
@@ -288,20 +304,37 @@ def check_params_files(args: list[str], node_name: str) -> None:
     from coreg_ros.files.parameters import load_parameters
 
     for path in params_files(args):
-        refuse_rig(load_parameters(path, node_name, warn=lambda line: None), f'{path}: ')
+        rig_devices(load_parameters(path, node_name, warn=lambda line: None), f'{path}: ')
 
 
-def refuse_rig(values: dict, where: str) -> None:
+def rig_devices(values: dict, where: str) -> tuple:
     """
-    Refuse a rig's keys (``devices``): the node calibrates one device B, said in one line.
+    Return the devices B_k a rig's keys (``devices``, ``device.<name>.*``) name; () without.
 
-    Silently calibrating only ``topic_b`` would ignore the devices the file names.
+    The node calibrates each device with A (``ros.rig_channels``). Refused in one line: a
+    stray or incomplete device key, a device on A's topic, two devices on one topic.
+
+    Raises
+    ------
+    ConfigError
+
     """
-    keys = sorted(k for k in values if k == 'devices' or k.startswith('device.'))
-    if keys:
-        raise ConfigError(f'{where}{keys[0]}: the node calibrates device A with one device B '
-                          f'(topic_b); a rig of several devices is calibrated offline: record '
-                          f'its topics (coreg record) and run coreg calibrate BAG --config FILE')
+    from coreg_ros.core.rig.devices import device_specs
+
+    if not values.get('devices'):
+        if any(k.startswith('device.') for k in values):
+            device_specs(values, 'full_pose')  # names the stray key
+        return ()
+    model = values.get('model') or DEFAULTS['model']
+    specs = device_specs(values, model)
+    topics_b = [t for s in specs for t in s.topics]
+    every = [values.get('topic_a') or DEFAULTS['topic_a'], *topics_b]
+    same = [t for t in every if every.count(t) > 1]
+    if same:
+        whose = 'device A and a device B' if same[0] == every[0] else 'two devices B'
+        raise ConfigError(f'{where}topic {same[0]} is given for {whose}: each device needs its '
+                          f'own topic (device.<name>.topic)')
+    return tuple(specs)
 
 
 def _plain(value):
@@ -379,6 +412,10 @@ def read_config(node: Node) -> NodeConfig:
     """
     values = {name: node.get_parameter(name).value for name, _, _ in PARAMETERS}
     settings = settings_from_values(values)
+    rig = {f'device.{k}': list(p.value) if isinstance(p.value, (list, tuple, array)) else p.value
+           for k, p in node.get_parameters_by_prefix('device').items()}
+    if node.has_parameter('devices'):
+        rig['devices'] = list(node.get_parameter('devices').value)
     storage = str(values['storage_dir']).strip()
     if not storage:
         raise ConfigError('storage_dir is empty; set it to a writable directory')
@@ -393,4 +430,5 @@ def read_config(node: Node) -> NodeConfig:
         storage_dir=os.path.expanduser(storage),
         resume_samples=bool(values['resume_samples']),
         publish_tf=bool(values['publish_tf']),
+        devices=rig_devices({**values, **rig}, 'parameters: '),
     )

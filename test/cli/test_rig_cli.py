@@ -125,14 +125,19 @@ def test_a_device_that_never_moves_with_the_others_is_refused_by_name(tmp_path, 
     assert err.count('\n') == 1 and 'device /camera/pose did not move' in err
 
 
-def test_the_node_refuses_a_devices_list_in_one_line(tmp_path):
-    # the node calibrates one device B: a rig's file is refused, not half used
+def test_the_node_checks_a_devices_list_as_the_cli_does(tmp_path):
+    # the node calibrates every device of the list with A (test/ros/test_node_rig.py); a file
+    # the CLI refuses is refused by the node in one line, before ROS starts
     from coreg_ros.core.errors import ConfigError
     from coreg_ros.ros.parameters import check_params_files
-    path = _config(tmp_path)
+    args = ['coreg_node', '--ros-args', '--params-file']
+    check_params_files(args + [_config(tmp_path)], 'coreg_node')
+    stray = tmp_path / 'stray'
+    stray.mkdir()
     with pytest.raises(ConfigError) as err:
-        check_params_files(['coreg_node', '--ros-args', '--params-file', path], 'coreg_node')
-    assert 'coreg calibrate BAG --config FILE' in str(err.value) and '\n' not in str(err.value)
+        check_params_files(args + [_config(stray, '      lidar: {model: full_pose}\n')],
+                           'coreg_node')
+    assert "'lidar' is not in devices" in str(err.value) and '\n' not in str(err.value)
 
 
 #: Where the real three-phone recording lives on the team's machines (never committed).
