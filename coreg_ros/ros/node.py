@@ -26,6 +26,11 @@ Publications
     (``ros.live_checks``) add two statuses to each /diagnostics message: guidance while
     collecting (``<node>: guidance``) and the watchdog of the published calibration
     (``<node>: watchdog``); and publish ``~/calibration_stale``.
+A rig
+    With a devices list in the parameter file (``devices``, ``device.<name>.*``) every topic
+    above and the /diagnostics statuses are per device (``~/<name>/base_to_base``...,
+    ``<node>/<name>: ...``): one channel per device, each calibrated with A
+    (``ros.rig_channels``); ``~/calibrate`` calibrates them all.
 Persistence
     The result is stored atomically in ``storage_dir`` under a name of the node and its
     configuration (model, topics, frames) and republished at start-up only by a node of that

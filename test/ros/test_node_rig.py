@@ -7,10 +7,12 @@ streams with real publishers, calls ``~/calibrate`` and reads each device's resu
 /diagnostics statuses and /tf_static, as a ROS system would.
 """
 
+from dataclasses import replace
 import math
 import time
 
 from coreg_ros.core.live import guidance as gd
+from coreg_ros.core.live import watchdog as wd
 from coreg_ros.ros.messages import stamp_to_ns
 from coreg_ros.ros.tools import (
     call_trigger,
@@ -54,13 +56,14 @@ def _wait_accepted(session, device: str, expect: dict, timeout: float = 30.0) ->
 
 
 def _statuses(session, seconds: float) -> dict:
-    """Collect the /diagnostics statuses by name for ``seconds``: name -> last message."""
+    """Collect the /diagnostics statuses for ``seconds``: name -> (message, values, level)."""
     from diagnostic_msgs.msg import DiagnosticArray
     got = {}
 
     def on_diag(msg):
         for s in msg.status:
-            got[s.name] = (s.message, diagnostics_values(s))
+            level = s.level[0] if isinstance(s.level, (bytes, bytearray)) else int(s.level)
+            got[s.name] = (s.message, diagnostics_values(s), level)
 
     sub = session.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
     session.spin_until(lambda: False, seconds)
@@ -142,3 +145,42 @@ def test_a_rig_parameter_file_with_a_device_on_as_topic_is_one_line(start_node):
     assert node.stop() == 1, log
     (line,) = [ln for ln in log.splitlines() if ln.startswith('coreg_node:')]
     assert 'topic /robot/tool is given for device A and a device B' in line, log
+
+
+def _moved_base(stream, shift_m):
+    """B's samples after B's base moved by ``shift_m`` (m, along x): T0 changed."""
+    return replace(stream, position=stream.position + np.array([shift_m, 0.0, 0.0]))
+
+
+def _span(stream, lo_ns, hi_ns):
+    keep = (stream.stamps >= lo_ns) & (stream.stamps < hi_ns)
+    return replace(stream, stamps=stream.stamps[keep], position=stream.position[keep],
+                   quat_wxyz=stream.quat_wxyz[keep])
+
+
+def test_the_watchdog_of_the_device_that_moved_alone_goes_off(ros_session, start_node):
+    # calibrated on the first 16 s; then the EM field generator is knocked 1 cm (20 σ) while
+    # the optical tracker stays: only the EM device's watchdog may raise its alarm
+    rig = simulate_rig(22, 26.0, DEVICES, sigma_a=(2e-4, 5e-4))
+    topics = {A: rig.stream_a, '/optical/pose': rig.streams[0][0],
+              '/em/pose': rig.streams[1][0]}
+    cut = rig.stream_a.stamps[0] + 16 * 10**9
+    first = {t: _span(s, 0, cut) for t, s in topics.items()}
+    then = {t: _span(s, cut, np.iinfo(np.int64).max) for t, s in topics.items()}
+    then['/em/pose'] = _moved_base(then['/em/pose'], 0.01)
+    node = start_node(PARAMS)
+    play_streams(ros_session, first, rate=4.0, wait_subscribers=20.0, log=lambda s: None)
+    _wait_accepted(ros_session, 'em', {t: len(s) for t, s in first.items()})
+    ok, message = call_trigger(ros_session, '/coreg_node/calibrate', timeout=60)
+    assert ok, message + node.log()
+    play_streams(ros_session, then, rate=1.0, wait_subscribers=5.0, log=lambda s: None)
+    statuses = _statuses(ros_session, 3.0)
+    em = statuses[f'coreg_node/em: {wd.STATUS_NAME}']
+    optical = statuses[f'coreg_node/optical: {wd.STATUS_NAME}']
+    assert em[2] == wd.ERROR, (em, node.log())
+    # attributed to the EM device's T0, by the size it moved
+    assert em[1][wd.KEY_CHANGE] == 't0', em
+    size, sigma = (float(v) for v in em[1][wd.KEY_TRANSLATION].split(' ± '))
+    assert abs(size - 10.0) < 3 * sigma, em
+    assert optical[2] == wd.OK, optical
+    assert node.alive(), node.log()
