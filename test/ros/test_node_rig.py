@@ -9,6 +9,7 @@ streams with real publishers, calls ``~/calibrate`` and reads each device's resu
 
 from dataclasses import replace
 import math
+import subprocess
 import time
 
 from coreg_ros.core.live import guidance as gd
@@ -25,6 +26,7 @@ from coreg_ros.sim.rig import SimDevice, simulate_rig
 import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosproc import PY
 
 pytestmark = pytest.mark.ros
 
@@ -86,7 +88,8 @@ def _static_transforms(session, seconds: float) -> dict:
     return got
 
 
-def test_a_rig_node_calibrates_guides_and_publishes_every_device(ros_session, start_node):
+def test_a_rig_node_calibrates_guides_and_publishes_every_device(ros_domain, ros_session,
+                                                                start_node):
     rig = simulate_rig(21, 12.0, DEVICES, sigma_a=(2e-4, 5e-4))
     streams = {A: rig.stream_a, '/optical/pose': rig.streams[0][0],
                '/em/pose': rig.streams[1][0]}
@@ -131,6 +134,12 @@ def test_a_rig_node_calibrates_guides_and_publishes_every_device(ros_session, st
         assert tf[f'{sim.name}_marker'].header.frame_id == 'device_a_tool'
     stamps = {stamp_to_ns(t.header.stamp) for t in tf.values()}
     assert all(math.isfinite(s) for s in stamps)
+    # the dashboard of one device
+    watched = subprocess.run([PY, '-m', 'coreg_ros.cli.watch', '--once', '--node',
+                              'coreg_node/em', '--timeout', '15'], env=ros_domain.env(),
+                             capture_output=True, text=True, timeout=60)
+    assert watched.returncode == 0, watched.stdout + watched.stderr
+    assert 'coreg watch: coreg_node/em' in watched.stdout, watched.stdout
     assert node.stop() == 0, node.log()
 
 
