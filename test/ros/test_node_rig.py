@@ -88,8 +88,8 @@ def _static_transforms(session, seconds: float) -> dict:
     return got
 
 
-def test_a_rig_node_calibrates_guides_and_publishes_every_device(ros_domain, ros_session,
-                                                                start_node):
+def test_a_rig_node_calibrates_guides_and_publishes_every_device(
+        ros_domain, ros_session, start_node):
     rig = simulate_rig(21, 12.0, DEVICES, sigma_a=(2e-4, 5e-4))
     streams = {A: rig.stream_a, '/optical/pose': rig.streams[0][0],
                '/em/pose': rig.streams[1][0]}
