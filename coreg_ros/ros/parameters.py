@@ -79,9 +79,18 @@ PARAMETERS = (
      _desc('fewest pairs a calibration accepts', ints=_int_range(*RANGES['min_pairs']))),
     ('max_iterations', DEFAULTS['max_iterations'],
      _desc('iteration limit of the estimator', ints=_int_range(*RANGES['max_iterations']))),
+    ('noise', DEFAULTS['noise'],
+     _desc('stated: the noise is as given (sigma_a/sigma_b or noise_file) and the fit is judged '
+           'against it; auto: each device noise is estimated with the calibration (variance '
+           'components), what the motion cannot separate held at the noise measured while a '
+           'device stood still, else at the given noise', constraints='stated | auto')),
     ('prior_file', DEFAULTS['prior_file'],
      _desc('a previous result (result.yaml or coreg calibrate --json) or a partial prior that '
            'calibrations refine (Ikits B.3); empty: none')),
+    ('noise_file', DEFAULTS['noise_file'],
+     _desc('a noise file (coreg noise RECORDING --out FILE): 3x3 position and rotation '
+           'covariances per device in its base frame, used instead of sigma_a/sigma_b; empty: '
+           'none', read_only=True)),
     ('use_last_result_as_prior', DEFAULTS['use_last_result_as_prior'],
      _desc("refine the node's own stored result (its result_<node>_<hash>.yaml in "
            'storage_dir) when no prior_file is given')),
@@ -158,7 +167,7 @@ if [name for name, _, _ in PARAMETERS] != list(DEFAULTS):  # one table of keys, 
 #: Names of the calibration keys (those of Settings).
 CALIBRATION_KEYS = ('topic_a', 'topic_b', 'model', 'method', 'sigma_a', 'sigma_b', 'max_gap',
                     'time_offset', 'estimate_time_offset', 'estimate_clock_drift', 'robust',
-                    'min_pairs', 'max_iterations')
+                    'min_pairs', 'max_iterations', 'noise')
 
 
 @dataclass(frozen=True)

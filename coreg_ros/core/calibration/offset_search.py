@@ -30,7 +30,7 @@ from coreg_ros.core.clock.timing import (
 )
 from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
-from coreg_ros.core.estimator import noise_covariance, output_covariance
+from coreg_ros.core.estimator import output_covariance
 from coreg_ros.core.estimator.linearized import PairData
 from coreg_ros.core.estimator.posterior import tangent_map
 from coreg_ros.core.estimator.priors import Prior
@@ -95,8 +95,7 @@ class _Context:
         ref = (int(bs[0].stamps[0]) + int(bs[0].stamps[-1])) // 2
         return cls(a, bs, settings, prior, Trajectory(t, a.position, a.quat_wxyz), origin, ref,
                    max(VELOCITY_HALF_WINDOW, 1.5 * step),
-                   noise_covariance(settings.sigma_a),
-                   output_covariance(noise_covariance(settings.sigma_b), spec))
+                   settings.cov_a, output_covariance(settings.cov_b, spec))
 
     def timing(self, tau: float, kappa: Optional[float]) -> TimeOffset:
         return TimeOffset(tau, drift_ppm=None if kappa is None else kappa * 1e6,

@@ -128,6 +128,8 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
         As ``calibrate`` does.
 
     """
+    cov_a = settings.cov_a if cov_a is None else cov_a  # the full noise, if the settings have it
+    cov_b = settings.cov_b if cov_b is None else cov_b
     return _diagnose(pairs, settings, stream_a, options or Options(),
                      progress or (lambda f, s: None), cov_a, cov_b, context or {})
 
