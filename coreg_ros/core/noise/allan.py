@@ -24,6 +24,10 @@ from scipy.optimize import nnls
 
 #: Averaging factors m: octaves while at least ``MIN_DIFFERENCES`` differences remain.
 MIN_DIFFERENCES = 8
+#: Improvement of the fit's χ² that a random walk and drift must bring to be claimed (χ² of
+#: two degrees of freedom at 99.9 %; the overlapping estimates are correlated across τ, so
+#: this is a rough yardstick, kept strict).
+DRIFT_CHI2 = 13.8
 
 
 @dataclass(frozen=True)
@@ -73,12 +77,14 @@ class AllanCurve:
 
 def allan_sums(x: np.ndarray, max_m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    Sums of squared differences of m-sample means of one segment, for m = 1, 2, 4 ... max_m.
+    Sum the squared differences of m-sample means of one segment, for m = 1, 2, 4 ... max_m.
 
     Parameters
     ----------
     x : ndarray, shape (N, 3)
+        The segment's samples of one channel.
     max_m : int
+        The largest averaging factor.
 
     Returns
     -------
@@ -107,7 +113,7 @@ def allan_sums(x: np.ndarray, max_m: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 def allan_curve(segments: list, tau0: float) -> AllanCurve:
     """
-    The pooled Allan deviation of still segments and the processes fitted to it.
+    Return the pooled Allan deviation of still segments and the processes fitted to it.
 
     Parameters
     ----------
@@ -123,16 +129,19 @@ def allan_curve(segments: list, tau0: float) -> AllanCurve:
     """
     longest = max(len(s) for s in segments)
     max_m = max(1, longest // 4)
+    # each segment's Allan variance, averaged with the same weight (its length) at every τ:
+    # segments of different noise (at different distances) then mix into a white curve
     total = {}
     for x in segments:
         ms, sums, counts = allan_sums(x, max_m)
-        for m, s, k in zip(ms, sums, counts):
-            acc = total.setdefault(int(m), [np.zeros(3), 0])
-            acc[0] += s
-            acc[1] += int(k)
+        for m, s, k in zip(ms, sums, counts, strict=True):
+            acc = total.setdefault(int(m), [np.zeros(3), 0.0, 0])
+            acc[0] += len(x) * s / (2.0 * k)
+            acc[1] += len(x)
+            acc[2] += int(k)
     ms = np.array(sorted(total), dtype=int)
-    count = np.array([total[m][1] for m in ms], dtype=int)
-    avar = np.array([total[m][0] / (2.0 * total[m][1]) for m in ms]).reshape(-1, 3)
+    count = np.array([total[m][2] for m in ms], dtype=int)
+    avar = np.array([total[m][0] / total[m][1] for m in ms]).reshape(-1, 3)
     tau = ms * tau0
     coef = np.array([_fit(tau, avar[:, k], ms, count) for k in range(3)])  # (3, 3): a, b, c
     white = np.sqrt(coef[:, 0] / tau0)
@@ -145,16 +154,27 @@ def allan_curve(segments: list, tau0: float) -> AllanCurve:
 
 def _fit(tau: np.ndarray, avar: np.ndarray, m: np.ndarray, count: np.ndarray) -> np.ndarray:
     """
-    (a, b, c) >= 0 of ``a/τ + b τ + c τ²`` fitted to the Allan variance.
+    Fit (a, b, c) >= 0 of ``a/τ + b τ + c τ²`` to the Allan variance.
 
     Each point weighed by its relative precision (the overlapping estimator's ~3·count/(4m)
     degrees of freedom), first at the measured value, then at the fitted one (a measured
-    value that came out low would otherwise pull the fit down).
+    value that came out low would otherwise pull the fit down). The random walk and the drift
+    are kept only when they improve the fit beyond chance (``DRIFT_CHI2``): white noise alone
+    scatters at long τ, where few differences remain.
     """
     rows = np.stack([1.0 / tau, tau, tau ** 2], axis=1)
     precision = np.sqrt(3.0 * count / (4.0 * m))
+    full, chi_full = _weighted_nnls(rows, avar, precision)
+    white, chi_white = _weighted_nnls(rows[:, :1], avar, precision)
+    if chi_white - chi_full < DRIFT_CHI2:
+        return np.array([white[0], 0.0, 0.0])
+    return full
+
+
+def _weighted_nnls(rows: np.ndarray, avar: np.ndarray, precision: np.ndarray) -> tuple:
+    """Return the reweighted non-negative fit of ``rows @ coef`` to ``avar`` and its χ²."""
     scale = np.maximum(avar, 1e-300)
-    coef = np.zeros(3)
+    coef = np.zeros(rows.shape[1])
     for _ in range(3):
         w = precision / scale
         # columns scaled to unit size: nnls is not scale-invariant in practice
@@ -162,7 +182,7 @@ def _fit(tau: np.ndarray, avar: np.ndarray, m: np.ndarray, count: np.ndarray) ->
         sol, _ = nnls(rows * w[:, None] / norm, avar * w)
         coef = sol / norm
         scale = np.maximum(rows @ coef, 1e-300)
-    return coef
+    return coef, float(np.sum(((rows @ coef - avar) * precision / scale) ** 2))
 
 
 def _tau_limit(coef: np.ndarray, tau0: float, span: float) -> float:

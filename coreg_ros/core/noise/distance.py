@@ -49,7 +49,8 @@ class DistanceLaw:
                 'sigma_ref': self.sigma_ref, 'sigma_ref_se': self.sigma_ref_se,
                 'reference_m': self.reference_m,
                 'segments': [{'distance_m': float(r), 'sigma': float(s), 'sigma_se': float(e)}
-                             for r, s, e in zip(self.distances_m, self.sigma, self.sigma_se)]}
+                             for r, s, e in zip(self.distances_m, self.sigma, self.sigma_se,
+                                                strict=True)]}
 
     def ratio(self, distance_m: float) -> float:
         """σ at ``distance_m`` relative to σ at the reference distance."""
@@ -67,7 +68,8 @@ def distance_law(distances: np.ndarray, sigma: np.ndarray, n_effective: np.ndarr
     sigma : ndarray, shape (K,)
         Each segment's σ (RMS over the axes).
     n_effective : ndarray, shape (K,)
-        Each segment's effective samples (sets the weights).
+        Each segment's effective samples of the σ (sets the weights; three axes of white noise
+        of n samples count 3n).
 
     Returns
     -------

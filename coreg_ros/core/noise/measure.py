@@ -28,7 +28,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.noise.allan import allan_curve, AllanCurve
 from coreg_ros.core.noise.distance import distance_law, DistanceLaw
-from coreg_ros.core.noise.still import FROZEN_SHARE, MIN_STILL_S, repeated_share, Segment
+from coreg_ros.core.noise.still import FROZEN_SHARE, MIN_STILL_S, repeated_share
 from coreg_ros.core.noise_model import checked_covariance, DeviceNoise, principal_axes
 from coreg_ros.core.types import PoseStream
 import numpy as np
@@ -36,6 +36,8 @@ import numpy as np
 #: Fewest samples of a batch for the standard errors and of a block for the covariance.
 SE_BATCH = 10
 MIN_BLOCK = 20
+#: Fewest batches for a batch-means standard error (else the white-noise value).
+MIN_BATCHES = 8
 #: Precision of σ a recording is asked to reach when none is stated (relative, 1σ).
 DEFAULT_PRECISION = 0.05
 
@@ -159,7 +161,7 @@ class DeviceMeasurement:
     warnings: list = field(default_factory=list)
 
     def device_noise(self, fallback) -> DeviceNoise:
-        """The measured noise; a channel not measured from ``fallback`` (DeviceNoise)."""
+        """Return the measured noise; a channel not measured from ``fallback`` (DeviceNoise)."""
         pos = self.channels['position'].covariance if 'position' in self.channels \
             else fallback.position_cov
         rot = self.channels['rotation'].covariance if 'rotation' in self.channels \
@@ -187,36 +189,48 @@ def _blocks(n: int, length: int) -> list:
     """Slices of about ``length`` covering n samples (the remainder joins the last)."""
     k = max(1, n // max(1, length))
     edges = np.linspace(0, n, k + 1).round().astype(int)
-    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
-def pooled_covariance(parts: list, block: int) -> tuple[np.ndarray, int]:
+def pooled_covariance(x: np.ndarray, block: int) -> tuple[np.ndarray, int]:
     """
-    Covariance pooled within blocks of ``block`` samples (each about its own mean).
+    Return one segment's covariance pooled within blocks of ``block`` samples.
 
-    Returns the covariance and its degrees of freedom (samples less blocks).
+    Each block about its own mean; returns the covariance and its degrees of freedom (samples
+    less blocks).
     """
     scatter, dof = np.zeros((3, 3)), 0
-    for x in parts:
-        for sl in _blocks(len(x), block):
-            d = x[sl] - x[sl].mean(axis=0)
-            scatter += d.T @ d
-            dof += len(d) - 1
+    for sl in _blocks(len(x), block):
+        d = x[sl] - x[sl].mean(axis=0)
+        scatter += d.T @ d
+        dof += len(d) - 1
     return scatter / max(dof, 1), dof
 
 
-def _batch_se(parts: list, batch: int) -> tuple[np.ndarray, int]:
-    """Standard error of the covariance's entries by batch means (batches of ``batch``)."""
+def _batch_se(x: np.ndarray, cov: np.ndarray, dof: int, batch: int) -> np.ndarray:
+    """
+    Return the standard error of a segment's covariance entries, by batch means of ``batch``.
+
+    With fewer than ``MIN_BATCHES`` batches, the white-noise (Wishart) value
+    ``√((Σ_ii Σ_jj + Σ_ij²) / dof)``.
+    """
     covs = []
-    for x in parts:
-        for sl in _blocks(len(x), batch):
-            d = x[sl] - x[sl].mean(axis=0)
-            if len(d) >= 2:
-                covs.append(d.T @ d / (len(d) - 1))
+    for sl in _blocks(len(x), batch):
+        d = x[sl] - x[sl].mean(axis=0)
+        if len(d) >= 2:
+            covs.append(d.T @ d / (len(d) - 1))
+    if len(covs) < MIN_BATCHES:
+        v = np.diag(cov)
+        return np.sqrt((np.outer(v, v) + cov ** 2) / max(dof, 1))
     covs = np.array(covs)
-    if len(covs) < 2:
-        return np.full((3, 3), np.nan), len(covs)
-    return covs.std(axis=0, ddof=1) / np.sqrt(len(covs)), len(covs)
+    return covs.std(axis=0, ddof=1) / np.sqrt(len(covs))
+
+
+def _effective_samples(cov: np.ndarray, se: np.ndarray, most: float) -> float:
+    """Samples a white noise would need for the variances' standard errors (at most ``most``)."""
+    v = np.diag(cov)
+    n = float(np.mean(2.0 * v ** 2 / np.maximum(np.diag(se) ** 2, 1e-300)))
+    return min(n, float(most)) if np.isfinite(n) and n > 0 else float(most)
 
 
 def channel_noise(name: str, parts: list, tau0: float,
@@ -227,6 +241,7 @@ def channel_noise(name: str, parts: list, tau0: float,
     Parameters
     ----------
     name : {'position', 'rotation'}
+        The channel.
     parts : list of ndarray, each shape (N_k, 3)
         The channel's samples per segment (positions m, or rotation deviations rad).
     tau0 : float
@@ -239,34 +254,35 @@ def channel_noise(name: str, parts: list, tau0: float,
     total = sum(len(x) for x in parts)
     block = total if not np.isfinite(curve.tau_limit) else max(
         MIN_BLOCK, int(round(curve.tau_limit / tau0)))
-    cov, _ = pooled_covariance(parts, block)
+    per = [pooled_covariance(x, block) for x in parts]
+    dofs = np.array([d for _, d in per], dtype=float)
+    w = dofs / max(dofs.sum(), 1.0)
+    cov = sum(wk * c for wk, (c, _) in zip(w, per, strict=True))
     batch = max(SE_BATCH, min(block, total // 30))
-    se, _ = _batch_se(parts, batch)
-    var = np.diag(cov)
-    n_eff = float(np.nanmean(2.0 * var ** 2 / np.maximum(np.diag(se) ** 2, 1e-300)))
-    n_eff = min(n_eff, float(total)) if np.isfinite(n_eff) else float(total)
+    ses = [_batch_se(x, c, d, batch) for x, (c, d) in zip(parts, per, strict=True)]
+    se = np.sqrt(sum((wk * sk) ** 2 for wk, sk in zip(w, ses, strict=True)))
+    n_eff = _effective_samples(cov, se, total)
     sig, axes = principal_axes(cov)
     lam = sig ** 2
     angle_se = np.zeros(3)
     for j in range(3):
-        acc = 0.0
-        for k in range(3):
-            if k != j:
-                gap = (lam[j] - lam[k]) ** 2
-                acc += lam[j] * lam[k] / (n_eff * gap) if gap > 0 else np.inf
+        gaps = [(lam[j] - lam[k]) ** 2 for k in range(3) if k != j]
+        others = [lam[k] for k in range(3) if k != j]
+        acc = sum(lam[j] * o / (n_eff * g) if g > 0 else np.inf
+                  for o, g in zip(others, gaps, strict=True))
         angle_se[j] = min(np.sqrt(acc), np.pi / 2)
-    sd = np.sqrt(np.maximum(var, 0.0))
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     law = None
     if distances is not None and len(parts) >= 2:
-        per = [pooled_covariance([x], block)[0] for x in parts]
-        law = distance_law(distances, np.array([np.sqrt(np.trace(c) / 3.0) for c in per]),
-                           np.array([len(x) for x in parts], dtype=float) * n_eff / total)
+        law = distance_law(distances, np.array([np.sqrt(np.trace(c) / 3.0) for c, _ in per]),
+                           np.array([3.0 * _effective_samples(c, s, len(x)) for x, (c, _), s
+                                     in zip(parts, per, ses, strict=True)]))
     return ChannelNoise(name, cov, se, sd, np.diag(se) / np.maximum(2.0 * sd, 1e-300),
                         sig, sig / np.sqrt(2.0 * n_eff), axes, angle_se, n_eff, curve, law)
 
 
 def sampling_of(stream: PoseStream, segments: list, rotation: bool) -> Sampling:
-    """The sampling within ``segments`` (rate, drops, repeats)."""
+    """Return the sampling within ``segments`` (rate, drops, repeats)."""
     dts, n, span, rep_stamps, rep_samples = [], 0, 0.0, 0, 0
     for s in segments:
         st = stream.stamps[s.start:s.stop]
@@ -312,6 +328,7 @@ def measure_device(stream: PoseStream, segments: list, device: str, topic: str =
     segments : list of Segment
         Its still segments (``still.segments_of`` or a given window).
     device : {'a', 'b'}
+        Which device it is.
     topic : str
         For the messages and the report.
     rotation : bool

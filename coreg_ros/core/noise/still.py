@@ -81,7 +81,7 @@ def continuous_quaternions(quat_wxyz: np.ndarray) -> np.ndarray:
 
 
 def _window_variance(x: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
-    """Summed variance over the columns of ``x`` in windows ``[s, s + length)``, from cumsums."""
+    """Sum the variance over the columns of ``x`` in windows ``[s, s + length)``, from cumsums."""
     c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
     c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
     s1 = c1[starts + length] - c1[starts]
@@ -145,7 +145,8 @@ def still_mask(stamps: np.ndarray, position: np.ndarray, quat_wxyz=None) -> np.n
 def runs(mask: np.ndarray) -> list:
     """(start, stop) of the runs of True in a boolean array."""
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(),
+                    strict=True))
 
 
 def segments_of(stamps: np.ndarray, mask: np.ndarray, min_duration: float = MIN_STILL_S,
@@ -156,9 +157,11 @@ def segments_of(stamps: np.ndarray, mask: np.ndarray, min_duration: float = MIN_
     Parameters
     ----------
     stamps : ndarray of int64, shape (N,)
+        Sample stamps, ns.
     mask : ndarray of bool, shape (N,)
+        Still samples (``still_mask``).
     min_duration, trim : float
-        s.
+        Shortest segment kept and the time cut from both ends, s.
 
     Returns
     -------
@@ -175,7 +178,7 @@ def segments_of(stamps: np.ndarray, mask: np.ndarray, min_duration: float = MIN_
     for start, stop in runs(mask):
         bounds = [start] + [int(i) for i in np.flatnonzero(cut[start + 1:stop]) + start + 1] \
             + [stop]
-        for a, b in zip(bounds[:-1], bounds[1:]):
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
             t = stamps[a:b]
             lo = int(np.searchsorted(t, t[0] + int(trim * 1e9))) + a
             hi = int(np.searchsorted(t, t[-1] - int(trim * 1e9), side='right')) + a
@@ -185,7 +188,7 @@ def segments_of(stamps: np.ndarray, mask: np.ndarray, min_duration: float = MIN_
 
 
 def window_segment(stamps: np.ndarray, t0_ns: int, t1_ns: int) -> list:
-    """The samples stamped within ``[t0_ns, t1_ns]`` as one segment (none if fewer than 2)."""
+    """Return the samples within ``[t0_ns, t1_ns]`` as one segment (none if fewer than 2)."""
     stamps = np.asarray(stamps, dtype=np.int64)
     lo = int(np.searchsorted(stamps, t0_ns))
     hi = int(np.searchsorted(stamps, t1_ns, side='right'))
