@@ -31,11 +31,13 @@ def add_device_noise(rng: np.random.Generator, position: np.ndarray,
     Parameters
     ----------
     rng : numpy.random.Generator
+        Draws the noise.
     position : ndarray, shape (N, 3) or (N, k, 3)
         True positions, m (every marker its own noise).
     quat_wxyz : ndarray, shape (N, 4) or None
         True orientations; ``Exp(δθ) ⊗ q`` with ``δθ ~ N(0, Σ_rot)``.
     noise : DeviceNoise
+        The covariances (position m², rotation rad², base frame).
     scale : ndarray, shape (N,), optional
         Factor on each sample's standard deviations (noise growing with distance).
 
@@ -86,7 +88,7 @@ class StillRecording:
     random_walk: tuple
 
     def noise_at(self, k: int) -> DeviceNoise:
-        """The white noise where the device stood the k-th time."""
+        """Return the white noise where the device stood the k-th time."""
         f = (np.linalg.norm(self.places[k]) / self.reference_m) ** (2.0 * self.exponent)
         return self.noise.scaled(f, f)
 
@@ -102,6 +104,7 @@ def simulate_still(seed: int, noise: DeviceNoise, duration: float = 30.0, rate: 
     Parameters
     ----------
     seed : int
+        Seed of every draw.
     noise : DeviceNoise
         White noise at ``reference_m``.
     duration : float
@@ -119,7 +122,9 @@ def simulate_still(seed: int, noise: DeviceNoise, duration: float = 30.0, rate: 
     random_walk : (float, float)
         Random walk intensity (m/√s, rad/√s) added to the white noise.
     start_ns : int
+        Stamp of the first sample, ns.
     frame_id : str
+        The stream's frame id.
 
     Returns
     -------
@@ -166,7 +171,7 @@ def simulate_still(seed: int, noise: DeviceNoise, duration: float = 30.0, rate: 
 def anisotropic_noise(rng: np.random.Generator, sigma: tuple, depth_factor: float = 3.0,
                       axis: Optional[np.ndarray] = None) -> DeviceNoise:
     """
-    A noise ``depth_factor`` times larger along one axis (an optical tracker's depth).
+    Return a noise ``depth_factor`` times larger along one axis (an optical tracker's depth).
 
     Parameters
     ----------
@@ -175,6 +180,7 @@ def anisotropic_noise(rng: np.random.Generator, sigma: tuple, depth_factor: floa
     sigma : (float, float)
         Lateral σ of position (m) and rotation (rad).
     depth_factor : float
+        σ along the depth axis over the lateral σ.
     axis : ndarray, shape (3,), optional
         The depth axis in the base frame (random when None).
 
