@@ -11,14 +11,14 @@ the device standing still at ``places`` in turn with smooth moves of ``move_s`` 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.noise_model import DeviceNoise
 from coreg_ros.core.types import PoseStream
 from coreg_ros.sim.devices import DEFAULT_START_NS
-from coreg_ros.sim.motion import random_rotation
+from coreg_ros.sim.motion import Motion, random_rotation
 import numpy as np
 
 
@@ -190,3 +190,42 @@ def anisotropic_noise(rng: np.random.Generator, sigma: tuple, depth_factor: floa
     axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
     shape = np.eye(3) + (depth_factor ** 2 - 1.0) * np.outer(axis, axis)
     return DeviceNoise.from_covariances(shape * sigma[0] ** 2, shape * sigma[1] ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class PausedMotion(Motion):
+    """
+    A motion that stops: A's tool stands still for ``pauses``, then goes on where it stopped.
+
+    Attributes
+    ----------
+    pauses : tuple of (float, float)
+        (start s, duration s) of each pause, in the recording's time (from its origin).
+
+    """
+
+    pauses: tuple = ()
+
+    def warp(self, t_seconds) -> np.ndarray:
+        """Return the motion's own time at recording time t: held still through each pause."""
+        t = np.atleast_1d(np.asarray(t_seconds, dtype=float))
+        held = sum(np.clip(t - start, 0.0, length) for start, length in self.pauses)
+        return t - held
+
+    def rotvec(self, t_seconds) -> np.ndarray:  # noqa: D102 - Motion's, at the warped time
+        return super().rotvec(self.warp(t_seconds))
+
+    def pose(self, t_seconds) -> tuple:  # noqa: D102 - Motion's, at the warped time
+        t = self.warp(t_seconds)
+        return super().pose(t)
+
+
+def paused(motion: Motion, pauses) -> PausedMotion:
+    """
+    Return ``motion`` with the tool standing still for each (start s, duration s) of ``pauses``.
+
+    For ``simulate_recording(..., motion=paused(make_motion(rng, 'diverse'), [(5, 8)]))``: a
+    recording with still parts, where ``coreg noise`` measures both devices.
+    """
+    values = {f.name: getattr(motion, f.name) for f in fields(Motion)}
+    return PausedMotion(**values, pauses=tuple((float(a), float(b)) for a, b in pauses))

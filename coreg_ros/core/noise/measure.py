@@ -227,7 +227,7 @@ def _batch_se(x: np.ndarray, cov: np.ndarray, dof: int, batch: int) -> np.ndarra
 
 
 def _effective_samples(cov: np.ndarray, se: np.ndarray, most: float) -> float:
-    """Return the samples a white noise would need for the variances' standard errors (at most ``most``)."""
+    """Return the samples a white noise needs for these standard errors (at most ``most``)."""
     v = np.diag(cov)
     n = float(np.mean(2.0 * v ** 2 / np.maximum(np.diag(se) ** 2, 1e-300)))
     return min(n, float(most)) if np.isfinite(n) and n > 0 else float(most)
