@@ -251,9 +251,8 @@ def noise_document(blocks: dict, source: str, recording: str = '') -> dict:
 
 def write_noise_file(path, document: dict):
     """Write a noise document atomically (YAML; ``.json`` names get JSON)."""
-    import yaml
-
     from coreg_ros.files.atomic import write_atomic, write_json
+    import yaml
 
     if str(path).endswith('.json'):
         return write_json(path, document)

@@ -14,7 +14,7 @@ import numpy as np
 #: Display factor and unit of each channel.
 SHOWN = {'position': (1e3, 'mm'), 'rotation': (1e3, 'mrad')}
 #: An axis direction whose standard error exceeds this (rad) is not stated (two σ too close).
-AXIS_UNDEFINED_RAD = np.radians(20.0)
+AXIS_UNDEFINED_RAD = np.radians(15.0)
 
 
 def _vec(v) -> str:
