@@ -283,3 +283,32 @@ def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
     return replace(result, base_to_base=t0, tool_to_marker=t1, markers=params.markers.copy(),
                    params=params.phi.copy(), param_cov=cov, cov_joint=joint, chi2=chi2,
                    dof=dof, p_value=p_value, time_offset=timing, cov_determined=determined)
+
+
+def refit_at(stream_a: PoseStream, streams_b: list, settings: Settings,
+             prior: Optional[Prior], result: CalibrationResult
+             ) -> tuple[CalibrationResult, PairingReport]:
+    """
+    Fit again at ``result``'s clock offset from its calibration, e.g. at another noise.
+
+    An estimated offset gets one more round of the search there (its step and φ's covariance
+    marginalised over τ, with the new settings' noise); a given one is paired at and fitted
+    from ``result``'s φ.
+    """
+    timing = result.time_offset or TimeOffset(settings.time_offset, message='given')
+    spec = SPECS[settings.model]
+    start = Parameters(spec, result.params, list(result.charts))
+    if timing.estimated:
+        ctx = _Context.build(stream_a, streams_b, settings, prior)
+        kappa = None if timing.drift_ppm is None else timing.drift_ppm * 1e-6
+        rnd = _round(ctx, ctx.streams_b, timing.value_s, kappa, start)
+        ok, _ = rnd.step.determined()
+        if ok:
+            return _final(rnd, ctx), rnd.report
+        return replace(rnd.result, time_offset=timing), rnd.report
+    pairs, report = pair_for(stream_a, streams_b, settings, timing)
+    try:
+        fitted = calibrate(pairs, settings, prior, start=start, warm=True)
+    except TooFewPairsError as e:
+        raise TooFewPairsError(f'{e} ({report.summary()})') from e
+    return replace(fitted, time_offset=timing), report

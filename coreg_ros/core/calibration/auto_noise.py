@@ -1,0 +1,112 @@
+"""
+``noise: auto``: each device's noise estimated with the calibration, the calibration refitted.
+
+The calibration is first made at the stated noise (the offset search included); each device's
+noise is then estimated from the pairs at that fit (``noise_components``: variance components
+by REML, what the motion cannot separate held at the stated value), and the calibration is
+fitted again, once more at its clock offset, with the estimated noise: its covariance is then
+that of the estimated noise, and its chi-square is judged against it. The record of the
+estimation (``noise_verdict.NoiseEstimate``) travels in ``CalibrationResult.noise``; the
+verdict names the channels whose noise was misstated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Optional
+
+from coreg_ros.core.calibration.noise_components import (
+    estimate_components,
+    linearised_pairs,
+    ols_stated,
+    screened,
+    stated_channels,
+)
+from coreg_ros.core.calibration.noise_verdict import noise_estimate, NoiseEstimate
+from coreg_ros.core.calibration.offset_search import refit_at
+from coreg_ros.core.calibration.pair_input import validated_arrays
+from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.models import Parameters, SPECS
+from coreg_ros.core.noise_model import DeviceNoise
+from coreg_ros.core.settings import Settings
+from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream
+import numpy as np
+
+
+def stated_noise(settings: Settings) -> tuple[DeviceNoise, DeviceNoise]:
+    """Return the stated DeviceNoise of A and B (``noise_a``/``noise_b``, else the σ)."""
+    out = []
+    for d in 'ab':
+        given = settings.device_noise(d)
+        out.append(given if isinstance(given, DeviceNoise) else DeviceNoise.isotropic(given))
+    return out[0], out[1]
+
+
+def estimate_noise(pairs: Pairs, settings: Settings, result: CalibrationResult
+                   ) -> NoiseEstimate:
+    """
+    Estimate each device's noise from the pairs of a calibration at the stated noise.
+
+    Parameters
+    ----------
+    pairs : Pairs
+        The pairs ``result`` was fitted to (its ``inliers`` are used when they match, else the
+        pairs far outside the noise are screened out).
+    settings : Settings
+        Model, method and the stated noise.
+    result : CalibrationResult
+        The calibration at the stated noise.
+
+    Returns
+    -------
+    NoiseEstimate
+
+    """
+    spec = SPECS[settings.model]
+    pos_a, quat_a, pos_b, quat_b, scale = validated_arrays(pairs, spec, settings)
+    keep = result.inliers
+    if keep is not None and len(keep) == len(pos_a) and not keep.all():
+        idx = np.flatnonzero(keep)
+        pos_a, quat_a, pos_b = pos_a[idx], quat_a[idx], pos_b[idx]
+        quat_b = None if quat_b is None else quat_b[idx]
+        scale = None if scale is None else scale[idx]
+    params = Parameters(spec, result.params, list(result.charts))
+    tls = settings.method == 'tls'
+    sub, layout = linearised_pairs(params, pos_a, quat_a, pos_b, quat_b, scale, tls)
+    stated = stated_channels(spec, settings.cov_a, settings.cov_b, tls)
+    if keep is None or len(keep) != len(pairs):
+        sub = screened(sub, layout, stated)
+    fit = estimate_components(sub, layout, stated)
+    noise_a, noise_b = stated_noise(settings)
+    ols = None if tls else ols_stated(sub, layout, stated, settings.cov_a)
+    return noise_estimate(fit, settings.method, noise_a, noise_b, ols)
+
+
+def with_estimated_noise(settings: Settings, estimate: NoiseEstimate) -> Settings:
+    """Return the settings with the estimated noise as ``noise_a``/``noise_b``."""
+    return replace(settings, noise_a=estimate.estimated['a'], noise_b=estimate.estimated['b'])
+
+
+def refit_with_estimated_noise(stream_a: PoseStream, streams_b: list, settings: Settings,
+                               prior: Optional[Prior], result: CalibrationResult
+                               ) -> tuple[CalibrationResult, PairingReport, Settings]:
+    """
+    Estimate the noise from ``result`` (a fit at the stated noise) and fit again with it.
+
+    Returns
+    -------
+    result : CalibrationResult
+        The fit at the estimated noise, with ``noise`` (the ``NoiseEstimate``).
+    report : PairingReport
+    settings : Settings
+        The settings with the estimated noise (what the verdict judges the fit against).
+
+    """
+    timing = result.time_offset
+    pairs, _ = pair_for(stream_a, streams_b, settings, timing) if timing is not None else \
+        pair_for(stream_a, streams_b, settings)
+    estimate = estimate_noise(pairs, settings, result)
+    used = with_estimated_noise(settings, estimate)
+    refit, report = refit_at(stream_a, streams_b, used, prior, result)
+    return replace(refit, noise=estimate), report, used
