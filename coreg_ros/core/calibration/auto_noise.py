@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Optional
 
+from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.calibration.noise_components import (
     estimate_components,
     linearised_pairs,
@@ -110,3 +111,25 @@ def refit_with_estimated_noise(stream_a: PoseStream, streams_b: list, settings: 
     used = with_estimated_noise(settings, estimate)
     refit, report = refit_at(stream_a, streams_b, used, prior, result)
     return replace(refit, noise=estimate), report, used
+
+
+def calibrate_pairs(pairs: Pairs, settings: Optional[Settings] = None,
+                    prior: Optional[Prior] = None, **kwargs) -> CalibrationResult:
+    """
+    Calibrate paired samples (``calibrate.calibrate``), estimating the noise if asked.
+
+    With ``settings.noise == 'auto'`` each device's noise is estimated from the pairs of the
+    fit at the stated noise (``estimate_noise``) and the pairs are fitted again with it: the
+    result carries the estimate (``noise``) and its verdict names what was misstated. Keyword
+    arguments go to ``calibrate.calibrate``.
+    """
+    settings = settings or Settings()
+    result = calibrate(pairs, settings, prior, **kwargs)
+    if settings.noise != 'auto':
+        return result
+    estimate = estimate_noise(pairs, settings, result)
+    start = Parameters(SPECS[settings.model], result.params, list(result.charts))
+    refit = calibrate(pairs, with_estimated_noise(settings, estimate), prior, start=start,
+                      warm=True, **{k: v for k, v in kwargs.items() if k not in ('start',
+                                                                                  'warm')})
+    return replace(refit, noise=estimate, verdict=estimate.verdict())

@@ -45,13 +45,16 @@ from coreg_ros.core.models import linearize, ModelSpec, Parameters
 from coreg_ros.core.noise_model import DeviceNoise
 import numpy as np
 
-#: Pairs (every k-th) the components are estimated on: a variance is within ~1 % at 10k pairs.
-SAMPLE = 10_000
+#: Pairs (every k-th) the components are estimated on: a variance is within ~1.5 % at 5k pairs.
+SAMPLE = 5_000
+#: Relative standard error (at the stated noise) beyond which a component is held before any
+#: estimate: no value near the stated one could make it determined.
+HOPELESS_SE = 1.0
 #: Largest relative standard error of each principal variance of a channel for its full
 #: (anisotropic) covariance to be estimated; else a factor on the stated one.
 MAX_RELATIVE_SE_FULL = 0.1
 #: Pairs (every k-th of those) the Fisher information is summed over.
-FISHER_SAMPLE = 2_000
+FISHER_SAMPLE = 1_500
 #: Largest relative standard error of a component's variance for it to be estimated (its σ
 #: then within ~15 %, 1σ); above it the component is held at the stated value. Holding is
 #: the worse error when the stated value is off: a component held where the data disagree
@@ -248,7 +251,7 @@ def _pass(pairs: _Pairs, S: np.ndarray, E: np.ndarray) -> _Step:
     # REML: φ̂ (fitted to all n_total pairs) took out part of each residual's variance
     C = np.linalg.pinv(info * (pairs.n_total / n))
     G = KW @ J                                       # (n, d, P)
-    correction = np.tensordot(G @ C, G, axes=([0, 2], [0, 2]))
+    correction = _pair_sum(G @ C, G)
     Hs = np.tensordot(KW, K, axes=([0, 2], [0, 1]))  # Σ H_i
     every = max(1, n // FISHER_SAMPLE)
     H = KW[::every] @ K[::every]
@@ -268,6 +271,12 @@ def _pass(pairs: _Pairs, S: np.ndarray, E: np.ndarray) -> _Step:
     return _Step(score, fisher, Hs, HH)
 
 
+def _pair_sum(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Return ``Σ_n A_n B_nᵀ`` for stacks (n, d, p) as one product (tensordot copies slower)."""
+    d = A.shape[1]
+    return A.transpose(1, 0, 2).reshape(d, -1) @ B.transpose(1, 0, 2).reshape(d, -1).T
+
+
 def _matrices(components: list, layout: _Layout) -> np.ndarray:
     """E (k, d, d): every estimated parameter's matrix in S."""
     out = [layout.place(c.channel, c.basis()[j]) for c, j in _estimated(components)]
@@ -283,7 +292,8 @@ def _iterate(pairs: _Pairs, layout: _Layout, components: list) -> tuple[np.ndarr
     Fisher scoring of the estimated components from where they are; returns (F, converged).
 
     A step that would leave a covariance not positive definite is halved; a factor is kept
-    above ``FLOOR`` (a component the data want at zero is at the bound).
+    above ``FLOOR`` (a component the data want at zero is at the bound). F is that of the
+    last pass, taken less than ``TOLERANCE`` from the end.
     """
     E = _matrices(components, layout)
     if not len(E):
@@ -292,7 +302,9 @@ def _iterate(pairs: _Pairs, layout: _Layout, components: list) -> tuple[np.ndarr
     step = _pass(pairs, _assemble(components, layout), E)
     for _ in range(MAX_ITERATIONS):
         theta = np.concatenate([c.theta for c in components if c.mode != 'held'])
-        delta = np.linalg.lstsq(step.fisher, step.score, rcond=None)[0]
+        size = _size(components, params)
+        delta = size * np.linalg.lstsq(step.fisher * np.outer(size, size), step.score * size,
+                                       rcond=1e-12)[0]
         old = [c.theta.copy() for c in components]
         for t in range(20):
             new = theta + delta * 0.5 ** t
@@ -307,10 +319,10 @@ def _iterate(pairs: _Pairs, layout: _Layout, components: list) -> tuple[np.ndarr
                 c.theta = o
             return step.fisher, False
         change = np.max(np.abs(np.concatenate([c.theta for c in components if c.mode != 'held'])
-                               - theta) / _size(components, params))
-        step = _pass(pairs, _assemble(components, layout), E)
+                               - theta) / size)
         if change < TOLERANCE:
             return step.fisher, True
+        step = _pass(pairs, _assemble(components, layout), E)
     return step.fisher, False
 
 
@@ -438,29 +450,32 @@ def _sub_fisher(fisher: np.ndarray, layout_of_theta: list, keep: list) -> np.nda
     return fisher[np.ix_(rows, rows)]
 
 
-def _hold_undetermined(pairs: _Pairs, layout: _Layout, components: list) -> None:
+def _hold_undetermined(pairs: _Pairs, layout: _Layout, components: list,
+                       limit: float = MAX_RELATIVE_SE,
+                       fisher: Optional[np.ndarray] = None) -> None:
     """
-    Hold components the pairs do not determine (``MAX_RELATIVE_SE``), least weighty first.
+    Hold components the pairs do not determine (relative error above ``limit``), least first.
 
     A held component's partners are the components that became determined by holding it.
-    One pass gives F; holding a component only takes its rows out (F at the same S).
+    One pass gives F (or ``fisher``, of the free components at the present S); holding a
+    component only takes its rows out (F at the same S).
     """
     E = _matrices(components, layout)
     if not len(E):
         return
-    fisher = _pass(pairs, _assemble(components, layout), E).fisher
+    if fisher is None:
+        fisher = _pass(pairs, _assemble(components, layout), E).fisher
     free = [c for c in components if c.mode != 'held']
     rows = [(c.channel, len(c.theta)) for c in free]
     while free:
         rel = relative_errors(_sub_fisher(fisher, rows, [c.channel for c in free]), free)
-        bad = [ch for ch, v in rel.items() if not v <= MAX_RELATIVE_SE]
+        bad = [ch for ch, v in rel.items() if not v <= limit]
         if not bad:
             return
         lightest = min(bad, key=lambda ch: weight(pairs, layout, ch, _cov_of(free, ch)))
         free = [c for c in free if c.channel != lightest]
         after = relative_errors(_sub_fisher(fisher, rows, [c.channel for c in free]), free)
-        partners = [ch for ch in bad if ch != lightest and after.get(ch, np.inf)
-                    <= MAX_RELATIVE_SE]
+        partners = [ch for ch in bad if ch != lightest and after.get(ch, np.inf) <= limit]
         why = 'not separable' if partners else (
             f'not determined by this motion (relative error {min(rel[lightest], 99.0):.2g} of '
             f'its variance)')
@@ -492,11 +507,16 @@ def estimate_components(pairs: _Pairs, layout: _Layout, stated: dict,
     """
     components = [Component(ch, np.asarray(stated[ch], dtype=float)) for ch in CHANNELS
                   if ch in stated and ch in layout.blocks]
-    fisher, converged = np.zeros((0, 0)), True
-    for _ in range(MAX_ROUNDS):  # what is determined, at the stated noise, then at the estimate
+    # first hold what no value could make determined (components only their sum shows), then
+    # judge the rest at the estimate: at a stated noise that is off, a component looks better
+    # or worse determined than it is (A's rotation stated at half its noise looks a quarter
+    # as determined), and holding it there would push its partners off too
+    _hold_undetermined(pairs, layout, components, HOPELESS_SE)
+    fisher, converged = _iterate(pairs, layout, components)
+    for _ in range(MAX_ROUNDS):
         before = [c.mode for c in components]
-        _hold_undetermined(pairs, layout, components)
-        if [c.mode for c in components] == before and fisher.size:
+        _hold_undetermined(pairs, layout, components, fisher=fisher)
+        if [c.mode for c in components] == before:
             break
         fisher, converged = _iterate(pairs, layout, components)
     if anisotropic and any(c.mode == 'scale' for c in components):
