@@ -1,4 +1,4 @@
-"""The noise file (``files.noise_file``): written, read back, and bad files refused with the reason."""
+"""The noise file (``files.noise_file``): written, read back, bad files refused with the reason."""
 
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.noise_model import DeviceNoise
