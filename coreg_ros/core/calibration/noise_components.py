@@ -243,38 +243,34 @@ def _pass(pairs: _Pairs, S: np.ndarray, E: np.ndarray) -> _Step:
     most ``FISHER_SAMPLE``) scaled up: its products are the costly part.
     """
     K, r, J = pairs.K, pairs.r, pairs.J
+    # batched products of small matrices and einsum sums only: a 2-D BLAS product of these thin
+    # shapes is 10-100× slower with BLAS threads on a busy machine, and the core sets no threads
     W = np.linalg.inv(K @ S @ K.transpose(0, 2, 1))
     KW = K.transpose(0, 2, 1) @ W                    # (n, d, m)
     u = np.einsum('ndm,nm->nd', KW, r)
-    info = np.tensordot(J, W @ J, axes=([0, 1], [0, 1]))
+    info = np.einsum('nmp,nmq->pq', J, W @ J)
     n, d = len(r), S.shape[0]
     # REML: φ̂ (fitted to all n_total pairs) took out part of each residual's variance
     C = np.linalg.pinv(info * (pairs.n_total / n))
     G = KW @ J                                       # (n, d, P)
-    correction = _pair_sum(G @ C, G)
-    Hs = np.tensordot(KW, K, axes=([0, 2], [0, 1]))  # Σ H_i
+    correction = (G @ C @ G.transpose(0, 2, 1)).sum(axis=0)
+    H = KW @ K                                       # (n, d, d)
+    Hs = H.sum(axis=0)
     every = max(1, n // FISHER_SAMPLE)
-    H = KW[::every] @ K[::every]
     # Σ H_i ⊗ H_i over the upper triangle of the symmetric H_i (a third of the products)
     iu = np.triu_indices(d)
-    flat = H[:, iu[0], iu[1]]
-    tri = (flat.T @ flat) * (n / len(H))
+    flat = H[::every, iu[0], iu[1]]
+    tri = np.einsum('ni,nj->ij', flat, flat) * (n / len(flat))
     HH = np.zeros((d, d, d, d))
     HH[iu[0][:, None], iu[1][:, None], iu[0][None, :], iu[1][None, :]] = tri
     HH = HH + HH.transpose(1, 0, 2, 3)
     HH[iu[0], iu[0]] *= 0.5  # the diagonal entries (a, a) were added twice
     HH = HH + HH.transpose(0, 1, 3, 2)
     HH[:, :, iu[0], iu[0]] *= 0.5
-    U = u.T @ u
-    score = 0.5 * np.tensordot(E, U - Hs + correction, axes=([1, 2], [0, 1]))
-    fisher = 0.5 * np.einsum('abcd,kbc,lda->kl', HH, E, E, optimize=True)
+    U = np.einsum('ni,nj->ij', u, u)
+    score = 0.5 * np.einsum('kde,de->k', E, U - Hs + correction)
+    fisher = 0.5 * np.einsum('abcd,kbc,lda->kl', HH, E, E)
     return _Step(score, fisher, Hs, HH)
-
-
-def _pair_sum(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Return ``Σ_n A_n B_nᵀ`` for stacks (n, d, p) as one product (tensordot copies slower)."""
-    d = A.shape[1]
-    return A.transpose(1, 0, 2).reshape(d, -1) @ B.transpose(1, 0, 2).reshape(d, -1).T
 
 
 def _matrices(components: list, layout: _Layout) -> np.ndarray:

@@ -227,8 +227,9 @@ def _statements(fit: ComponentFit, cov_theta: np.ndarray, method: str,
             kinds = {ch[1] for ch in group}
             devices = ' and '.join(sorted(_DEVICE[ch[0]] for ch in group))
             subject = f'{devices} {"/".join(sorted(kinds))} noise together'
+            where = ''.join(_direction(component_of(fit, ch)) for ch in c.partners)
             out.append(_statement(group, ratio, np.sqrt(var) / (2.0 * ratio * stated),
-                                  subject, f' (this motion cannot tell them apart: '
+                                  subject, f'{where} (this motion cannot tell them apart: '
                                            f'{_name(c.channel)} held at the stated value)'))
     for c in fit.components:
         if c.channel in grouped:
