@@ -95,6 +95,10 @@ def cmd_diagnose(args) -> int:
     print(f'{PROG} diagnose: {args.bag} ({report.n_pairs} pairs, '
           f'{report.duration_s:.1f} s, model {report.model})')
     print(format_diagnosis(report))
+    if report.noise is not None:  # noise: auto, the floor the gap was measured against
+        print('noise floor: estimated with the calibration (the stated noise beside it):')
+        for s in report.noise['statements']:
+            print(f"  {s['text']}")
     if args.json:
         write_json(args.json, document)
         print(f'diagnosis written to {args.json}')

@@ -113,9 +113,11 @@ def format_result(result, report=None) -> str:
     out = [f'model {result.model}, method {result.method.upper()}: {state}: {result.message}']
     if report is not None:
         out.append(f'pairing: {report.summary()}')
+    said = fit_verdict(result.p_value)
+    if result.noise is not None:  # judged against the noise estimated with it
+        said = said.replace('the stated noise', 'the estimated noise')
     out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, '
-               f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: '
-               f'{fit_verdict(result.p_value)}')
+               f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: {said}')
     if result.verdict:
         out.append(f'verdict: {result.verdict}')
     if result.time_offset is not None:

@@ -133,3 +133,18 @@ def calibrate_pairs(pairs: Pairs, settings: Optional[Settings] = None,
                       warm=True, **{k: v for k, v in kwargs.items() if k not in ('start',
                                                                                   'warm')})
     return replace(refit, noise=estimate, verdict=estimate.verdict())
+
+
+def noise_floor(pairs: Pairs, settings: Settings) -> tuple:
+    """
+    Return the noise estimated from the pairs' calibration, as the diagnosis' floor.
+
+    Returns
+    -------
+    estimate : NoiseEstimate
+    cov_a, cov_b : ndarray, shape (6, 6)
+        The estimated covariances (ROS layout).
+
+    """
+    estimate = estimate_noise(pairs, settings, calibrate(pairs, settings))
+    return estimate, estimate.estimated['a'].covariance(), estimate.estimated['b'].covariance()
