@@ -189,6 +189,9 @@ class NodeConfig:
         Directory of the stored results, the journal and sample bags, user (~) expanded.
     resume_samples : bool
         Load the journal of an interrupted session at start-up.
+    noise_file : files.noise_file.NoiseFile or None
+        The ``noise_file`` read (and checked against the topics) at start-up; ``settings``
+        carry its noise.
 
     """
 
@@ -201,6 +204,7 @@ class NodeConfig:
     frame_marker: str
     storage_dir: str
     resume_samples: bool = False
+    noise_file: object = None
 
     @property
     def frames(self) -> dict:
@@ -317,16 +321,19 @@ class ParameterView:
 
     """
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, noise=None):
         self._node = node
+        #: ``live_noise.NoiseSources``: the noise in use (file, measured, estimated)
+        self.noise = noise
 
     def __call__(self, name: str):
         """Return the current value of parameter ``name``."""
         return self._node.get_parameter(name).value
 
     def settings(self) -> Settings:
-        """Calibration settings from the current parameter values."""
-        return settings_from_values({k: self(k) for k in CALIBRATION_KEYS})
+        """Calibration settings from the current parameter values, with the noise in use."""
+        settings = settings_from_values({k: self(k) for k in CALIBRATION_KEYS})
+        return settings if self.noise is None else self.noise.apply(settings)
 
     def check_change(self, params) -> SetParametersResult:
         """
@@ -368,6 +375,11 @@ def read_config(node: Node) -> NodeConfig:
     """
     values = {name: node.get_parameter(name).value for name, _, _ in PARAMETERS}
     settings = settings_from_values(values)
+    noise = None
+    if str(values['noise_file']).strip():
+        from coreg_ros.files.noise_file import load_noise_file, with_noise_file
+        noise = load_noise_file(os.path.expanduser(str(values['noise_file']).strip()))
+        settings = with_noise_file(settings, noise)  # refused here: other topics, units
     storage = str(values['storage_dir']).strip()
     if not storage:
         raise ConfigError('storage_dir is empty; set it to a writable directory')
@@ -381,4 +393,5 @@ def read_config(node: Node) -> NodeConfig:
         frame_marker=str(values['frame_marker']),
         storage_dir=os.path.expanduser(storage),
         resume_samples=bool(values['resume_samples']),
+        noise_file=noise,
     )

@@ -8,7 +8,8 @@ the noise of a still device spreads the same (the variance of a stationary signa
 with the window), while motion spreads ``LONG_WINDOWS²`` times more over the long window
 (linear motion) and a random walk ``LONG_WINDOWS`` times. A long window is still when its
 variance is at most ``STATIONARY_RATIO`` times the mean of its short windows', in position and
-in rotation; runs of still samples at least ``MIN_STILL_S`` long, trimmed by ``TRIM_S`` at
+in rotation; a sample is still when two still long windows cover it (a motion in a long
+window's last short window alone need not raise its ratio); runs of still samples at least ``MIN_STILL_S`` long, trimmed by ``TRIM_S`` at
 both ends (the last of a motion), are the still segments. Motion slower than the noise over
 a long window is not told from it (and adds less than the noise to the measurement).
 
@@ -105,7 +106,7 @@ def _still_windows(x: np.ndarray, short: int) -> np.ndarray:
 
 def still_mask(stamps: np.ndarray, position: np.ndarray, quat_wxyz=None) -> np.ndarray:
     """
-    Flag the samples that lie in a still long window (position and, if given, rotation).
+    Flag the samples two still long windows cover (position and, if given, rotation).
 
     Parameters
     ----------
@@ -134,12 +135,14 @@ def still_mask(stamps: np.ndarray, position: np.ndarray, quat_wxyz=None) -> np.n
     if quat_wxyz is not None:
         still &= _still_windows(continuous_quaternions(quat_wxyz), short)
     long = LONG_WINDOWS * short
-    # a sample is still when a still long window covers it
+    # a sample is still when two still long windows cover it: a motion confined to the last
+    # (or first) short window of a long one need not raise its variance ratio, but then the
+    # neighbouring long window, which it leaves out, is still alone there
     edges = np.zeros(n + 1)
     first = np.flatnonzero(still) * short
     np.add.at(edges, first, 1.0)
     np.add.at(edges, first + long, -1.0)
-    return np.cumsum(edges[:-1]) > 0.5
+    return np.cumsum(edges[:-1]) > 1.5
 
 
 def runs(mask: np.ndarray) -> list:
