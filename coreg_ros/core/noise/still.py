@@ -9,8 +9,9 @@ with the window), while motion spreads ``LONG_WINDOWS²`` times more over the lo
 (linear motion) and a random walk ``LONG_WINDOWS`` times. A long window is still when its
 variance is at most ``STATIONARY_RATIO`` times the mean of its short windows', in position and
 in rotation; a sample is still when two still long windows cover it (a motion in a long
-window's last short window alone need not raise its ratio); runs of still samples at least ``MIN_STILL_S`` long, trimmed by ``TRIM_S`` at
-both ends (the last of a motion), are the still segments. Motion slower than the noise over
+window's last short window alone need not raise its ratio); runs of still samples at least
+``MIN_STILL_S`` long, trimmed by ``TRIM_S`` at both ends (the last of a motion), are the
+still segments. Motion slower than the noise over
 a long window is not told from it (and adds less than the noise to the measurement).
 
 The rotation's spread is taken on the quaternions made sign-continuous (four components
