@@ -71,6 +71,12 @@ def test_noise_measured_while_still_and_used_with_auto(ros_domain, ros_session,
         np.testing.assert_allclose(_sigmas(values, f'{d} used position sigma m'), pos,
                                    rtol=1e-2)
     assert np.allclose(_sigmas(values, 'B stated position sigma m'), SIGMA_B[0] / 2)
+    # coreg watch shows it
+    from coreg_ros.cli.dashboard import DashboardState, render_text, Status
+    _, level, message, _ = watch.statuses['noise'][-1]
+    state = DashboardState.from_statuses([Status(f'{NODE}: noise', level, message, values)])
+    text = render_text(state, width=140)
+    assert 'noise (auto)' in text and 'still σ' in text and 'measured while still' in text
     called = run_cli(ros_domain, 'call', 'calibrate', '--timeout', 60)
     assert called.returncode == 0 and 'success' in called.stdout, called.stdout + node.log()
     watch.spin(2.5)
