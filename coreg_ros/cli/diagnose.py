@@ -151,8 +151,14 @@ def cmd_validate(args) -> int:
     from coreg_ros.sim.validation import _jsonable, format_validation, validate
 
     progress = case_progress(f'{PROG} validate-diagnosis', args.quiet)
+    noise = None
+    if args.noise:
+        from coreg_ros.files.noise_file import load_noise_file
+        got = load_noise_file(args.noise)
+        noise = {d: getattr(got, f'device_{d}') for d in 'ab'
+                 if getattr(got, f'device_{d}') is not None}
     out = validate(args.cases, args.seed, progress, workers=args.workers,
-                   scheduler=args.scheduler)
+                   scheduler=args.scheduler, noise=noise)
     failed = failures(out['results'])
     print(f'{PROG} validate-diagnosis: {args.cases} cases, seed {args.seed}'
           + (f', {len(failed)} failed' if failed else ''))
@@ -187,5 +193,8 @@ def register(sub) -> None:
     p.add_argument('--jobs', type=positive_int, dest='workers', default=argparse.SUPPRESS,
                    help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument('--json', metavar='OUT', help='also write every case and the summary')
+    p.add_argument('--noise', metavar='FILE',
+                   help='a noise file (coreg noise RECORDING): every case simulated and stated '
+                        "with its devices' noise instead of the drawn one")
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(func=cmd_validate)
