@@ -19,9 +19,11 @@ from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.calibration.noise_components import (
     estimate_components,
     linearised_pairs,
+    noise_matrix,
     ols_stated,
     screened,
     stated_channels,
+    unmodelled_correlation,
 )
 from coreg_ros.core.calibration.noise_verdict import noise_estimate, NoiseEstimate
 from coreg_ros.core.calibration.offset_search import refit_at
@@ -33,6 +35,9 @@ from coreg_ros.core.noise_model import DeviceNoise
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream
 import numpy as np
+
+#: Rounds of "estimate, screen at the estimate" at most (the set settles in one or two).
+SCREEN_ROUNDS = 4
 
 
 def stated_noise(settings: Settings) -> tuple[DeviceNoise, DeviceNoise]:
@@ -52,8 +57,8 @@ def estimate_noise(pairs: Pairs, settings: Settings, result: CalibrationResult
     Parameters
     ----------
     pairs : Pairs
-        The pairs ``result`` was fitted to (its ``inliers`` are used when they match, else the
-        pairs far outside the noise are screened out).
+        The pairs ``result`` was fitted to (those far outside the noise are left out, by the
+        rule of the robust fit, at the stated noise and then at the estimate).
     settings : Settings
         Model, method and the stated noise.
     result : CalibrationResult
@@ -66,22 +71,26 @@ def estimate_noise(pairs: Pairs, settings: Settings, result: CalibrationResult
     """
     spec = SPECS[settings.model]
     pos_a, quat_a, pos_b, quat_b, scale = validated_arrays(pairs, spec, settings)
-    keep = result.inliers
-    if keep is not None and len(keep) == len(pos_a) and not keep.all():
-        idx = np.flatnonzero(keep)
-        pos_a, quat_a, pos_b = pos_a[idx], quat_a[idx], pos_b[idx]
-        quat_b = None if quat_b is None else quat_b[idx]
-        scale = None if scale is None else scale[idx]
     params = Parameters(spec, result.params, list(result.charts))
     tls = settings.method == 'tls'
     sub, layout = linearised_pairs(params, pos_a, quat_a, pos_b, quat_b, scale, tls)
     stated = stated_channels(spec, settings.cov_a, settings.cov_b, tls)
-    if keep is None or len(keep) != len(pairs):
-        sub = screened(sub, layout, stated)
-    fit = estimate_components(sub, layout, stated)
+    # the pairs within the noise, by the robust fit's rule, at the stated noise and then at
+    # the estimate until they settle: the refit rejects by the estimate, and a variance
+    # estimated with pairs it then rejects would be too large for those it keeps
+    keep = screened(sub, layout, noise_matrix(layout, stated))
+    for _ in range(SCREEN_ROUNDS):
+        fit = estimate_components(sub.take(keep), layout, stated)
+        now = screened(sub, layout, noise_matrix(layout, fit.covariances()))
+        if np.array_equal(now, keep):
+            break
+        keep = now
     noise_a, noise_b = stated_noise(settings)
     ols = None if tls else ols_stated(sub, layout, stated, settings.cov_a)
-    return noise_estimate(fit, settings.method, noise_a, noise_b, ols)
+    estimate = noise_estimate(fit, settings.method, noise_a, noise_b, ols)
+    corr = unmodelled_correlation(sub.take(keep), layout, noise_matrix(layout,
+                                                                      fit.covariances()))
+    return replace(estimate, correlation=corr)
 
 
 def with_estimated_noise(settings: Settings, estimate: NoiseEstimate) -> Settings:

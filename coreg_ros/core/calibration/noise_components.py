@@ -171,6 +171,10 @@ class _Pairs:
     n_total: int         # pairs φ̂ was fitted on
     Jx: np.ndarray       # (n, m, 6): A's noise into the error (√s_i F_x,i), also for OLS
 
+    def take(self, keep: np.ndarray) -> _Pairs:
+        """Return the pairs ``keep`` (a mask or indices)."""
+        return _Pairs(self.r[keep], self.K[keep], self.J[keep], self.n_total, self.Jx[keep])
+
 
 def linearised_pairs(params: Parameters, pos_a, quat_a, pos_b, quat_b, a_scale,
                      with_a: bool, sample: int = SAMPLE) -> tuple[_Pairs, _Layout]:
@@ -421,6 +425,10 @@ class ComponentFit:
                                             got.get('rotation', stated.rotation_cov),
                                             device.upper())
 
+    def covariances(self) -> dict:
+        """Return (device, kind) -> the channel's covariance now (estimated or held)."""
+        return {c.channel: c.covariance() for c in self.components}
+
     def theta_cov(self) -> np.ndarray:
         """Return the covariance of the estimated θ (``covariance_of_theta``)."""
         return covariance_of_theta(self.fisher)
@@ -573,23 +581,46 @@ def stated_channels(spec: ModelSpec, cov_a: np.ndarray, cov_b: np.ndarray,
     return out
 
 
-def screened(pairs: _Pairs, layout: _Layout, stated: dict) -> _Pairs:
+def screened(pairs: _Pairs, layout: _Layout, S: np.ndarray) -> np.ndarray:
     """
-    Return the pairs without those far outside the noise (as ``calibrate``'s robust fit).
+    Flag the pairs within the noise S (d×d), by the rule of ``calibrate``'s robust fit.
 
-    ``d² = rᵀ M⁻¹ r`` at the stated noise, scaled by the lower quartile's excess over χ²_m's
-    (a noise understated throughout is not an outlier); beyond χ²_m(1 - 10⁻⁴) a pair is out.
+    ``d² = rᵀ M⁻¹ r`` scaled by the lower quartile's excess over χ²_m's (a noise understated
+    throughout is not an outlier); beyond χ²_m(1 - 10⁻⁴) a pair is out.
     """
     from scipy import stats
 
-    components = [Component(ch, np.asarray(stated[ch], dtype=float), 'held') for ch in stated]
-    S = _assemble(components, layout)
     W = np.linalg.inv(pairs.K @ S @ pairs.K.transpose(0, 2, 1))
     d2 = np.einsum('nm,nmk,nk->n', pairs.r, W, pairs.r)
     m = pairs.r.shape[1]
     scale = max(1.0, float(np.quantile(d2, 0.25)) / float(stats.chi2.ppf(0.25, m)))
-    keep = d2 <= scale * float(stats.chi2.isf(1e-4, m))
-    return _Pairs(pairs.r[keep], pairs.K[keep], pairs.J[keep], pairs.n_total, pairs.Jx[keep])
+    return d2 <= scale * float(stats.chi2.isf(1e-4, m))
+
+
+def noise_matrix(layout: _Layout, covariances: dict) -> np.ndarray:
+    """Return S (d×d) of channel covariances ((device, kind) -> 3×3)."""
+    return _assemble([Component(ch, np.asarray(c, dtype=float), 'held')
+                      for ch, c in covariances.items()], layout)
+
+
+def unmodelled_correlation(pairs: _Pairs, layout: _Layout, S: np.ndarray) -> float:
+    """
+    Return the largest correlation of position with rotation errors the noise S leaves.
+
+    The errors whitened by ``M_i^{-1/2}`` (symmetric) are uncorrelated when S holds all there
+    is; a device whose position and rotation errors go together (a camera's pose from a
+    target) shows as a correlation between the position and rotation rows, which no 3×3
+    covariance per channel can state. 0 for models without B's orientation.
+    """
+    if ('b', 'rotation') not in layout.blocks or len(pairs.r) < 10:
+        return 0.0
+    lam, V = np.linalg.eigh(pairs.K @ S @ pairs.K.transpose(0, 2, 1))
+    z = np.einsum('nij,nj->ni', V / np.sqrt(lam)[:, None, :],
+                  np.einsum('nji,nj->ni', V, pairs.r))
+    C = z.T @ z / len(z)
+    d = np.sqrt(np.diag(C))
+    corr = C / np.outer(d, d)
+    return float(np.max(np.abs(corr[0:3, 3:6])))
 
 
 def ols_stated(pairs: _Pairs, layout: _Layout, stated: dict, cov_a: np.ndarray) -> dict:

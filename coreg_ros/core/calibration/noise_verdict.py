@@ -35,6 +35,8 @@ import numpy as np
 #: standard errors) is a misstated noise.
 MISSTATED = 0.2
 MISSTATED_SIGMAS = 3.0
+#: A correlation of position with rotation errors beyond this is said (``correlation``).
+CORRELATED = 0.5
 #: An anisotropic excess is named along an axis when its largest ratio exceeds the smallest
 #: by this factor.
 ANISOTROPY = 1.3
@@ -116,6 +118,9 @@ class NoiseEstimate:
         ``'a'``/``'b'`` -> the DeviceNoise the final fit used.
     statements : list of NoiseStatement
     converged : bool
+    correlation : float
+        The largest correlation of position with rotation errors the estimate leaves
+        (``noise_components.unmodelled_correlation``); above ``CORRELATED`` it is said.
 
     """
 
@@ -126,6 +131,7 @@ class NoiseEstimate:
     estimated: dict
     statements: list = field(default_factory=list)
     converged: bool = True
+    correlation: float = 0.0
 
     @property
     def misstated(self) -> list:
@@ -135,9 +141,17 @@ class NoiseEstimate:
     def verdict(self) -> str:
         """Return what the verdict says of the noise ('' when as stated)."""
         bad = self.misstated
-        if not bad:
-            return ''
-        return 'noise not as stated: ' + '; '.join(s.text for s in bad)
+        out = 'noise not as stated: ' + '; '.join(s.text for s in bad) if bad else ''
+        if self.correlation > CORRELATED:
+            out = '; '.join(v for v in (out, self.correlation_note()) if v)
+        return out
+
+    def correlation_note(self) -> str:
+        """Say that position and rotation errors go together beyond the noise model."""
+        return (f'position and rotation errors are correlated ({self.correlation:.2f}) '
+                f'beyond the noise model (a pose from a camera and a target does this): no 3×3 '
+                f"covariance per channel states it, so the fit's chi-square and covariance are "
+                f'approximate')
 
 
 def _theta_slices(fit: ComponentFit) -> dict:
@@ -349,6 +363,7 @@ def estimate_dict(est: NoiseEstimate) -> dict:
             status[kind] = {'status': ch.status, 'mode': ch.mode, 'note': ch.note}
         block.update(sigma_of_estimate=sigma_se, stated=stated, channels=status)
         out[f'device_{d}'] = block
+    out['unmodelled_correlation'] = est.correlation
     out['statements'] = [{'channels': [f'{_DEVICE[d]} {k}' for d, k in s.channels],
                           'ratio_to_stated': s.ratio, 'ratio_se': s.ratio_se, 'text': s.text,
                           'misstated': s.misstated} for s in est.statements]
