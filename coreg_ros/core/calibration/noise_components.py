@@ -53,6 +53,9 @@ HOPELESS_SE = 1.0
 #: Largest relative standard error of each principal variance of a channel for its full
 #: (anisotropic) covariance to be estimated; else a factor on the stated one.
 MAX_RELATIVE_SE_FULL = 0.1
+#: Smallest spread of the generalised variances (log of largest over smallest) for a full
+#: channel: 20 % in σ between the directions most and least off the stated shape.
+MIN_ANISOTROPY = 2.0 * float(np.log(1.2))
 #: Pairs (every k-th of those) the Fisher information is summed over.
 FISHER_SAMPLE = 1_500
 #: Largest relative standard error of a component's variance for it to be estimated (its σ
@@ -547,7 +550,15 @@ def estimate_components(pairs: _Pairs, layout: _Layout, stated: dict,
 
 
 def _full_determined(fisher: np.ndarray, components: list, target: Component) -> bool:
-    """Tell whether a full channel's principal variances are each within the limit."""
+    """
+    Tell whether a full channel is worth its six entries: determined, and not the stated shape.
+
+    Each generalised variance ``λ_j`` of (Σ̂, Σ_stated) (the factor along the direction j
+    relative to the stated noise there) must be within ``MAX_RELATIVE_SE_FULL``, and the
+    largest and smallest must differ by more than ``MIN_ANISOTROPY`` and by three standard
+    errors: else the stated shape times one factor says as much (and keeps the estimator's
+    fast paths, which need an isotropic position noise with interpolated pairs).
+    """
     cov = covariance_of_theta(fisher)
     k = 0
     for c in components:
@@ -555,15 +566,19 @@ def _full_determined(fisher: np.ndarray, components: list, target: Component) ->
             continue
         if c is target:
             block = cov[k:k + 6, k:k + 6]
-            lam, V = np.linalg.eigh(c.covariance())
+            Li = np.linalg.inv(np.linalg.cholesky(c.stated))
+            lam, U = np.linalg.eigh(Li @ c.covariance() @ Li.T)
+            rel = np.zeros(3)
             for j in range(3):
-                v = V[:, j]
+                v = Li.T @ U[:, j]  # λ_j = vᵀ Σ̂ v
                 g = np.array([v[0] ** 2, v[1] ** 2, v[2] ** 2, 2 * v[0] * v[1],
                               2 * v[0] * v[2], 2 * v[1] * v[2]])
                 se = float(np.sqrt(max(g @ block @ g, 0.0)))
                 if not (lam[j] > 0 and se / lam[j] <= MAX_RELATIVE_SE_FULL):
                     return False
-            return True
+                rel[j] = se / lam[j]
+            spread = float(np.log(lam[-1] / lam[0]))
+            return spread > MIN_ANISOTROPY and spread > 3.0 * float(np.hypot(rel[0], rel[-1]))
         k += len(c.theta)
     return False
 
