@@ -115,7 +115,9 @@ def format_result(result, report=None) -> str:
         out.append(f'pairing: {report.summary()}')
     said = fit_verdict(result.p_value)
     if result.noise is not None:  # judged against the noise estimated with it
-        said = said.replace('the stated noise', 'the estimated noise')
+        said = said.replace('the stated noise', 'the estimated noise') + (
+            f' (p of F(dof, {result.noise.dof}): the noise was estimated from '
+            f'{result.noise.dof} errors)')
     out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, '
                f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: {said}')
     if result.verdict:

@@ -26,18 +26,27 @@ from coreg_ros.core.calibration.noise_components import (
     unmodelled_correlation,
 )
 from coreg_ros.core.calibration.noise_verdict import noise_estimate, NoiseEstimate
-from coreg_ros.core.calibration.offset_search import refit_at
+from coreg_ros.core.calibration.offset_search import (
+    fit_at_offset,
+    fit_with_offset_search,
+    refit_at,
+)
 from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.errors import CoregError
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.noise_model import DeviceNoise
 from coreg_ros.core.settings import Settings
-from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream
+from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
 import numpy as np
+from scipy import stats
 
 #: Rounds of "estimate, screen at the estimate" at most (the set settles in one or two).
 SCREEN_ROUNDS = 4
+#: A fit made at a noise within this share (of each variance, in every direction) of the final
+#: estimate stands: its covariance is then within about as much of the estimate's.
+AGREE = 0.03
 
 
 def stated_noise(settings: Settings) -> tuple[DeviceNoise, DeviceNoise]:
@@ -90,7 +99,7 @@ def estimate_noise(pairs: Pairs, settings: Settings, result: CalibrationResult
     estimate = noise_estimate(fit, settings.method, noise_a, noise_b, ols)
     corr = unmodelled_correlation(sub.take(keep), layout, noise_matrix(layout,
                                                                       fit.covariances()))
-    return replace(estimate, correlation=corr)
+    return replace(estimate, correlation=corr, dof=int(keep.sum()) * spec.n_res)
 
 
 def with_estimated_noise(settings: Settings, estimate: NoiseEstimate) -> Settings:
@@ -98,28 +107,78 @@ def with_estimated_noise(settings: Settings, estimate: NoiseEstimate) -> Setting
     return replace(settings, noise_a=estimate.estimated['a'], noise_b=estimate.estimated['b'])
 
 
-def refit_with_estimated_noise(stream_a: PoseStream, streams_b: list, settings: Settings,
-                               prior: Optional[Prior], result: CalibrationResult
-                               ) -> tuple[CalibrationResult, PairingReport, Settings]:
+def calibrate_with_noise(stream_a: PoseStream, streams_b: list, settings: Settings,
+                         prior: Optional[Prior]
+                         ) -> tuple[CalibrationResult, PairingReport, Settings]:
     """
-    Estimate the noise from ``result`` (a fit at the stated noise) and fit again with it.
+    Calibrate with each device's noise estimated (``noise: auto``; the module docstring).
+
+    With the clock offset estimated, the noise is first estimated on the search's subsample
+    round and the rounds on all samples are made at it; then estimated again from the fit of
+    all pairs. When the two agree (every channel's variance within ``AGREE``), that fit
+    stands; else it is made again at the second (``offset_search.refit_at``). With the offset
+    given: the fit at the stated noise, the estimate, the fit at it.
 
     Returns
     -------
     result : CalibrationResult
-        The fit at the estimated noise, with ``noise`` (the ``NoiseEstimate``).
+        The fit at the estimated noise, with ``noise`` (the ``NoiseEstimate``) and the p-value
+        of ``with_estimate``.
     report : PairingReport
     settings : Settings
-        The settings with the estimated noise (what the verdict judges the fit against).
+        The settings with the noise the fit used (what the verdict judges the fit against).
 
     """
-    timing = result.time_offset
-    pairs, _ = pair_for(stream_a, streams_b, settings, timing) if timing is not None else \
-        pair_for(stream_a, streams_b, settings)
+    used = settings
+    if settings.estimate_time_offset:
+        def noise_from(pairs, result):
+            nonlocal used
+            try:
+                used = with_estimated_noise(settings, estimate_noise(pairs, settings, result))
+            except CoregError:
+                used = settings  # too little on the subsample: estimated on all pairs below
+            return used
+
+        result, report = fit_with_offset_search(stream_a, streams_b, settings, prior,
+                                                noise_from=noise_from)
+    else:
+        result, report = fit_at_offset(stream_a, streams_b, settings, prior,
+                                       TimeOffset(settings.time_offset, message='given'))
+    pairs, _ = pair_for(stream_a, streams_b, settings, result.time_offset)
     estimate = estimate_noise(pairs, settings, result)
-    used = with_estimated_noise(settings, estimate)
-    refit, report = refit_at(stream_a, streams_b, used, prior, result)
-    return replace(refit, noise=estimate), report, used
+    if not _agree(estimate, used):
+        used = with_estimated_noise(settings, estimate)
+        result, report = refit_at(stream_a, streams_b, used, prior, result)
+    return with_estimate(result, estimate), report, used
+
+
+def _agree(estimate: NoiseEstimate, used: Settings) -> bool:
+    """Tell whether the noise a fit used is the estimate's, each channel within ``AGREE``."""
+    for d in 'ab':
+        had = used.device_noise(d)
+        if not isinstance(had, DeviceNoise):
+            return False
+        for kind in ('position', 'rotation'):
+            a, b = estimate.estimated[d].channel(kind), had.channel(kind)
+            L = np.linalg.inv(np.linalg.cholesky(a))
+            if np.max(np.abs(np.linalg.eigvalsh(L @ b @ L.T) - 1.0)) > AGREE:
+                return False
+    return True
+
+
+def with_estimate(result: CalibrationResult, estimate: NoiseEstimate) -> CalibrationResult:
+    """
+    Return a fit at the estimated noise with the estimate and the p-value that fits it.
+
+    The noise was estimated from ``estimate.dof`` errors of the same data, so ``χ²/dof`` is a
+    ratio of two estimates of one variance: its p-value is that of ``F(dof, estimate.dof)``,
+    not of χ²_dof (which a noise estimated to 1 % fails at a million residuals, though the
+    fit is as good as the noise is known).
+    """
+    if not result.dof > 0:
+        return replace(result, noise=estimate)
+    p = float(stats.f.sf(result.chi2 / result.dof, result.dof, max(estimate.dof, 1)))
+    return replace(result, noise=estimate, p_value=p)
 
 
 def calibrate_pairs(pairs: Pairs, settings: Optional[Settings] = None,
@@ -141,7 +200,7 @@ def calibrate_pairs(pairs: Pairs, settings: Optional[Settings] = None,
     refit = calibrate(pairs, with_estimated_noise(settings, estimate), prior, start=start,
                       warm=True, **{k: v for k, v in kwargs.items() if k not in ('start',
                                                                                   'warm')})
-    return replace(refit, noise=estimate, verdict=estimate.verdict())
+    return replace(with_estimate(refit, estimate), verdict=estimate.verdict())
 
 
 def noise_floor(pairs: Pairs, settings: Settings) -> tuple:

@@ -118,6 +118,9 @@ class NoiseEstimate:
         ``'a'``/``'b'`` -> the DeviceNoise the final fit used.
     statements : list of NoiseStatement
     converged : bool
+    dof : int
+        Errors the noise was estimated from (pairs × residuals per pair): the fit's p-value at
+        the estimated noise is that of ``F(dof_fit, dof)`` (``auto_noise.with_estimate``).
     correlation : float
         The largest correlation of position with rotation errors the estimate leaves
         (``noise_components.unmodelled_correlation``); above ``CORRELATED`` it is said.
@@ -132,6 +135,7 @@ class NoiseEstimate:
     statements: list = field(default_factory=list)
     converged: bool = True
     correlation: float = 0.0
+    dof: int = 0
 
     @property
     def misstated(self) -> list:

@@ -209,8 +209,15 @@ def _candidates(ctx: _Context) -> list:
 
 
 def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Settings,
-                           prior: Optional[Prior]) -> tuple[CalibrationResult, PairingReport]:
-    """Estimate τ (and κ if asked) jointly with T0 and T1 (the module docstring says how)."""
+                           prior: Optional[Prior], noise_from=None
+                           ) -> tuple[CalibrationResult, PairingReport]:
+    """
+    Estimate τ (and κ if asked) jointly with T0 and T1 (the module docstring says how).
+
+    ``noise_from(pairs, result)``, if given, returns the settings the rounds on all samples
+    use, from the best subsample round's pairs and fit (``auto_noise``: the noise estimated
+    there, so that the fit of all samples is made at it once).
+    """
     ctx = _Context.build(stream_a, streams_b, settings, prior)
     kappa0 = 0.0 if settings.estimate_clock_drift else None
     sub_b = _subsampled(ctx.streams_b, SUBSAMPLE_B)
@@ -242,6 +249,10 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
         result, report = fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
             given, message='not estimated: no offset within the overlap gave a fit'))
         return result, report
+    if noise_from is not None:
+        settings = noise_from(best.pairs, best.result)
+        ctx = replace(ctx, settings=settings, cov_a=settings.cov_a,
+                      cov_b=output_covariance(settings.cov_b, SPECS[settings.model]))
     try:
         full = _refine(ctx, ctx.streams_b,
                        _round(ctx, ctx.streams_b, best.tau, best.kappa, best.params))

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional, Union
 
-from coreg_ros.core.calibration.auto_noise import refit_with_estimated_noise
+from coreg_ros.core.calibration.auto_noise import calibrate_with_noise
 from coreg_ros.core.calibration.offset_search import fit_at_offset, fit_with_offset_search
 from coreg_ros.core.calibration.pairing import stream_list
 from coreg_ros.core.calibration.stream_directions import (
@@ -81,14 +81,14 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     """
     streams_b = stream_list(streams_b)
     try:
-        if settings.estimate_time_offset:
+        if settings.noise == 'auto':  # the noise estimated with the fit, and the fit at it
+            result, report, settings = calibrate_with_noise(stream_a, streams_b, settings,
+                                                            prior)
+        elif settings.estimate_time_offset:
             result, report = fit_with_offset_search(stream_a, streams_b, settings, prior)
         else:
             result, report = fit_at_offset(stream_a, streams_b, settings, prior,
                                            TimeOffset(settings.time_offset, message='given'))
-        if settings.noise == 'auto':  # the noise estimated, the fit made again with it
-            result, report, settings = refit_with_estimated_noise(stream_a, streams_b, settings,
-                                                                  prior, result)
     except (UnobservableError, InconsistentDataError, ConvergenceError) as e:
         # positions in other units make every fit fail somehow: name the cause, not the symptom
         units = unit_mismatch(stream_a, streams_b[0])
