@@ -214,9 +214,10 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
     """
     Estimate τ (and κ if asked) jointly with T0 and T1 (the module docstring says how).
 
-    ``noise_from(pairs, result)``, if given, returns the settings the rounds on all samples
-    use, from the best subsample round's pairs and fit (``auto_noise``: the noise estimated
-    there, so that the fit of all samples is made at it once).
+    ``noise_from(timing, result)``, if given, returns the settings the rounds on all samples
+    use, from the best subsample round's offset and fit (``auto_noise``: the noise estimated
+    on all samples paired there at that fit, so that the fit of all samples is made at it
+    once).
     """
     ctx = _Context.build(stream_a, streams_b, settings, prior)
     kappa0 = 0.0 if settings.estimate_clock_drift else None
@@ -250,7 +251,7 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
             given, message='not estimated: no offset within the overlap gave a fit'))
         return result, report
     if noise_from is not None:
-        settings = noise_from(best.pairs, best.result)
+        settings = noise_from(ctx.timing(best.tau, best.kappa), best.result)
         ctx = replace(ctx, settings=settings, cov_a=settings.cov_a,
                       cov_b=output_covariance(settings.cov_b, SPECS[settings.model]))
     try:
