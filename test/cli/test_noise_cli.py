@@ -3,7 +3,8 @@
 
 One simulated recording whose tool stops twice (``sim.still.paused``): its noise measured,
 written to a noise file, read back by calibrate and plan; ``--noise auto`` naming the device
-stated at half its noise; bad input refused in one line.
+stated at half its noise, and ``coreg diagnose`` taking the estimate as its floor; the Python
+front door's ``noise=``; bad input refused in one line.
 """
 
 import json
@@ -122,3 +123,42 @@ def test_a_recording_that_never_stands_still_says_how_long_to_stand(tmp_path, ca
     write_pose_bag(path, rec.streams)
     code, _, err = _run(capsys, 'noise', path)
     assert one_line(code, err) and 'no still segment' in err and 'hold the device still' in err
+
+
+def test_diagnose_auto_takes_the_estimated_noise_as_its_floor(bag, tmp_path, capsys):
+    """B stated at half its noise: the floor is the estimate, the stated one said beside it."""
+    half = [f'{v / 2:g}' for v in SIGMA_B]
+    out_json = tmp_path / 'd.json'
+    code, out, err = _run(capsys, 'diagnose', bag, '--sigma-b', *half, '--noise', 'auto',
+                          '--json', out_json, '--quiet')
+    assert code == 0, err
+    assert 'noise floor: estimated with the calibration' in out and 'B rotation noise' in out
+    noise = json.loads(out_json.read_text())['noise']
+    b = noise['device_b']
+    ratio = np.array(b['rotation_sigma_rad']) / np.array(b['stated']['rotation_sigma_rad'])
+    assert b['estimated'] is True and np.all(np.abs(ratio - 2.0) < 0.3), ratio
+
+
+def test_python_front_door_takes_auto_a_device_noise_dict_and_refuses_the_rest():
+    import coreg_ros
+    from coreg_ros.core.errors import CoregError
+    from coreg_ros.core.noise_model import DeviceNoise
+    from coreg_ros.sim import simulate_pairs
+    noisy, _, _ = simulate_pairs(np.random.default_rng(4), 3000, 'full_pose', sigma_a=SIGMA_A,
+                                 sigma_b=SIGMA_B)
+    args = (noisy.pos_a, noisy.quat_a, noisy.pos_b, noisy.quat_b)
+    half_b = tuple(v / 2 for v in SIGMA_B)
+    auto = coreg_ros.calibrate(*args, sigma_a=SIGMA_A, sigma_b=half_b, noise='auto')
+    assert auto.noise is not None and auto.fit_consistent
+    # B's position and rotation halved: its rotation named alone; its position reaches the
+    # pairs summed with A's, whose ratio is sqrt((σa² + σb²) / (σa² + σb²/4))
+    said = {s.channels: s.ratio for s in auto.noise.misstated}
+    assert set(said) == {(('b', 'rotation'),), (('a', 'position'), ('b', 'position'))}, said
+    together = np.hypot(SIGMA_A[0], SIGMA_B[0]) / np.hypot(SIGMA_A[0], half_b[0])
+    assert abs(said[(('a', 'position'), ('b', 'position'))] / together - 1) < 0.05, said
+    assert abs(said[(('b', 'rotation'),)] / 2.0 - 1) < 0.05, said
+    given = coreg_ros.calibrate(*args, noise={'a': DeviceNoise.isotropic(SIGMA_A),
+                                              'b': DeviceNoise.isotropic(SIGMA_B)})
+    assert given.noise is None and given.fit_consistent
+    with pytest.raises(CoregError, match="noise must be 'stated', 'auto'"):
+        coreg_ros.calibrate(*args, noise=3.0)
