@@ -74,3 +74,27 @@ def test_stated_noise_result_has_no_estimate_and_auto_says_what_is_held():
     assert b['rotation'].status == 'absent' and b['position'].status == 'estimated'
     held = [s.text for s in auto.noise.statements if 'held' in s.text]
     assert held and all('stated value' in t for t in held)
+
+
+@pytest.mark.parametrize('method', ['tls', 'ols'])
+def test_a_restricted_rig_keeps_its_held_directions_and_names_the_noise(method):
+    """A SCARA arm (issue 22) with B stated at half its noise: held as at the stated noise."""
+    from coreg_ros.sim import make_motion
+    from coreg_ros.sim.truth import random_truth
+    sa, sb = (2e-4, 1e-3), (5e-4, 2e-3)
+    motion = make_motion(np.random.default_rng(10), 'scara')
+    noisy, _, _ = simulate_pairs(np.random.default_rng(12), 3000, 'full_pose', sigma_a=sa,
+                                 sigma_b=sb, truth=random_truth(np.random.default_rng(11)),
+                                 motion=motion)
+    half = tuple(v / 2 for v in sb)
+    stated = calibrate_pairs(noisy, Settings(method=method, sigma_a=sa, sigma_b=half))
+    auto = calibrate_pairs(noisy, Settings(method=method, sigma_a=sa, sigma_b=half,
+                                           noise='auto'))
+    assert auto.success and len(auto.held) == len(stated.held) == 1
+    assert stated.p_value < 1e-6 < 0.01 < auto.p_value
+    said = {s.channels: s.ratio for s in auto.noise.misstated}
+    rotation = (('b', 'rotation'),) if method == 'tls' else (('b', 'rotation'), ('a', 'rotation'))
+    ratio = next(r for c, r in said.items() if set(c) <= set(rotation) and ('b', 'rotation') in c)
+    # TLS: B's rotation alone (2×); OLS: A's and B's together, sqrt((σa² + σb²) / (σa² + σb²/4))
+    truth = 2.0 if method == 'tls' else np.hypot(sa[1], sb[1]) / np.hypot(sa[1], half[1])
+    assert abs(ratio / truth - 1) < 0.05, said
