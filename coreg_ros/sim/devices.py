@@ -25,6 +25,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
 from coreg_ros.core.types import MODELS, Pairs, PoseStream
+from coreg_ros.sim.device_noise import add_device_noise
 from coreg_ros.sim.injection import apply_effects, effect_stage, EffectContext, STAGES
 from coreg_ros.sim.motion import make_motion, Motion
 from coreg_ros.sim.truth import random_truth, Truth, validate_sigma
@@ -211,7 +212,6 @@ def _device_noise(rng: np.random.Generator, position, quat_wxyz, noise) -> tuple
     """Add a device's noise: a σ pair (``add_pose_noise``) or a DeviceNoise (full covariances)."""
     if isinstance(noise, tuple):
         return add_pose_noise(rng, position, quat_wxyz, noise)
-    from coreg_ros.sim.still import add_device_noise
     return add_device_noise(rng, position, quat_wxyz, noise)
 
 

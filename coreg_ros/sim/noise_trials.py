@@ -29,8 +29,8 @@ from coreg_ros.core.calibration.noise_components import (
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.noise_model import DeviceNoise
 from coreg_ros.core.settings import Settings
+from coreg_ros.sim.device_noise import add_device_noise
 from coreg_ros.sim.devices import simulate_pairs
-from coreg_ros.sim.still import add_device_noise
 import numpy as np
 from scipy import stats
 
@@ -73,7 +73,7 @@ class Scenario:
         return f'{self.method}/{self.device}×{self.factor:g}/{what}'
 
     def stated(self) -> tuple:
-        """Return the stated (σ_A, σ_B)."""
+        """Return the noise stated to the fit: (σ_A, σ_B)."""
         out = {'a': list(TRUE_A), 'b': list(TRUE_B)}
         for k, kind in enumerate(('position', 'rotation')):
             if kind in self.channels:
@@ -142,8 +142,8 @@ def run_trial(sc: Scenario, k: int, n_pairs: int, seed: int = 24) -> dict:
                 errors[f'{d} rotation'] = float(np.sqrt(np.trace(ch.covariance)
                                                         / np.trace(t[3:6, 3:6])) - 1.0)
         pos = est.devices['a']['position'].covariance + est.devices['b']['position'].covariance
-        errors['a+b position'] = float(np.sqrt(np.trace(pos) / np.trace(ca_t[0:3, 0:3]
-                                                                       + cb_t[0:3, 0:3])) - 1)
+        summed = ca_t[0:3, 0:3] + cb_t[0:3, 0:3]
+        errors['a+b position'] = float(np.sqrt(np.trace(pos) / np.trace(summed)) - 1)
     else:
         # what OLS's B holds: B's noise and A's carried through the model, at the truth
         spec = SPECS['full_pose']

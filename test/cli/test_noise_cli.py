@@ -62,8 +62,8 @@ def test_noise_measures_both_devices_and_writes_a_noise_file(bag, tmp_path, caps
     np.testing.assert_allclose(got.device_b.position_cov, doc['device_b']['position_covariance'])
 
 
-def test_calibrate_reads_the_noise_file_and_auto_names_the_misstated_device(bag, tmp_path,
-                                                                           capsys):
+def test_calibrate_reads_the_noise_file_and_auto_names_the_misstated_device(
+        bag, tmp_path, capsys):
     noise_file = tmp_path / 'n.yaml'
     assert _run(capsys, 'noise', bag, '--out', noise_file)[0] == 0
     code, out, err = _run(capsys, 'calibrate', bag, '--noise', noise_file, '--json', '-')

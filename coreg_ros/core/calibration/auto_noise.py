@@ -97,8 +97,8 @@ def estimate_noise(pairs: Pairs, settings: Settings, result: CalibrationResult
     noise_a, noise_b = stated_noise(settings)
     ols = None if tls else ols_stated(sub, layout, stated, settings.cov_a)
     estimate = noise_estimate(fit, settings.method, noise_a, noise_b, ols)
-    corr = unmodelled_correlation(sub.take(keep), layout, noise_matrix(layout,
-                                                                      fit.covariances()))
+    left = noise_matrix(layout, fit.covariances())
+    corr = unmodelled_correlation(sub.take(keep), layout, left)
     return replace(estimate, correlation=corr, dof=int(keep.sum()) * spec.n_res)
 
 
@@ -200,9 +200,9 @@ def calibrate_pairs(pairs: Pairs, settings: Optional[Settings] = None,
         return result
     estimate = estimate_noise(pairs, settings, result)
     start = Parameters(SPECS[settings.model], result.params, list(result.charts))
+    rest = {k: v for k, v in kwargs.items() if k not in ('start', 'warm')}
     refit = calibrate(pairs, with_estimated_noise(settings, estimate), prior, start=start,
-                      warm=True, **{k: v for k, v in kwargs.items() if k not in ('start',
-                                                                                  'warm')})
+                      warm=True, **rest)
     return replace(with_estimate(refit, estimate), verdict=estimate.verdict())
 
 

@@ -422,7 +422,7 @@ class ComponentFit:
     layout: object = None
 
     def noise(self, device: str, stated: DeviceNoise) -> DeviceNoise:
-        """Return the device's estimated noise (held and absent channels: as stated)."""
+        """Return a device's estimated DeviceNoise: held and absent channels as stated."""
         got = {c.channel[1]: c.covariance() for c in self.components if c.channel[0] == device}
         return DeviceNoise.from_covariances(got.get('position', stated.position_cov),
                                             got.get('rotation', stated.rotation_cov),

@@ -38,8 +38,8 @@ def _allan_line(ch: ChannelNoise, k: float, unit: str) -> str:
 def channel_lines(ch: ChannelNoise) -> list:
     """Return the lines of one channel: σ per base axis, principal σ and axes, Allan, distance."""
     k, unit = SHOWN[ch.name]
-    axes = ', '.join(f'{s * k:.3g} ± {e * k:.2g}' for s, e in zip(ch.sigma_axes, ch.sigma_axes_se,
-                                                                   strict=True))
+    pairs = zip(ch.sigma_axes, ch.sigma_axes_se, strict=True)
+    axes = ', '.join(f'{s * k:.3g} ± {e * k:.2g}' for s, e in pairs)
     out = [f'{ch.name:<8} σ along x y z: {axes} {unit}']
     parts = []
     defined = ch.axis_angle_se < AXIS_UNDEFINED_RAD
