@@ -117,7 +117,8 @@ def format_result(result, report=None) -> str:
     if result.noise is not None:  # judged against the noise estimated with it
         said = said.replace('the stated noise', 'the estimated noise') + (
             f' (p of F(dof, {result.noise.dof}): the noise was estimated from '
-            f'{result.noise.dof} errors)')
+            f'{result.noise.dof} of these errors, so an effect the model lacks shows as noise, '
+            f'not here: coreg diagnose looks for its structure)')
     out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, '
                f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: {said}')
     if result.verdict:
