@@ -133,6 +133,9 @@ def test_diagnose_auto_takes_the_estimated_noise_as_its_floor(bag, tmp_path, cap
                           '--json', out_json, '--quiet')
     assert code == 0, err
     assert 'noise floor: estimated with the calibration' in out and 'B rotation noise' in out
+    # every gap measured against the estimate, and said so
+    gap = next(line for line in out.splitlines() if line.startswith('gap (held out'))
+    assert 'at the estimated noise' in gap and 'estimated floor' in gap and 'stated' not in gap
     noise = json.loads(out_json.read_text())['noise']
     b = noise['device_b']
     ratio = np.array(b['rotation_sigma_rad']) / np.array(b['stated']['rotation_sigma_rad'])

@@ -50,6 +50,7 @@ from coreg_ros.core.diagnosis.report import CalibrationChange, DiagnosisReport, 
 from coreg_ros.core.diagnosis.residuals import base_errors, detect_locate
 from coreg_ros.core.diagnosis.selection import select_effects, Selection, Selector
 from coreg_ros.core.diagnosis.summary import gap_measures, transforms
+from coreg_ros.core.diagnosis.text import floor_named
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
@@ -141,7 +142,8 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
     diag = _diagnose(pairs, settings, stream_a, options or Options(),
                      progress or (lambda f, s: None), cov_a, cov_b, context or {})
     if estimate is not None:
-        diag.report = replace(diag.report, noise=estimate_dict(estimate))
+        diag.report = replace(diag.report, noise=estimate_dict(estimate),
+                              verdict=floor_named(diag.report.verdict, True))
     return diag
 
 
