@@ -28,7 +28,7 @@ _HOMES = {
     'relative_base': 'coreg_ros.core.rig.loops',
     'loop_report': 'coreg_ros.core.rig.loops',
     'calibrate_streams': 'coreg_ros.core.calibration.pipeline',
-    'calibrate_pairs': ('coreg_ros.core.calibration.calibrate', 'calibrate'),
+    'calibrate_pairs': 'coreg_ros.core.calibration.auto_noise',
     'pair_streams': 'coreg_ros.core.calibration.pairing',
     'Settings': 'coreg_ros.core.settings',
     'PoseStream': 'coreg_ros.core.types',
@@ -39,6 +39,7 @@ _HOMES = {
     'TimeOffset': 'coreg_ros.core.types',
     'STATUS': 'coreg_ros.core.types',
     'Prior': 'coreg_ros.core.estimator.priors',
+    'DeviceNoise': 'coreg_ros.core.noise_model',
     # uncertainty (Hoff & Vincent 2000)
     'compose': 'coreg_ros.core.uncertainty',
     'chain': 'coreg_ros.core.uncertainty',

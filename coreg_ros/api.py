@@ -125,11 +125,32 @@ def _rig(stream_a: PoseStream, devices, synchronised: bool, cfg: Settings) -> Ri
     return calibrate_rig(stream_a, rig, cfg)
 
 
+def _with_noise(settings: Settings, noise) -> Settings:
+    """Return the settings with ``calibrate``'s ``noise`` argument applied (one-line errors)."""
+    from collections.abc import Mapping
+    from dataclasses import replace
+    from pathlib import Path
+
+    from coreg_ros.core.noise_model import DeviceNoise
+    from coreg_ros.core.settings import NOISE_MODES
+
+    if isinstance(noise, str) and noise in NOISE_MODES:
+        return settings.updated(noise=noise)
+    if isinstance(noise, (str, Path)):
+        from coreg_ros.files.noise_file import load_noise_file, with_noise_file
+        return with_noise_file(settings, load_noise_file(noise))
+    if isinstance(noise, Mapping) and set(noise) <= {'a', 'b'} and all(
+            isinstance(v, DeviceNoise) for v in noise.values()):
+        return replace(settings, **{f'noise_{d}': v for d, v in noise.items()})
+    raise InputError(f"noise must be 'stated', 'auto', a noise file or {{'a': DeviceNoise, "
+                     f"'b': DeviceNoise}}, got {type(noise).__name__}")
+
+
 def calibrate(pos_a, quat_a_wxyz, pos_b=None, quat_b_wxyz=None, *,
               sigma_a: tuple = Settings.sigma_a, sigma_b: tuple = Settings.sigma_b,
               method: str = 'tls', stamps_a=None, stamps_b=None,
               time_offset: Union[str, float] = 'auto', robust: bool = True,
-              prior: Optional[Prior] = None, devices: Optional[list] = None,
+              prior: Optional[Prior] = None, devices: Optional[list] = None, noise='stated',
               **settings) -> Union[CalibrationResult, RigResult]:
     """
     Calibrate from numpy arrays: T0 (A's base in B's base), T1 (B's marker in A's tool).
@@ -160,6 +181,12 @@ def calibrate(pos_a, quat_a_wxyz, pos_b=None, quat_b_wxyz=None, *,
         A rig: the devices B_k (instead of ``pos_b``), each with its arrays, stamps, noise
         and base, calibrated jointly with A. ``sigma_b`` is the noise of a device without
         its own.
+    noise : 'stated', 'auto', str or Path, or dict
+        ``'stated'``: ``sigma_a``/``sigma_b`` as given; ``'auto'``: each device's noise
+        estimated with the calibration (``res.noise``; what the motion cannot separate held
+        at ``sigma_a``/``sigma_b``), the verdict naming what was misstated; a noise file
+        (``coreg noise``) or ``{'a': DeviceNoise, 'b': DeviceNoise}`` (either may be left
+        out): full covariances in each device's base frame instead of the σ.
     **settings
         Further ``Settings`` fields (``max_gap``, ``estimate_clock_drift``, ``min_pairs``,
         ``max_iterations``).
@@ -184,6 +211,10 @@ def calibrate(pos_a, quat_a_wxyz, pos_b=None, quat_b_wxyz=None, *,
         if prior is not None:
             raise InputError('a prior applies to one device B; calibrate that device alone '
                              'with prior=, or the rig without it')
+        if not (isinstance(noise, str) and noise == 'stated'):
+            raise InputError("noise= applies to one device B; give a rig's noise as each "
+                             "Device's sigma (and sigma_a), or calibrate a device alone with "
+                             "noise=")
         pos_a = np.asarray(pos_a, dtype=float)
         ta = _stamps(stamps_a, len(pos_a), 'stamps_a')
         auto = time_offset == 'auto' and stamps_a is not None
@@ -209,8 +240,10 @@ def calibrate(pos_a, quat_a_wxyz, pos_b=None, quat_b_wxyz=None, *,
         estimate, offset = not synchronised, 0.0
     else:
         estimate, offset = False, float(time_offset)
-    cfg = Settings(model=model, method=method, sigma_a=tuple(sigma_a), sigma_b=tuple(sigma_b),
-                   robust=robust, estimate_time_offset=estimate, time_offset=offset, **settings)
+    cfg = _with_noise(Settings(model=model, method=method, sigma_a=tuple(sigma_a),
+                               sigma_b=tuple(sigma_b), robust=robust,
+                               estimate_time_offset=estimate, time_offset=offset, **settings),
+                      noise)
     ta, tb = _stamps(stamps_a, n, 'stamps_a'), _stamps(stamps_b, m, 'stamps_b')
     stream_a = PoseStream(ta, pos_a, np.asarray(quat_a_wxyz, dtype=float))
     streams_b = _streams_b(pos_b, quat_b_wxyz, tb, model)

@@ -58,6 +58,10 @@ def run_rig(args, settings, specs, frames) -> int:
     if getattr(args, 'gravity_aligned', None) is not None:
         raise ConfigError('--gravity-aligned applies to one device B; calibrate that device '
                           'alone (--topic-b with one topic) for it')
+    if settings.noise != 'stated' or settings.noise_a is not None or settings.noise_b is not None:
+        raise ConfigError("--noise (and a noise_file) applies to one device B; give a rig's "
+                          "noise as each device's sigma (device.<name>.sigma) and --sigma-a, "
+                          'or calibrate a device alone (--topic-b with one topic) with --noise')
     out = sys.stderr if args.json == '-' else sys.stdout
     rig, data, code = calibrate_rig_bag(args.bag, settings, specs, frames,
                                         loops=getattr(args, 'loops', False))

@@ -81,6 +81,7 @@ from coreg_ros.ros.lifecycle import (
     shutdown_quietly,
 )
 from coreg_ros.ros.live_checks import LiveChecks, STALE_QOS
+from coreg_ros.ros.live_noise import NoiseSources
 from coreg_ros.ros.parameters import (
     check_params_files,
     declare_parameters,
@@ -129,6 +130,7 @@ class Channel:
     outputs: UncertaintyOutputs
     live: LiveChecks
     status: StatusPublisher
+    noise: NoiseSources
 
 
 class CoregNode(Node):
@@ -165,13 +167,16 @@ class CoregNode(Node):
         for line in declare_parameters(self):
             self.get_logger().warning(line)
         self.config = config = read_config(self)
-        self.params = ParameterView(self)
+        self.noise = NoiseSources(config.noise_file, config.settings)
+        self.params = ParameterView(self, self.noise)
         settings, log, name = config.settings, self.get_logger(), self.get_name()
         # What a stored result or a journal is valid for: one per node name and configuration
-        # (a rig's journal holds every device's topics).
+        # (a rig's journal holds every device's topics; a noise file's covariances are part
+        # of it).
         topics_b = rig_topics(config.devices) or settings.topic_b
-        key = persistence.config_key({**settings.as_dict(), 'topic_b': list(topics_b)},
-                                     config.frames)
+        stated = settings.noise_dict()
+        key = persistence.config_key({**settings.as_dict(), 'topic_b': list(topics_b), **(
+            {'noise_file': stated} if stated else {})}, config.frames)
         io_lock = threading.Lock()  # the node's disk writes, one at a time
         self.alerts = Alerts(log, config.storage_dir)
         raw = os.environ.get(PLAIN_ENV, '').strip() in ('', '0')
@@ -196,14 +201,18 @@ class CoregNode(Node):
         for spec in config.devices:  # a rig: one channel per device, each calibrated with A
             own = device_config(config, spec)
             own_key = persistence.config_key(own.settings.as_dict(), own.frames)
-            self.channels.append(self._channel(own, DeviceView(self.params, spec), own_key,
-                                               spec.name, wiring))
+            # its own noise sources: its stated noise, what it measures while still
+            noise = NoiseSources(None, own.settings)
+            self.channels.append(self._channel(
+                own, DeviceView(ParameterView(self), spec, noise), own_key, spec.name, wiring,
+                noise))
         if not config.devices:
-            self.channels.append(self._channel(config, self.params, key, '', wiring))
+            self.channels.append(self._channel(config, self.params, key, '', wiring,
+                                               self.noise))
         # the two-device node's collaborators (a rig's: its first device's)
         first = self.channels[0]
-        self.calibrator, self.outputs, self.live, self.status = (
-            first.calibrator, first.outputs, first.live, first.status)
+        self.calibrator, self.outputs, self.live, self.status, self.noise = (
+            first.calibrator, first.outputs, first.live, first.status, first.noise)
         self.static_tf = self.calibrator.static_tf
 
         guard = self.alerts.guard_service
@@ -235,7 +244,8 @@ class CoregNode(Node):
             f'({"reliable" if config.qos_reliable else "sensor-data"} QoS); method '
             f'{settings.method}; storage {config.storage_dir}')
 
-    def _channel(self, config: NodeConfig, params, key: str, device: str, wiring) -> Channel:
+    def _channel(self, config: NodeConfig, params, key: str, device: str, wiring,
+                 noise: NoiseSources) -> Channel:
         """
         Build the collaborators that calibrate, guide and watch one device B against A.
 
@@ -270,10 +280,11 @@ class CoregNode(Node):
                           log)
         calibrator.add_listener(outputs)
         calibrator.add_listener(live)
+        calibrator.add_listener(noise)
         status = StatusPublisher(name, config, params, self.store, calibrator, live,
                                  self.alerts, pub_diag, self.get_clock(),
-                                 self.get_publishers_info_by_topic)
-        return Channel(device, calibrator, outputs, live, status)
+                                 self.get_publishers_info_by_topic, noise)
+        return Channel(device, calibrator, outputs, live, status, noise)
 
     def _publish_status(self) -> None:
         """Publish every channel's /diagnostics (the diagnostics timer)."""
@@ -309,6 +320,7 @@ class CoregNode(Node):
         held = self.store.forget()
         for channel in self.channels:
             channel.live.reset()
+            channel.noise.forget()
         response.success = True
         response.message = f'forgot {held} samples; the published result is kept'
         return response

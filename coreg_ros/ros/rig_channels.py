@@ -30,28 +30,33 @@ class DeviceView:
     A node's current parameters as one device of its rig sees them.
 
     Everything is the node's but the calibration settings' ``topic_b``, ``model`` and
-    ``sigma_b``, which are the device's (its ``sigma`` if given, else the node's ``sigma_b``).
+    ``sigma_b``, which are the device's (its ``sigma`` if given, else the node's ``sigma_b``),
+    and the noise in use, which is the device's own (``live_noise.NoiseSources``).
 
     Parameters
     ----------
     view : ParameterView
-        The node's parameters.
+        The node's parameters (without noise sources).
     spec : DeviceSpec
         The device.
+    noise : live_noise.NoiseSources, optional
+        The device's noise sources (what it measured while still, its last estimate).
 
     """
 
-    def __init__(self, view: ParameterView, spec: DeviceSpec):
+    def __init__(self, view: ParameterView, spec: DeviceSpec, noise=None):
         self._view = view
         self.spec = spec
+        self.noise = noise
 
     def __call__(self, name: str):
         """Return the current value of the node's parameter ``name``."""
         return self._view(name)
 
     def settings(self) -> Settings:
-        """Return the calibration settings of this device against A."""
-        return device_settings(self._view.settings(), self.spec)
+        """Return the calibration settings of this device against A, with its noise in use."""
+        settings = device_settings(self._view.settings(), self.spec)
+        return settings if self.noise is None else self.noise.apply(settings)
 
 
 def device_settings(settings: Settings, spec: DeviceSpec) -> Settings:
