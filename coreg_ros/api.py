@@ -214,7 +214,7 @@ def calibrate(pos_a, quat_a_wxyz, pos_b=None, quat_b_wxyz=None, *,
         if not (isinstance(noise, str) and noise == 'stated'):
             raise InputError("noise= applies to one device B; give a rig's noise as each "
                              "Device's sigma (and sigma_a), or calibrate a device alone with "
-                             "noise=")
+                             'noise=')
         pos_a = np.asarray(pos_a, dtype=float)
         ta = _stamps(stamps_a, len(pos_a), 'stamps_a')
         auto = time_offset == 'auto' and stamps_a is not None

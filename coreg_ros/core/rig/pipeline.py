@@ -277,9 +277,9 @@ def calibrate_rig(stream_a: PoseStream, devices: Sequence[RigDevice], settings: 
     sol = replace(sol, params=sol.params.stepped(step[:layout.n_params]).recharted(),
                   chi2=max(0.0, sol.chi2 - float(step @ np.linalg.solve(cov, step))))
     clocks = [_moved(c, step[tc]) for c, tc in zip(clocks, time_cols, strict=True)]
-    rig = _assemble(layout, devices, alone, reports, sol, cov, time_cols, clocks,
-                    device_clock, settings, ros_covariance(cov, sol.params, device_clock,
-                                                           time_cols), query)
+    cov_ros = ros_covariance(cov, sol.params, device_clock, time_cols)
+    rig = _rig_result(layout, devices, alone, reports, sol, cov, time_cols, clocks,
+                      device_clock, settings, cov_ros, query)
     return replace(rig, loops=loop_report(rig, direct_fits(devices, settings) if loops
                                           else None))
 
@@ -329,8 +329,8 @@ def _device_dof(layout: RigLayout, k: int, n_rows: int, clock: Clock) -> float:
     return n_rows - own - clock.n_time / len(clock.devices)
 
 
-def _assemble(layout, devices, alone, reports, sol, cov, time_cols, clocks, device_clock,
-              settings, cov_ros, query) -> RigResult:
+def _rig_result(layout, devices, alone, reports, sol, cov, time_cols, clocks, device_clock,
+                settings, cov_ros, query) -> RigResult:
     """Assemble every device's result in the rig and the rig's verdict."""
     n_time = sum(c.n_time for c in clocks)
     n_rows = [r.shape[0] * r.shape[1] for r in sol.residuals]
