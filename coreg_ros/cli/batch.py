@@ -52,18 +52,22 @@ def json_name(bag: Path, root: Path) -> str:
     return name + '.json'
 
 
-def calibrate_one(bag: str, settings, prior, frames, direction_check: bool) -> dict:
+def calibrate_one(bag: str, settings, prior, frames, direction_check: bool,
+                  roles_confirmed: bool = False) -> dict:
     """Run ``coreg calibrate --json`` on one bag; its document and a summary row."""
     from coreg_ros.cli.calibrate import calibrate_bag
     from coreg_ros.cli.options import EXIT_INCONSISTENT
 
     t0 = time.perf_counter()
-    run = calibrate_bag(bag, settings, prior, frames=frames, direction_check=direction_check)
+    run = calibrate_bag(bag, settings, prior, frames=frames, direction_check=direction_check,
+                        roles_confirmed=roles_confirmed)
     r = run.result
     if run.wrong_way:
         verdict = f'refused: {run.check.message}'
     elif run.exit_code == 0:
         verdict = 'consistent'
+    elif run.exit_code == EXIT_INCONSISTENT and r.refusals:
+        verdict = 'refused: ' + ', '.join(r.refusals).replace('_', ' ')
     elif run.exit_code == EXIT_INCONSISTENT:
         verdict = 'inconsistent with the stated noise'
     else:
@@ -123,10 +127,10 @@ def cmd_batch(args) -> int:
     bags = find_bags(root)
     settings = settings_from_args(args)
     if args.what == 'calibrate':
-        from coreg_ros.cli.options import prior_from_args
+        from coreg_ros.cli.options import prior_from_args, roles_confirmed
         prior = prior_from_args(args)
         fn, extra = calibrate_one, (settings, prior, config_frames(args),
-                                    not args.no_direction_check)
+                                    not args.no_direction_check, roles_confirmed(args))
     else:
         fn, extra = diagnose_one, (settings,)
     out_dir = Path(args.out)
@@ -180,7 +184,6 @@ def register(sub) -> None:
         if name == 'calibrate':
             from coreg_ros.cli.options import add_prior_options
             add_prior_options(q, 'a previous result or partial prior, the same for every bag')
-            q.add_argument('--no-direction-check', action='store_true',
-                           help='do not check, after a bad fit, whether a stream should be '
-                                'inverted')
+            from coreg_ros.cli.options import add_check_options
+            add_check_options(q)
         q.set_defaults(func=cmd_batch)

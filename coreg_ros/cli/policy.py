@@ -28,7 +28,8 @@ FLAGS = {'topic_a': '--topic-a', 'topic_b': '--topic-b', 'model': '--model',
          'max_gap': '--max-gap', 'time_offset': '--time-offset',
          'estimate_time_offset': '--time-offset auto',
          'estimate_clock_drift': '--clock-drift', 'robust': '--robust',
-         'min_pairs': '--min-pairs', 'prior': '--prior'}
+         'min_pairs': '--min-pairs', 'prior': '--prior',
+         'roles_confirmed': '--roles-confirmed'}
 _NAMED = re.compile(r'`([a-z_]+)`')
 
 

@@ -161,7 +161,8 @@ class Calibrator:
         with self._fit_lock:
             return calibrate_streams(
                 streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings,
-                prior, frames=(self.config.frame_base_a, self.config.frame_base_b))
+                prior, frames=(self.config.frame_base_a, self.config.frame_base_b),
+                roles_confirmed=bool(self.params('roles_confirmed')))
 
     def _in_worker(self, fit: Callable, *args) -> Future:
         """Run ``fit(*args)`` in a daemon thread; return the Future a coroutine awaits."""
@@ -221,14 +222,17 @@ class Calibrator:
                         'time_offset_s': None if timing is None else timing.value_s,
                         'time_offset_sigma_s': None if timing is None else timing.sigma_s,
                         'verdict': result.verdict}
-        inconsistent = result.fit_consistent is False and result.status > 0
-        publish_anyway = inconsistent and bool(self.params('publish_inconsistent'))
+        inconsistent = result.flagged
+        # a swap is refused whatever publish_inconsistent says: roles_confirmed lifts it
+        publish_anyway = (inconsistent and not result.refusals
+                          and bool(self.params('publish_inconsistent')))
         if not result.success and not publish_anyway:
+            fix = ('set roles_confirmed:=true if topic_a and topic_b are right' if
+                   result.refusals else 'set publish_inconsistent:=true to publish it anyway')
             message = (
-                f'not published: {result.verdict} ({report.summary()}); set '
-                f'publish_inconsistent:=true to publish it anyway' if inconsistent else
-                f'no convergence after {result.iterations} iterations: {result.message}; '
-                f'{report.summary()}')
+                f'not published: {result.verdict} ({report.summary()}); {fix}' if inconsistent
+                else f'no convergence after {result.iterations} iterations: {result.message}; '
+                     f'{report.summary()}')
             self.logger.warning(f'{what}: {message}')
             return False, message
         stamp_ns = self._publish_result(result.base_to_base, result.tool_to_marker)

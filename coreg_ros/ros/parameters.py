@@ -92,6 +92,10 @@ PARAMETERS = (
     ('publish_inconsistent', DEFAULTS['publish_inconsistent'],
      _desc('publish a calibration whose fit contradicts the stated noise (it is refused by '
            'default: ~/calibrate answers success=false with the reason)')),
+    ('roles_confirmed', DEFAULTS['roles_confirmed'],
+     _desc('topic_a and topic_b are devices A and B as configured, whatever the frame ids of '
+           'their messages say (frame ids that name the other base frame, swapped devices, '
+           'refuse a calibration by default: ~/calibrate answers success=false)')),
     ('buffer_capacity', DEFAULTS['buffer_capacity'],
      _desc('samples kept per topic; the oldest are dropped when full', read_only=True,
            ints=_int_range(*RANGES['buffer_capacity']))),

@@ -110,7 +110,9 @@ class StatusPublisher:
         state['next_time'] = now + max(1.0, 20.0 * spent)
 
     def check_frames(self) -> Optional[str]:
-        """Name swapped devices from the header frame ids (warned, throttled)."""
+        """Name swapped devices from the frame ids (warned, throttled; not if roles_confirmed)."""
+        if bool(self.params('roles_confirmed')):
+            return None
         base_a, base_b = self.config.frame_base_a, self.config.frame_base_b
         topic_a, topic_b = self.config.settings.topic_a, self.config.settings.topic_b[0]
         buffers = self.store.buffers

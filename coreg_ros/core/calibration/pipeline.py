@@ -29,7 +29,8 @@ from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream, T
 
 def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
                       settings: Settings, prior: Optional[Prior] = None,
-                      frames: Optional[tuple] = None, direction_check: bool = True
+                      frames: Optional[tuple] = None, direction_check: bool = True,
+                      roles_confirmed: bool = False
                       ) -> tuple[CalibrationResult, PairingReport]:
     """
     Pair device A and device B samples, estimate the clock offset (if asked), calibrate, judge.
@@ -51,17 +52,21 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         Prior knowledge of the parameters, added to the fit.
     frames : (str, str), optional
         The configured base frames of A and B, to recognise swapped devices from the
-        messages' frame ids when the fit is bad.
+        messages' frame ids: a swap is named as the cause of a bad fit, and refuses a good
+        one (``verdict.judge``).
     direction_check : bool
         Check the stream directions after a bad fit (False fits the data as given).
+    roles_confirmed : bool
+        The user confirms that the topics are A and B as configured: frame ids that say
+        otherwise refuse nothing.
 
     Returns
     -------
     result : CalibrationResult
-        With ``time_offset``, ``rejected_stamps``, ``fit_consistent``, ``verdict`` and
-        ``direction_check`` (the check's report when it ran); ``success`` only if the
-        estimator converged, the fit matches the stated noise and no stream fits far better
-        inverted.
+        With ``time_offset``, ``rejected_stamps``, ``fit_consistent``, ``verdict``,
+        ``refusals`` and ``direction_check`` (the check's report when it ran); ``success``
+        only if the estimator converged, the fit matches the stated noise, no stream fits far
+        better inverted and the devices are not swapped.
     report : PairingReport
 
     Raises
@@ -95,7 +100,7 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         if error is e:
             raise
         raise error from e
-    result = judge(result, stream_a, streams_b, settings, prior, frames)
+    result = judge(result, stream_a, streams_b, settings, prior, frames, roles_confirmed)
     if direction_check and not float(result.p_value) >= CHECK_BELOW_P:  # NaN checks too
         result = with_direction_check(result, check_directions(stream_a, streams_b, settings))
     return result, report

@@ -56,7 +56,9 @@ def swapped_frames(stream_a: PoseStream, stream_b: PoseStream,
     if stream_a.frame_id == base_b and stream_b.frame_id == base_a and base_a != base_b:
         return (f'the messages on topic A are in frame {base_b!r} and those on topic B in '
                 f'{base_a!r}, the configured base frames the other way round: the devices are '
-                f'swapped (exchange topic_a and topic_b)')
+                f'swapped (exchange topic_a and topic_b), and the transforms are their '
+                f'inverses; if the topics are right and only the frame ids mislead, confirm '
+                f'the roles (`roles_confirmed`)')
     return None
 
 
@@ -119,19 +121,23 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
 
 def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[PoseStream],
           settings: Settings, prior: Optional[Prior] = None,
-          frames: Optional[Sequence[str]] = None) -> CalibrationResult:
+          frames: Optional[Sequence[str]] = None,
+          roles_confirmed: bool = False) -> CalibrationResult:
     """
     Return the result with ``fit_consistent``, ``verdict``, ``prior_check`` and ``success`` set.
 
-    ``success`` stays True only if the estimator converged, the fit matches the stated noise
-    and the prior (if any) agrees with the data.
+    ``success`` stays True only if the estimator converged, the fit matches the stated noise,
+    the prior (if any) agrees with the data and no check refuses it: devices swapped according
+    to the messages' frame ids (``swapped_frames``) are refused whatever the fit
+    (``refusals``), since swapped devices fit as well as the right ones, with the inverse
+    transforms, unless ``roles_confirmed`` says the topics are right.
     """
     checks = prior_check(result, prior) if prior is not None else None
+    swap = None if roles_confirmed else swapped_frames(stream_a, streams_b[0], frames)
     p = float(result.p_value)
     reasons = []
     if np.isfinite(p) and p < CONSISTENT_P:
-        causes = [c for c in (unit_mismatch(stream_a, streams_b[0]),
-                              swapped_frames(stream_a, streams_b[0], frames)) if c]
+        causes = [c for c in (unit_mismatch(stream_a, streams_b[0]), swap) if c]
         if not causes and settings.method == 'ols':
             causes.append("OLS leaves device A's noise (sigma_a) out of the fit, where it "
                           'shows as excess; --method tls includes it')
@@ -147,10 +153,13 @@ def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[P
             f'or the prior covariance is too small; recalibrate without --prior')
     consistent = not reasons
     verdict = '' if consistent else '; '.join(reasons) + '; run coreg diagnose for details'
-    warnings = [w for w in (roles_swapped(result, stream_a),
-                            None if not consistent else swapped_frames(
-                                stream_a, streams_b[0], frames)) if w]
-    for w in warnings:
-        verdict = '; '.join(v for v in (verdict, 'warning: ' + w) if v)
+    refusals = ()
+    if swap:
+        refusals = ('devices_swapped',)
+        if consistent:  # else the swap is already named as the cause of the bad fit
+            verdict = f'not used although the fit matches the noise: {swap}'
+    warning = roles_swapped(result, stream_a)
+    if warning:
+        verdict = '; '.join(v for v in (verdict, 'warning: ' + warning) if v)
     return replace(result, fit_consistent=consistent, verdict=verdict, prior_check=checks,
-                   success=bool(result.success and consistent))
+                   refusals=refusals, success=bool(result.success and consistent and not swap))

