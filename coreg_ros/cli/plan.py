@@ -88,7 +88,7 @@ def _motion_from_bag(args, settings, cov_a, cov_b):
 def cmd_plan(args) -> int:
     """Predict the calibration accuracy and rank candidate additions to the motion."""
     from coreg_ros.core.estimator import noise_covariance
-    from coreg_ros.core.planning.plan import plan_recording
+    from coreg_ros.core.planning.plan import check_plan_memory, plan_recording
     from coreg_ros.core.settings import Settings
     from coreg_ros.files.atomic import write_json
     from coreg_ros.sim import make_motion, random_truth
@@ -105,6 +105,9 @@ def cmd_plan(args) -> int:
         pos, q, rate, estimate, source, note = _motion_from_bag(args, settings, cov_a, cov_b)
     else:
         rate = args.rate_b or 50.0
+        check_plan_memory(args.duration * rate, args.extra,
+                          f'a plan of {args.duration:g} s at {rate:g} Hz',
+                          '--duration, --rate-b or --extra')
         motion = make_motion(rng, args.motion)
         n = max(2, int(round(args.duration * rate)))
         pos, q = motion.pose(np.arange(n) / rate)

@@ -59,3 +59,28 @@ def test_swapped_devices_exit_3_unless_the_roles_are_confirmed(rec, tmp_path, ca
     config.write_text('coreg_node:\n  ros__parameters:\n    roles_confirmed: true\n')
     assert main(['calibrate', str(tmp_path / 'swapped'), *noise, '--config', str(config)]) == 0
     capsys.readouterr()
+
+
+# --- every command guards memory like `coreg simulate` ----------------------------------------
+
+def _capped():
+    """Cap the address space of the subprocess at 3 GB: a job that ignores its size fails."""
+    import resource
+    resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, 3 * 2**30))
+
+
+@pytest.mark.parametrize('args', [
+    ('plan', '--duration', '1e7', '--sigma-a', '2e-4', '5e-4', '--sigma-b', '5e-4', '2e-3'),
+    ('plan', '--duration', '60', '--rate-b', '1e7', '--sigma-a', '2e-4', '5e-4', '--sigma-b',
+     '5e-4', '2e-3'),
+    ('plan', '--duration', '600', '--extra', '1e6', '--sigma-a', '2e-4', '5e-4', '--sigma-b',
+     '5e-4', '2e-3'),
+    ('validate-diagnosis', '--cases', '1000000000', '--workers', '1'),
+])
+def test_a_huge_size_is_refused_before_the_work(args, tmp_path):
+    result = coreg(*args, '--json', tmp_path / 'out.json', timeout=60, preexec_fn=_capped)
+    assert one_line_error(result), result.stderr[-2000:]
+    assert 'memory' in result.stderr and 'lower' in result.stderr
+    assert ('--duration' in result.stderr or '--extra' in result.stderr
+            or '--cases' in result.stderr)
+    assert not (tmp_path / 'out.json').exists()
