@@ -121,10 +121,12 @@ def cmd_batch(args) -> int:
     from coreg_ros.cli.diagnose import case_progress
     from coreg_ros.cli.options import config_frames, settings_from_args
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_dir
     from coreg_ros.parallel import CaseFailure, run_cases
 
     root = Path(args.folder)
     bags = find_bags(root)
+    check_output_dir(args.out, '--out')
     settings = settings_from_args(args)
     if args.what == 'calibrate':
         from coreg_ros.cli.options import prior_from_args, roles_confirmed

@@ -114,10 +114,13 @@ def cmd_calibrate(args) -> int:
 
     from coreg_ros.core.result_text import format_result
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_dir, check_output_file
     from coreg_ros.report.calibration_report import points_from_flat
 
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
     out = sys.stderr if args.json == '-' else sys.stdout
+    check_output_file(args.json, '--json')  # before the work, not after it
+    check_output_dir(args.report, '--report')
     settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
     prior = prior_from_args(args)

@@ -43,6 +43,9 @@ def _describe(label: str, csv: CsvStream) -> str:
 def cmd_convert(args) -> int:
     """Convert two CSV exports to a rosbag2 recording."""
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.files.output_paths import check_new_bag
+
+    check_new_bag(args.out_bag, 'OUT_BAG')  # before reading the CSVs
 
     def per_file(name: str, side: str, default: str) -> str:
         value = getattr(args, f'{name}_{side}', None)
@@ -121,7 +124,9 @@ def register(subparsers) -> None:
 def cmd_fix_bag(args) -> int:
     """Write a repaired copy of a recording: sorted, without repeated stamps, or split."""
     from coreg_ros.files.bag.fixbag import fix_bag
+    from coreg_ros.files.output_paths import check_new_bag
 
+    check_new_bag(args.out_bag, 'OUT_BAG')  # split parts are checked by fix_bag
     report = fix_bag(args.bag, args.out_bag, sort=args.sort,
                      drop_duplicates=args.drop_duplicates, split_at_jump=args.split_at_jump,
                      storage=args.storage, salvage=args.salvage)

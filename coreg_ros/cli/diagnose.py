@@ -87,7 +87,10 @@ def cmd_diagnose(args) -> int:
     from coreg_ros.cli.options import settings_from_args
     from coreg_ros.core.diagnosis.text import format_diagnosis
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_dir, check_output_file
 
+    check_output_file(args.json, '--json')  # before the work, not after it
+    check_output_dir(args.report, '--report')
     settings = settings_from_args(args)
     progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
     diag, document = diagnose_bag(args.bag, settings, progress)
@@ -143,9 +146,11 @@ def report_failures(command: str, failed: list) -> None:
 def cmd_validate(args) -> int:
     """Score the diagnosis on simulated recordings with hidden effects."""
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_file
     from coreg_ros.parallel import CaseFailure, failures
     from coreg_ros.sim.validation import _jsonable, format_validation, validate
 
+    check_output_file(args.json, '--json')
     progress = case_progress(f'{PROG} validate-diagnosis', args.quiet)
     out = validate(args.cases, args.seed, progress, workers=args.workers,
                    scheduler=args.scheduler)

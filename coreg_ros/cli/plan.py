@@ -91,8 +91,10 @@ def cmd_plan(args) -> int:
     from coreg_ros.core.planning.plan import check_plan_memory, plan_recording
     from coreg_ros.core.settings import Settings
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_file
     from coreg_ros.sim import make_motion, random_truth
 
+    check_output_file(args.json, '--json')
     settings = Settings(model=args.model, sigma_a=tuple(args.sigma_a),
                         sigma_b=tuple(args.sigma_b))
     if args.topic_a or args.topic_b:

@@ -44,6 +44,7 @@ def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
     from coreg_ros.core.errors import BagError
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.files.output_paths import check_new_bag
     from coreg_ros.ros.lifecycle import record_stop_signals
     from coreg_ros.ros.persistence import read_journal, SampleJournal
     from coreg_ros.ros.session import RosSession
@@ -56,8 +57,7 @@ def cmd_record(args) -> int:
             raise BagError(f'no interrupted recording at {partial}; nothing to recover')
         streams = read_journal(partial, args.topics)
     else:
-        if out.exists():
-            raise BagError(f'{str(out)!r} exists already; choose a new bag name')
+        check_new_bag(out, 'OUT_BAG')
         if partial.exists():
             raise BagError(f'{partial} holds an interrupted recording; recover it with coreg '
                            f'record {out} --topics ... --recover, or delete it')

@@ -13,8 +13,11 @@ def cmd_simulate(args) -> int:
     """Write a simulated two-device recording and its ground truth beside it."""
     from coreg_ros.files.atomic import write_json
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.files.output_paths import check_new_bag, check_output_file
     from coreg_ros.sim import simulate_recording
 
+    check_new_bag(args.out_bag, 'OUT_BAG')  # before simulating, not after it
+    check_output_file(truth_path_for(args.out_bag), 'the ground truth')
     kwargs = {}
     if args.sigma_a:
         kwargs['sigma_a'] = tuple(args.sigma_a)

@@ -84,3 +84,41 @@ def test_a_huge_size_is_refused_before_the_work(args, tmp_path):
     assert ('--duration' in result.stderr or '--extra' in result.stderr
             or '--cases' in result.stderr)
     assert not (tmp_path / 'out.json').exists()
+
+
+# --- output paths are checked before the work starts -------------------------------------------
+
+@pytest.fixture
+def a_file(tmp_path):
+    path = tmp_path / 'a_file'
+    path.write_text('an existing file\n')
+    return path
+
+
+@pytest.mark.parametrize('command, option', [
+    ('calibrate', '--report'), ('diagnose', '--report'), ('calibrate', '--json'),
+    ('diagnose', '--json')])
+def test_calibrate_and_diagnose_outputs_are_checked_first(bag, a_file, command, option):
+    # a directory where a file is meant, a file where a directory is, a place nobody can write
+    target = a_file.parent if option == '--json' else a_file
+    for path, words in ((target, 'a directory' if option == '--json' else 'is a file'),
+                        (a_file / 'below', 'is a file, not a directory'),
+                        ('/proc/coreg_test/out', 'cannot write in /proc')):
+        result = coreg(command, bag, option, path)
+        assert one_line_error(result), result.stderr[-2000:]
+        assert f'{option} {path}' in result.stderr and words in result.stderr, result.stderr
+        assert result.stdout == ''  # nothing was calibrated first
+    assert a_file.read_text() == 'an existing file\n'
+
+
+def test_batch_out_and_new_bags_are_checked_first(bag, a_file, tmp_path):
+    result = coreg('batch', 'calibrate', bag.parent, '--out', a_file, '--workers', 1)
+    assert one_line_error(result) and '--out' in result.stderr and 'is a file' in result.stderr
+    result = coreg('plan', '--duration', 10, '--sigma-a', 2e-4, 5e-4, '--sigma-b', 5e-4, 2e-3,
+                   '--json', tmp_path)
+    assert one_line_error(result) and 'is a directory' in result.stderr
+    for args in (('simulate', bag, '--seed', 1, '--duration', 1),
+                 ('convert', a_file, a_file, bag), ('fix-bag', bag, bag)):
+        result = coreg(*args)
+        assert one_line_error(result), result.stderr
+        assert 'exists already' in result.stderr and result.stdout == ''
