@@ -55,7 +55,9 @@ def pose_from_dict(d: Mapping[str, Any]) -> UncertainPose:
         cov = None if cov is None else np.array(cov, dtype=float).reshape(6, 6)
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(
-            f'stored pose is malformed ({e!r}); delete the file and recalibrate') from e
+            f'pose is malformed ({e!r}): a pose needs position [x, y, z], orientation {{w, x, '
+            f'y, z}} and covariance (36 numbers, 6×6 ROS layout) or none; a stored result '
+            f'that is malformed: delete the file and recalibrate') from e
     return UncertainPose(position, quat, cov)
 
 

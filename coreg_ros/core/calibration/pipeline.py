@@ -21,9 +21,14 @@ from coreg_ros.core.calibration.stream_directions import (
     DirectionReport,
 )
 from coreg_ros.core.calibration.verdict import judge, unit_mismatch
-from coreg_ros.core.errors import ConvergenceError, InconsistentDataError, UnobservableError
+from coreg_ros.core.errors import (
+    ConvergenceError,
+    InconsistentDataError,
+    InputError,
+    UnobservableError,
+)
 from coreg_ros.core.estimator.priors import Prior
-from coreg_ros.core.settings import Settings
+from coreg_ros.core.settings import check_settings, Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream, TimeOffset
 
 
@@ -80,6 +85,11 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         With its ``directions``, whatever this layer adds to its message.
 
     """
+    check_settings(settings)
+    if prior is not None and not isinstance(prior, Prior):
+        raise InputError(f'prior must be a coreg_ros.Prior, got {type(prior).__name__}; read a '
+                         f'file or a dict with coreg_ros.load_prior or prior_from_dict '
+                         f'(coreg_ros.calibrate loads them itself)')
     streams_b = stream_list(streams_b)
     try:
         if settings.estimate_time_offset:
