@@ -93,8 +93,8 @@ def register(subparsers) -> None:
         description='Convert two CSV exports, one row per sample "t, x, y, z, q, q, q, q" '
                     '(t in seconds; comma and/or whitespace separated; optional header), to '
                     'a rosbag2 with PoseStamped on two topics. After converting it checks the '
-                    'cheap explanations of a bad fit (a unit factor of 1000 between the '
-                    'files, a time unit, the quaternion column order) and names the option '
+                    'cheap explanations of a bad fit (a unit factor, mm or cm against m, between '
+                    'the files, a time unit, the quaternion column order) and names the option '
                     'that fixes one.')
     p.add_argument('csv_a', help='device A export (tool pose in A base)')
     p.add_argument('csv_b', help='device B export (marker pose in B base)')

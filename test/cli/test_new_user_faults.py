@@ -122,3 +122,53 @@ def test_batch_out_and_new_bags_are_checked_first(bag, a_file, tmp_path):
         result = coreg(*args)
         assert one_line_error(result), result.stderr
         assert 'exists already' in result.stderr and result.stdout == ''
+
+
+# --- a position-only B and mis-scaled positions get the fix that exists -------------------------
+
+def _csvs(tmp_path, rec, scale_a=1.0, scale_b=1.0, b_orientation=True):
+    from strategies import write_csv
+    a = write_csv(tmp_path / 'a.csv', rec.stream_a, scale=scale_a)
+    b = rec.streams_b[0]
+    if b_orientation:
+        return a, write_csv(tmp_path / 'b.csv', b, scale=scale_b)
+    path = tmp_path / 'b.csv'  # t, x, y, z: a position-only tracker's export
+    path.write_text(''.join(f'{int(t) / 1e9:.9f}, {float(x) * scale_b!r}, '
+                            f'{float(y) * scale_b!r}, {float(z) * scale_b!r}\n'
+                            for t, (x, y, z) in zip(b.stamps, b.position, strict=True)))
+    return a, str(path)
+
+
+def test_a_position_only_b_with_the_default_model_names_the_model(tmp_path, capsys):
+    rec = simulate_recording(31, 20.0, 'position_only')
+    a, b = _csvs(tmp_path, rec, b_orientation=False)
+    assert main(['convert', a, b, str(tmp_path / 'bag')]) == 0
+    assert 'position only' in capsys.readouterr().out
+    code = main(['calibrate', str(tmp_path / 'bag')])
+    out = capsys.readouterr().out
+    assert code == 3 and '--model position_only' in out, out
+    assert main(['calibrate', str(tmp_path / 'bag'), '--model', 'position_only']) == 0
+    capsys.readouterr()
+
+
+def test_unit_advice_blames_the_mis_scaled_device_with_an_option_that_exists(tmp_path, rec,
+                                                                             capsys):
+    # A exported in metres but converted as mm: A is 1000x too small, B is right
+    a, b = _csvs(tmp_path, rec)
+    assert main(['convert', a, b, str(tmp_path / 'small_a'), '--units-a', 'mm']) == 0
+    err = capsys.readouterr().err
+    assert '--units-a m' in err and '--units-b' not in err, err
+    assert main(['calibrate', str(tmp_path / 'small_a')]) != 0
+    out = capsys.readouterr()
+    text = out.out + out.err
+    assert '--units-a m' in text and '--units-b' not in text, text
+    # B exported in cm: the advice names --units-b cm, which convert accepts and which fixes it
+    a, b = _csvs(tmp_path, rec, scale_b=100.0)
+    assert main(['convert', a, b, str(tmp_path / 'cm_b')]) == 0
+    capsys.readouterr()
+    assert main(['calibrate', str(tmp_path / 'cm_b')]) != 0
+    out = capsys.readouterr()
+    assert '--units-b cm' in out.out + out.err
+    assert main(['convert', a, b, str(tmp_path / 'fixed'), '--units-b', 'cm']) == 0
+    assert main(['calibrate', str(tmp_path / 'fixed')]) == 0
+    capsys.readouterr()

@@ -20,7 +20,7 @@ from coreg_ros.core.calibration.stream_directions import (
     check_directions,
     DirectionReport,
 )
-from coreg_ros.core.calibration.verdict import judge, unit_mismatch
+from coreg_ros.core.calibration.verdict import judge, orientation_missing, unit_mismatch
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
@@ -98,10 +98,12 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
             result, report = fit_at_offset(stream_a, streams_b, settings, prior,
                                            TimeOffset(settings.time_offset, message='given'))
     except (UnobservableError, InconsistentDataError, ConvergenceError) as e:
-        # positions in other units make every fit fail somehow: name the cause, not the symptom
-        units = unit_mismatch(stream_a, streams_b[0])
-        error = e.with_message(f'{e}; but first: {units}') if (
-            units and 'likely in' not in str(e)) else e
+        # positions in other units, or a position-only B taken for a full pose, make every
+        # fit fail somehow: name the cause, not the symptom
+        first = '; '.join(c for c in (
+            unit_mismatch(stream_a, streams_b[0]) if 'likely in' not in str(e) else None,
+            orientation_missing(stream_a, streams_b[0], settings.model)) if c)
+        error = e.with_message(f'{e}; but first: {first}') if first else e
         if isinstance(e, InconsistentDataError) and direction_check:
             # refused as a whole: a stream given the wrong way round is a cheap explanation
             check = check_directions(stream_a, streams_b, settings)
