@@ -122,6 +122,12 @@ class Settings:
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')
             object.__setattr__(self, name, bool(getattr(self, name)))
+        if self.estimate_clock_drift and not self.estimate_time_offset:
+            # the drift is estimated with the offset: a fixed offset would silently drop it
+            raise ConfigError(
+                f'`estimate_clock_drift` needs the clock offset estimated too (the drift is '
+                f'estimated with it, from time_offset {self.time_offset:g} s as the start): '
+                f'set `estimate_time_offset`, or leave the drift out')
         if not self.max_gap > 0:
             raise ConfigError(f'max_gap must be > 0 s, got {self.max_gap}')
         if int(self.min_pairs) < 3:

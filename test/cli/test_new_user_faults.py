@@ -172,3 +172,45 @@ def test_unit_advice_blames_the_mis_scaled_device_with_an_option_that_exists(tmp
     assert main(['convert', a, b, str(tmp_path / 'fixed'), '--units-b', 'cm']) == 0
     assert main(['calibrate', str(tmp_path / 'fixed')]) == 0
     capsys.readouterr()
+
+
+# --- the clock: options that contradict each other, and verdicts that name the fix -----------
+
+def test_a_drift_with_a_fixed_offset_is_refused(bag):
+    result = coreg('calibrate', bag, '--time-offset', '0.01', '--clock-drift', 'auto')
+    assert one_line_error(result), result.stderr
+    assert '--clock-drift' in result.stderr and '--time-offset auto' in result.stderr
+
+
+def _simulated(tmp_path, name, effects=(), changes=()):
+    from coreg_ros.sim import parse_effect
+    from coreg_ros.sim.changes import apply_changes, parse_change
+    rec = simulate_recording(41, 40.0, effects=[parse_effect(e) for e in effects])
+    rec = apply_changes(rec, [parse_change(c) for c in changes], seed=41)
+    write_pose_bag(tmp_path / name, rec.streams)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize('name, effects, changes, args, fix', [
+    ('offset', ['time_offset=0.02'], [], ['--time-offset', '0'], '--time-offset auto'),
+    ('drift', ['clock_drift=300'], [], [], '--clock-drift auto'),
+    ('step', [], ['clock_step=0.05@20'], [], '--split-at-jump'),
+])
+def test_clock_problems_get_a_verdict_naming_the_fix(tmp_path, capsys, name, effects, changes,
+                                                     args, fix):
+    bag = _simulated(tmp_path, name, effects, changes)
+    assert main(['calibrate', str(bag), *args]) == 3
+    out = capsys.readouterr().out
+    verdict = next(line for line in out.splitlines() if line.startswith('verdict:'))
+    assert fix in verdict, verdict
+    if name != 'step':
+        return
+    # the advice works: the split parts each calibrate
+    import re
+    threshold = re.search(r'--split-at-jump ([0-9.e-]+)', verdict).group(1)
+    assert main(['fix-bag', str(bag), str(tmp_path / 'parts'), '--split-at-jump',
+                 threshold]) == 0
+    parts = sorted(tmp_path.glob('parts_*'))
+    assert len(parts) == 2
+    assert [main(['calibrate', str(p)]) for p in parts] == [0, 0]
+    capsys.readouterr()

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional, Union
 
+from coreg_ros.core.calibration.clock_check import clock_problem
 from coreg_ros.core.calibration.offset_search import fit_at_offset, fit_with_offset_search
 from coreg_ros.core.calibration.pairing import stream_list
 from coreg_ros.core.calibration.stream_directions import (
@@ -20,7 +21,13 @@ from coreg_ros.core.calibration.stream_directions import (
     check_directions,
     DirectionReport,
 )
-from coreg_ros.core.calibration.verdict import judge, orientation_missing, unit_mismatch
+from coreg_ros.core.calibration.verdict import (
+    cheap_causes,
+    CONSISTENT_P,
+    judge,
+    orientation_missing,
+    unit_mismatch,
+)
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
@@ -43,7 +50,10 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     After a fit the data contradict (p below ``stream_directions.CHECK_BELOW_P``), and when the
     data are refused as a whole, the stream directions are checked (``check_directions``): a
     stream given the wrong way round (``T_tool_base`` for ``T_base_tool``) makes every fit bad,
-    and is named instead of the symptom.
+    and is named instead of the symptom. A bad fit that neither this nor the streams' cheap
+    causes explain (``verdict.cheap_causes``) is checked for a clock problem
+    (``clock_check.clock_problem``: a wrong fixed offset, a drift, a step), named with the
+    option that models it.
 
     Parameters
     ----------
@@ -112,9 +122,21 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         if error is e:
             raise
         raise error from e
-    result = judge(result, stream_a, streams_b, settings, prior, frames, roles_confirmed)
+    fitted = result
+    result = judge(fitted, stream_a, streams_b, settings, prior, frames, roles_confirmed)
+    check = None
     if direction_check and not float(result.p_value) >= CHECK_BELOW_P:  # NaN checks too
-        result = with_direction_check(result, check_directions(stream_a, streams_b, settings))
+        check = check_directions(stream_a, streams_b, settings)
+        result = with_direction_check(result, check)
+    if (float(result.p_value) < CONSISTENT_P and not (check is not None and check.flagged)
+            and not cheap_causes(stream_a, streams_b, settings, frames, roles_confirmed)):
+        # a bad fit nothing cheaper explains: is it the clock? (a few block fits)
+        clock = clock_problem(stream_a, streams_b, settings)
+        if clock:
+            result = judge(fitted, stream_a, streams_b, settings, prior, frames,
+                           roles_confirmed, clock)
+            if check is not None:
+                result = with_direction_check(result, check)
     return result, report
 
 

@@ -185,10 +185,19 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
     return {'chi2': chi2, 'dof': dof, 'p_value': p, 'consistent': p >= CONSISTENT_P}
 
 
+def cheap_causes(stream_a: PoseStream, streams_b: Sequence[PoseStream], settings: Settings,
+                 frames: Optional[Sequence[str]] = None,
+                 roles_confirmed: bool = False) -> list:
+    """Return what the streams alone say is wrong (units, a position-only B, a swap)."""
+    swap = None if roles_confirmed else swapped_frames(stream_a, streams_b[0], frames)
+    return [c for c in (unit_mismatch(stream_a, streams_b[0]),
+                        orientation_missing(stream_a, streams_b[0], settings.model), swap) if c]
+
+
 def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[PoseStream],
           settings: Settings, prior: Optional[Prior] = None,
           frames: Optional[Sequence[str]] = None,
-          roles_confirmed: bool = False) -> CalibrationResult:
+          roles_confirmed: bool = False, clock: Optional[str] = None) -> CalibrationResult:
     """
     Return the result with ``fit_consistent``, ``verdict``, ``prior_check`` and ``success`` set.
 
@@ -196,16 +205,17 @@ def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[P
     the prior (if any) agrees with the data and no check refuses it: devices swapped according
     to the messages' frame ids (``swapped_frames``) are refused whatever the fit
     (``refusals``), since swapped devices fit as well as the right ones, with the inverse
-    transforms, unless ``roles_confirmed`` says the topics are right.
+    transforms, unless ``roles_confirmed`` says the topics are right. ``clock``, the clock
+    story that explains a bad fit (``clock_check.clock_problem``), is named as its cause.
     """
     checks = prior_check(result, prior) if prior is not None else None
     swap = None if roles_confirmed else swapped_frames(stream_a, streams_b[0], frames)
     p = float(result.p_value)
     reasons = []
     if np.isfinite(p) and p < CONSISTENT_P:
-        causes = [c for c in (unit_mismatch(stream_a, streams_b[0]),
-                              orientation_missing(stream_a, streams_b[0], settings.model),
-                              swap) if c]
+        causes = cheap_causes(stream_a, streams_b, settings, frames, roles_confirmed)
+        if clock:
+            causes.append(clock)
         if not causes and settings.method == 'ols':
             causes.append("OLS leaves device A's noise (sigma_a) out of the fit, where it "
                           'shows as excess; --method tls includes it')
