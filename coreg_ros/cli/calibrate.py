@@ -85,6 +85,7 @@ def calibrate_bag(bag, settings, prior=None, frames=None, direction_check: bool 
 
     """
     from coreg_ros.core.calibration.pipeline import calibrate_streams
+    from coreg_ros.core.provenance import data_sketch
     from coreg_ros.files.bag.posebag import read_pose_bag
     from coreg_ros.files.results import result_to_dict
 
@@ -95,6 +96,7 @@ def calibrate_bag(bag, settings, prior=None, frames=None, direction_check: bool 
                                        roles_confirmed=roles_confirmed)
     check = result.direction_check
     data = result_to_dict(result)
+    data['data_sketch'] = data_sketch(streams_b)  # which samples: --prior refuses the same
     data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
                        'unpaired': dict(report.unpaired)}
     data['settings'] = settings.as_dict()

@@ -18,7 +18,9 @@ Layout (relied upon by checks)::
      "tool_to_marker": {same},
      "markers": [[x, y, z], ...],
      "unobservable": [{"direction": [12 numbers], "description", "held_at", "by", "determine"}]
-                     (the directions the motion does not determine: empty for a free rig)}
+                     (the directions the motion does not determine: empty for a free rig),
+     "data_sketch": {"samples", "hashes"} (added by coreg calibrate and the node: which
+                    samples it was calibrated on, ``core.provenance``)}
 
 ``base_to_base`` is T_bbase_abase (A's base frame in B's base frame); ``tool_to_marker`` is
 T_atool_bmarker (B's marker frame in A's tool frame).
@@ -173,7 +175,9 @@ def prior_from_dict(doc: Mapping[str, Any]) -> Prior:
         joint[unknown, unknown] = np.inf
     else:
         joint = None
-    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'), joint)
+    sketch = doc.get('data_sketch')
+    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'), joint,
+                 data_sketch=dict(sketch) if isinstance(sketch, Mapping) else None)
 
 
 def load_prior(path) -> Prior:

@@ -29,6 +29,7 @@ from typing import Optional
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.provenance import data_sketch, shared_samples
 from coreg_ros.core.types import TimeOffset
 from coreg_ros.files.results import load_prior
 from coreg_ros.ros import persistence
@@ -118,7 +119,8 @@ class Calibrator:
             response.success, response.message = self._refused(e, 'calibrate')
             return response
         response.success, response.message = self._publish(inputs[0], result, report,
-                                                           time.monotonic() - t0, 'calibrate')
+                                                           time.monotonic() - t0, 'calibrate',
+                                                           inputs[2])
         return response
 
     def calibrate_and_publish(self, streams: Optional[dict] = None, prior=None,
@@ -147,13 +149,13 @@ class Calibrator:
             result, report = self._fit(*inputs)
         except Exception as e:
             return self._refused(e, what)
-        return self._publish(inputs[0], result, report, time.monotonic() - t0, what)
+        return self._publish(inputs[0], result, report, time.monotonic() - t0, what, inputs[2])
 
     def _inputs(self, streams: Optional[dict], prior) -> tuple:
         """Return (settings, prior, streams) of a calibration now (defaults filled in)."""
         settings = self.params.settings()
-        prior = self._prior() if prior is None else prior
         streams = self.store.snapshot() if streams is None else streams
+        prior = self._prior([streams[t] for t in settings.topic_b]) if prior is None else prior
         return settings, prior, streams
 
     def _fit(self, settings, prior, streams: dict) -> tuple:
@@ -191,12 +193,14 @@ class Calibrator:
         self.logger.error(f'{what} failed: {trace}')
         return False, f'internal error ({type(error).__name__}: {error}); see the node log'
 
-    def _prior(self):
+    def _prior(self, streams_b: list):
         """
-        Return the prior of the next calibration.
+        Return the prior of the next calibration, of the samples ``streams_b`` of B.
 
         prior_file, else the stored result (``use_last_result_as_prior``), with the gravity
-        alignment of ``gravity_aligned_sigma`` when it is set.
+        alignment of ``gravity_aligned_sigma`` when it is set. A stored result calibrated on
+        samples that are still held is left out (it would count them twice: the pipeline
+        refuses such a prior when the user gives it as prior_file).
         """
         prior = None
         path = str(self.params('prior_file')).strip()
@@ -205,12 +209,17 @@ class Calibrator:
             prior = load_prior(os.path.expanduser(path))
         elif bool(self.params('use_last_result_as_prior')) and stored.is_file():
             prior = load_prior(stored)
+            if shared_samples(prior.data_sketch, streams_b) is not None:
+                self.logger.info('the stored result is not used as the prior: it was calibrated '
+                                 'on samples held now (it would count them twice)')
+                prior = None
         gravity = float(self.params('gravity_aligned_sigma'))
         if gravity > 0:
             prior = replace(prior or Prior(), gravity_sigma=gravity)
         return prior
 
-    def _publish(self, settings, result, report, seconds: float, what: str) -> tuple[bool, str]:
+    def _publish(self, settings, result, report, seconds: float, what: str,
+                 streams: dict) -> tuple[bool, str]:
         """Judge a fit; publish, hand on and store it if it passes; return the answer."""
         chi2_dof = result.chi2 / result.dof if result.dof > 0 else float('nan')
         timing = result.time_offset
@@ -241,8 +250,11 @@ class Calibrator:
             listener.set_result(result)
         try:
             with self.io_lock:
+                document = stored_result_dict(result)
+                # which samples: a calibration of the same ones refuses it as its prior
+                document['data_sketch'] = data_sketch([streams[t] for t in settings.topic_b])
                 path = persistence.save_result(
-                    self.config.storage_dir, stored_result_dict(result), self.config.frames,
+                    self.config.storage_dir, document, self.config.frames,
                     settings.as_dict(), name=self.result_name,
                     extra={'node': self.node_fqn, 'config_key': self.config_key,
                            'stamp_ns': stamp_ns})

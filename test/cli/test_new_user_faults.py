@@ -14,6 +14,7 @@ import sys
 from coreg_ros.cli.main import main
 from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.sim import simulate_recording
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -214,3 +215,24 @@ def test_clock_problems_get_a_verdict_naming_the_fix(tmp_path, capsys, name, eff
     assert len(parts) == 2
     assert [main(['calibrate', str(p)]) for p in parts] == [0, 0]
     capsys.readouterr()
+
+
+# --- a prior from the same recording is refused, not counted twice -----------------------------
+
+def test_a_prior_from_the_same_samples_is_refused(rec, bag, tmp_path, capsys):
+    first = tmp_path / 'first.json'
+    assert main(['calibrate', str(bag), '--json', str(first)]) == 0
+    capsys.readouterr()
+    assert main(['calibrate', str(bag), '--prior', str(first)]) == 1
+    err = capsys.readouterr().err
+    assert 'same samples' in err and 'count them twice' in err and '--prior' in err, err
+    # a part of the recording is the same data too
+    half = {t: s.take(np.arange(len(s)) < len(s) // 2) for t, s in rec.streams.items()}
+    write_pose_bag(tmp_path / 'half', half)
+    assert main(['calibrate', str(tmp_path / 'half'), '--prior', str(first)]) == 1
+    assert 'same samples (about 100% of this' in capsys.readouterr().err
+    # a prior from another recording of the same rig is taken
+    other = simulate_recording(25, 20.0, start_ns=rec.start_ns + 100 * 10**9)
+    write_pose_bag(tmp_path / 'other', other.streams)
+    assert main(['calibrate', str(tmp_path / 'other'), '--prior', str(first)]) == 0
+    assert 'prior: chi2' in capsys.readouterr().out

@@ -35,6 +35,7 @@ from coreg_ros.core.errors import (
     UnobservableError,
 )
 from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.provenance import shared_samples
 from coreg_ros.core.settings import check_settings, Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream, TimeOffset
 
@@ -101,6 +102,7 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
                          f'file or a dict with coreg_ros.load_prior or prior_from_dict '
                          f'(coreg_ros.calibrate loads them itself)')
     streams_b = stream_list(streams_b)
+    same_data_prior(prior, streams_b)
     try:
         if settings.estimate_time_offset:
             result, report = fit_with_offset_search(stream_a, streams_b, settings, prior)
@@ -138,6 +140,28 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
             if check is not None:
                 result = with_direction_check(result, check)
     return result, report
+
+
+def same_data_prior(prior: Optional[Prior], streams_b: Sequence[PoseStream]) -> None:
+    """
+    Refuse a prior calibrated on these same samples: it would count them twice.
+
+    Raises
+    ------
+    InputError
+        Naming the shares of the samples in common and the fix.
+
+    """
+    shared = shared_samples(prior.data_sketch, streams_b) if (
+        prior is not None and prior.data_sketch) else None
+    if shared is None:
+        return
+    of_prior, of_this = shared
+    raise InputError(
+        f"the prior was calibrated on these same samples (about {of_this:.0%} of this "
+        f"recording's B samples are among its, {of_prior:.0%} of its here): it would count "
+        f'them twice (σ too small by up to √2, the prior agreeing by construction); '
+        f'calibrate without the prior (`prior`), or take one from another recording')
 
 
 def with_direction_check(result: CalibrationResult, check: DirectionReport

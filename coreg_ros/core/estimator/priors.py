@@ -69,12 +69,17 @@ class Prior:
     z, within that σ of tilt, whatever its yaw (``gravity_term``). With it a yaw-only
     alignment (4 DOF: the translation and the yaw) is determined by a motion that turns
     about z alone.
+
+    ``data_sketch``, when the prior is a previous result that carries one
+    (``core.provenance.data_sketch``), identifies the samples it was calibrated on, so that a
+    calibration of the same samples refuses it rather than count them twice.
     """
 
     base_to_base: Optional[UncertainPose] = None
     tool_to_marker: Optional[UncertainPose] = None
     joint_cov: Optional[np.ndarray] = None
     gravity_sigma: Optional[float] = None
+    data_sketch: Optional[dict] = None
 
     def __post_init__(self):
         """Refuse what is not a prior in one line naming the fix (shapes, NaN)."""
