@@ -258,9 +258,11 @@ class Calibrator:
                     settings.as_dict(), name=self.result_name,
                     extra={'node': self.node_fqn, 'config_key': self.config_key,
                            'stamp_ns': stamp_ns})
-            stored = f'stored in {path}'
+            stored, kept = f'stored in {path}', True
         except OSError as e:
-            stored = f'NOT stored: {self.alerts.storage_failed("store the result", e)}'
+            # published, but a restart would not have it: not a success (README, the node)
+            failed = self.alerts.storage_failed('store the result', e)
+            stored, kept = f'published but NOT stored: {failed}', False
         p0 = result.base_to_base.position
         p1 = result.tool_to_marker.position
         offset = '' if timing is None else (
@@ -278,7 +280,7 @@ class Calibrator:
             message += '; held (the motion cannot show it, covariance unknown along it): ' + \
                 '; '.join(u.description for u in result.held)
         self.logger.info(f'calibrated ({what}): {message}')
-        return not inconsistent, message
+        return not inconsistent and kept, message
 
     def _publish_result(self, base_to_base, tool_to_marker,
                         stamp_ns: Optional[int] = None) -> int:
