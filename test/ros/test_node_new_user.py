@@ -16,12 +16,21 @@ import time
 
 from coreg_ros.cli.main import main
 from coreg_ros.files.bag.posebag import write_pose_bag
-from coreg_ros.ros.tools import call_trigger, play_streams, wait_for_result
+from coreg_ros.ros.buffer import SequenceCounter
+from coreg_ros.ros.interface import SUB_DEPTH
+from coreg_ros.ros.messages import make_pose_stamped
+from coreg_ros.ros.tools import (
+    call_trigger,
+    diagnostics_values,
+    play_streams,
+    wait_for_diagnostics,
+    wait_for_result,
+)
 from coreg_ros.sim import simulate_recording
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from rosproc import wait_counts
+from rosproc import publishers, wait_counts
 
 A, B = '/device_a/pose', '/device_b/pose'
 NODE = '/coreg_node'
@@ -126,3 +135,65 @@ def test_a_parameter_file_that_sets_nothing_is_said_at_start_up(ros_domain, tmp_
     log = ''.join(lines) + rest
     assert 'coreg_node: warning: config file' in log and words in log, log
     assert log.index(words) < log.index('listening to')  # said before it starts
+
+
+def test_messages_lost_on_the_way_are_counted_as_sent_whatever_the_stamps(ros_session,
+                                                                          start_node_here):
+    # A fresh node subscribed but not yet taking (still starting up) while a device with an
+    # irregular rate pours messages in: the middleware keeps some (its history is bounded)
+    # and drops the rest. The node must then say how many it lost, exactly: the holes in
+    # irregular stamps cannot tell it (they count intervals, not messages).
+    node = start_node_here(spin=False)
+    pub = publishers(ros_session, (A,))[A]
+    rng = np.random.default_rng(25)
+    n = SUB_DEPTH + 4000
+    stamps = 1_700_000_000 * 10**9 + np.cumsum(rng.integers(300_000, 2_500_000, n))
+    for stamp in stamps[:-1].tolist():
+        pub.publish(make_pose_stamped(stamp, 'device_a_base', (0, 0, 0), (1, 0, 0, 0)))
+    time.sleep(0.5)
+    node.spin()
+    time.sleep(1.0)
+    # the last one once the node takes them: nothing counts a loss after the last one taken
+    pub.publish(make_pose_stamped(int(stamps[-1]), 'device_a_base', (0, 0, 0), (1, 0, 0, 0)))
+
+    def settled(status):
+        v = diagnostics_values(status)
+        return int(v[f'{A} accepted']) + int(v[f'{A} lost']) >= n
+
+    status = wait_for_diagnostics(ros_session, timeout=20, accept=settled)
+    assert status is not None, 'the node never accounted for every message sent'
+    v = diagnostics_values(status)
+    accepted, lost = int(v[f'{A} accepted']), int(v[f'{A} lost'])
+    print(f'{n} sent, {accepted} accepted, {lost} lost ({v[f"{A} lost counted from"]}); the '
+          f'stamps say {v[f"{A} missing from stamps"]}, the middleware\'s events '
+          f'{v[f"{A} lost in middleware"]}')
+    assert accepted < n and accepted + lost == n, v
+    assert 'publication sequence numbers' in v[f'{A} lost counted from'], v
+
+
+def _infos(numbers, sources):
+    return [{'publication_sequence_number': int(s), 'source_timestamp': int(t)}
+            for s, t in zip(numbers, sources, strict=True)]
+
+
+def test_sequence_counter_counts_holes_and_a_late_publishers_head_only():
+    rng = np.random.default_rng(25)
+    created = 10**18
+    sent = np.arange(1, 5001)
+    sources = created + 10**9 + sent * 1_000_000  # a 1 kHz publisher that began after us
+    keep = rng.random(len(sent)) > 0.2
+    keep[:300] = False  # lost before the first taken
+    keep[-1] = True     # nothing counts what is lost after the last one taken
+    counter = SequenceCounter(created)
+    for chunk in np.array_split(np.flatnonzero(keep), 7):
+        counter.update(_infos(sent[chunk], sources[chunk]))
+    assert counter.counting and counter.lost == len(sent) - keep.sum()
+    assert counter.head == 300
+    # a publisher running since long before: its earlier messages were for nobody here
+    running = SequenceCounter(created)
+    running.update(_infos(sent[300:], created - 10**8 + (sent[300:] - 300) * 1_000_000))
+    assert running.counting and running.lost == 0
+    # two publishers on one topic: their numbers interleave; the count gives way to the stamps
+    two = SequenceCounter(created)
+    two.update(_infos([1, 2, 1, 3, 2], sources[:5]))
+    assert not two.counting and 'several publishers' in two.why_not
