@@ -176,3 +176,45 @@ def test_validate_scores_the_cases_that_ran_and_lists_the_one_that_raised(monkey
     assert 'injected fault' in out['failed'][0]['error']
     assert out['summary']['cases'] == 2  # the failure is not scored
     assert len(out['results']) == 3
+
+
+def test_an_address_where_something_else_answers_is_one_line_at_once():
+    # Issue 25.4: a port that accepts but is no Dask scheduler (a web server, a proxy that
+    # accepts any port) gave the one-line error, then a Client.__del__ traceback and a 20 s
+    # stall while the half-made client closed itself.
+    import socket
+    import subprocess
+    import threading
+    import time
+
+    server = socket.create_server(('127.0.0.1', 0))
+    port = server.getsockname()[1]
+
+    def answer_like_a_web_server():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:  # closed: the test is over
+                return
+            with conn:
+                conn.sendall(b'HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n')
+
+    threading.Thread(target=answer_like_a_web_server, daemon=True).start()
+    try:
+        cases = [('garbage:::', 'is not a Dask address'),
+                 ('http://127.0.0.1:8787', 'http:// is not a Dask protocol'),
+                 (f'tcp://127.0.0.1:{port}', "does not speak Dask's protocol")]
+        for address, said in cases:
+            start = time.monotonic()
+            proc = subprocess.run([sys.executable, '-m', 'coreg_ros.cli.main',
+                                   'validate-diagnosis', '--cases', '1', '--quiet',
+                                   '--scheduler', address],
+                                  capture_output=True, text=True, timeout=120)
+            took = time.monotonic() - start
+            assert proc.returncode == 1, proc.stderr
+            assert said in proc.stderr and proc.stderr.count('\n') == 1, proc.stderr
+            assert 'Traceback' not in proc.stderr
+            # the stall was twice the connect timeout after it: far beyond start-up and one try
+            assert took < 2 * parallel.CONNECT_TIMEOUT_S, (address, took)
+    finally:
+        server.close()
