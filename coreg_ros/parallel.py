@@ -40,6 +40,43 @@ class SchedulerError(ConfigError):
     """The Dask scheduler cannot be used (dask missing, address unreachable)."""
 
 
+class Terminated(KeyboardInterrupt):
+    """
+    SIGTERM while cases run: stops them as a Ctrl-C does (the workers ended, the tasks cancelled).
+
+    A ``KeyboardInterrupt`` so that every handler of Ctrl-C cleans up alike; ``signum`` tells
+    the front end which signal came (exit code 128 + ``signum``).
+    """
+
+    signum = int(signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """
+    Turn SIGTERM into ``Terminated`` while cases run (main thread, default handler only).
+
+    Python's default SIGTERM ends the process at once: no ``finally`` runs, so the local
+    workers and the resource tracker they share would go on, orphaned, and a cluster would
+    keep computing the cancelled run. A handler someone else installed is left alone.
+    """
+    import threading
+
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
+        yield
+        return
+
+    def stop(signum, frame):
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 @dataclass(frozen=True)
 class CaseFailure:
     """
@@ -221,7 +258,8 @@ def run_cases(fn: Callable, cases: Sequence, args: tuple = (), workers: Optional
     SchedulerError
         ``scheduler`` given but dask is not installed or the scheduler cannot be reached.
     KeyboardInterrupt
-        After stopping the workers (local) or cancelling the tasks (Dask).
+        After stopping the workers (local) or cancelling the tasks (Dask); ``Terminated`` (a
+        KeyboardInterrupt) on SIGTERM, where the process had Python's default handler.
 
     """
     cases = list(cases)
@@ -233,6 +271,18 @@ def run_cases(fn: Callable, cases: Sequence, args: tuple = (), workers: Optional
     nworkers = default_workers() if workers is None else max(1, int(workers))
     client = _connect(scheduler) if scheduler is not None else None
     tally = _Tally(n, progress, bool(bar) and n > 0, title)
+    with _terminate_as_interrupt():
+        parts = _run_all(fn, chunks, args, client, nworkers, tally)
+    results = [r for part in parts for r in part]
+    for i, r in enumerate(results):
+        if isinstance(r, _Failed):
+            results[i] = CaseFailure(i, seed_of(cases[i]), _label(cases[i], i, label), r.error)
+    return results
+
+
+def _run_all(fn: Callable, chunks: list, args: tuple, client, nworkers: int,
+             tally: _Tally) -> list:
+    """Run the chunks on the cluster, on local processes or here; return parts in order."""
     try:
         if client is not None:
             parts = _run_dask(client, fn, chunks, args, tally)
@@ -247,11 +297,7 @@ def run_cases(fn: Callable, cases: Sequence, args: tuple = (), workers: Optional
         tally.close()
         if client is not None:
             client.close()
-    results = [r for part in parts for r in part]
-    for i, r in enumerate(results):
-        if isinstance(r, _Failed):
-            results[i] = CaseFailure(i, seed_of(cases[i]), _label(cases[i], i, label), r.error)
-    return results
+    return parts
 
 
 def _label(case: Any, index: int, label: Optional[Callable]) -> str:

@@ -8,6 +8,7 @@ The Dask test starts its own LocalCluster (2 worker processes, 1 thread each) on
 """
 
 import json
+import os
 from pathlib import Path
 import sys
 
@@ -218,3 +219,49 @@ def test_an_address_where_something_else_answers_is_one_line_at_once():
             assert took < 2 * parallel.CONNECT_TIMEOUT_S, (address, took)
     finally:
         server.close()
+
+
+def _children(pid: int) -> list:
+    path = Path(f'/proc/{pid}/task/{pid}/children')
+    return [int(c) for c in path.read_text().split()] if path.exists() else []
+
+
+def _alive(pid: int) -> bool:
+    stat = Path(f'/proc/{pid}/stat')
+    return stat.exists() and stat.read_text().split(')')[-1].split()[0] != 'Z'
+
+
+def test_sigterm_stops_the_local_workers_and_their_resource_tracker(tmp_path):
+    # Issue 25.4: SIGTERM to `validate-diagnosis --workers 2` ended the command at once and
+    # left both workers and the resource tracker running (orphaned, still computing).
+    import signal
+    import subprocess
+    import time
+
+    err_path = tmp_path / 'stderr'
+    children = []
+    with open(err_path, 'w') as err:  # a file, not a pipe: orphans would hold a pipe open
+        proc = subprocess.Popen([sys.executable, '-m', 'coreg_ros.cli.main',
+                                 'validate-diagnosis', '--cases', '8', '--workers', '2',
+                                 '--quiet'], stdout=subprocess.DEVNULL, stderr=err)
+    try:
+        end = time.monotonic() + 60
+        while len(_children(proc.pid)) < 3 and time.monotonic() < end:  # 2 workers, tracker
+            time.sleep(0.1)
+        children = _children(proc.pid)
+        assert len(children) == 3, 'the workers never started'
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+        end = time.monotonic() + 10
+        while any(map(_alive, children)) and time.monotonic() < end:
+            time.sleep(0.1)
+        left = [c for c in children if _alive(c)]
+    finally:
+        proc.kill()
+        for pid in children:  # never leave them to the next test
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    err = err_path.read_text()
+    assert not left, f'processes left running after SIGTERM: {left}'
+    assert proc.returncode == 143, err
+    assert err.strip() == 'coreg validate-diagnosis: SIGTERM: stopped (its workers too)', err

@@ -4,7 +4,8 @@ One error policy for every ``coreg`` subcommand.
 A ``CoregError`` is one line on stderr, ``coreg COMMAND: error: ...``, and exit code 1; the
 core names parameters (``sigma_a``), and the line adds how to give them here (``--sigma-a``).
 Missing ROS 2 packages are one line naming the fix; Ctrl-C is ``interrupted`` and exit code
-130; a reader that went away (``| head``) is not an error.
+130 (SIGTERM while cases run on workers: 143, the workers stopped); a reader that went away
+(``| head``) is not an error.
 """
 
 from __future__ import annotations
@@ -47,10 +48,21 @@ def fail(command: str, message: str) -> int:
     return 1
 
 
-def interrupted(command: str) -> int:
-    """Say that ``coreg COMMAND`` was interrupted and return exit code 130 (128 + SIGINT)."""
-    print(f'{PROG} {command}: interrupted', file=sys.stderr)
-    return 130
+def interrupted(command: str, signum: int = 2) -> int:
+    """
+    Say that ``coreg COMMAND`` was interrupted; return 128 + the signal (130 for SIGINT).
+
+    ``signum`` is the ``signum`` of the KeyboardInterrupt caught (``parallel.Terminated``
+    carries SIGTERM's, 15: exit code 143), else SIGINT's.
+    """
+    if signum == 2:
+        print(f'{PROG} {command}: interrupted', file=sys.stderr)
+    else:
+        import signal
+
+        print(f'{PROG} {command}: {signal.Signals(signum).name}: stopped (its workers too)',
+              file=sys.stderr)
+    return 128 + signum
 
 
 def missing_package(error: ImportError) -> str:
@@ -92,8 +104,8 @@ def run_command(command: str, func: Callable, args) -> int:
         if not fix:
             raise
         return fail(command, fix)
-    except KeyboardInterrupt:
-        return interrupted(command)
+    except KeyboardInterrupt as e:
+        return interrupted(command, getattr(e, 'signum', 2))
     except BrokenPipeError:
         # the reader (e.g. `| head`) went away: not an error of ours
         sys.stderr.close()
