@@ -170,13 +170,15 @@ def register(sub) -> None:
     """Add ``batch calibrate`` and ``batch diagnose`` to the ``coreg`` subparsers."""
     from coreg_ros.cli.argtypes import add_parallel_arguments
     from coreg_ros.cli.options import add_calibration_options
+    from coreg_ros.cli.policy import exit_codes
 
     p = sub.add_parser('batch', help='calibrate or diagnose every recording under a folder, '
-                                     'in parallel (a JSON per bag and a summary table)')
+                                     'in parallel (a JSON per bag and a summary table)',
+                       epilog=exit_codes('batch'))
     what = p.add_subparsers(dest='what', required=True, parser_class=type(p))
     for name, text in (('calibrate', 'run `coreg calibrate --json` on every recording'),
                        ('diagnose', 'run `coreg diagnose --json` on every recording')):
-        q = what.add_parser(name, help=text, description=text)
+        q = what.add_parser(name, help=text, description=text, epilog=exit_codes('batch'))
         q.add_argument('folder', help='folder searched for rosbag2 recordings (metadata.yaml)')
         q.add_argument('--out', required=True, metavar='DIR',
                        help='folder for one JSON per recording and summary.json')

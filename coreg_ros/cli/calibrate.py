@@ -21,7 +21,7 @@ from coreg_ros.cli.options import (
     roles_confirmed,
     settings_from_args,
 )
-from coreg_ros.cli.policy import PROG, with_flags
+from coreg_ros.cli.policy import exit_codes, PROG, with_flags
 
 
 @dataclass
@@ -155,7 +155,8 @@ def cmd_calibrate(args) -> int:
 
 def register(sub) -> None:
     """Add ``calibrate`` to the ``coreg`` subparsers."""
-    p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)')
+    p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)',
+                       epilog=exit_codes('calibrate'))
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT',
                    help='also write the result as JSON (atomically); - for stdout')

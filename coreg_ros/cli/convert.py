@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 
+from coreg_ros.cli.argtypes import add_storage_option
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B
 from coreg_ros.files.csv_poses import (
@@ -114,7 +115,7 @@ def register(subparsers) -> None:
                    help='invert device B poses (T -> T^-1): the export is base-in-marker')
     p.add_argument('--sort', action='store_true',
                    help='sort rows by time and drop repeated times instead of refusing them')
-    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    add_storage_option(p)
     p.add_argument('--topic-a', default=DEFAULT_TOPIC_A, help=f'default {DEFAULT_TOPIC_A}')
     p.add_argument('--topic-b', default=DEFAULT_TOPIC_B[0], help=f'default {DEFAULT_TOPIC_B[0]}')
     p.set_defaults(func=cmd_convert)
@@ -169,5 +170,5 @@ def register_fix_bag(subparsers) -> None:
                    help='drop messages whose header stamp repeats an earlier one (keep first)')
     p.add_argument('--split-at-jump', type=positive, metavar='S',
                    help='split where a header stamp jumps by more than S seconds')
-    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    add_storage_option(p)
     p.set_defaults(func=cmd_fix_bag)

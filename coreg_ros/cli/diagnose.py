@@ -171,9 +171,11 @@ def register(sub) -> None:
     """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
     from coreg_ros.cli.argtypes import add_parallel_arguments
     from coreg_ros.cli.options import add_calibration_options
+    from coreg_ros.cli.policy import exit_codes
 
     p = sub.add_parser('diagnose', help='detect, locate and explain the gap between a '
-                                        'recording and the model (sim-to-real)')
+                                        'recording and the model (sim-to-real)',
+                       epilog=exit_codes('diagnose'))
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT', help='also write the diagnosis as JSON')
     p.add_argument('--report', metavar='DIR', help='write an HTML report (index.html + PNGs)')
@@ -181,7 +183,8 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser('validate-diagnosis',
-                       help='score the diagnosis on simulated recordings with hidden effects')
+                       help='score the diagnosis on simulated recordings with hidden effects',
+                       epilog=exit_codes('validate-diagnosis'))
     p.add_argument('--cases', type=positive_int, default=40, help='recordings (default 40)')
     p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
     add_parallel_arguments(p)

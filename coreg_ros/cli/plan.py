@@ -32,7 +32,8 @@ def register(subparsers) -> None:
     from coreg_ros.sim.motion import MOTION_PRESETS
     p.add_argument('--motion', choices=MOTION_PRESETS, default='diverse',
                    help='motion preset simulated with --duration (default diverse)')
-    p.add_argument('--model', choices=MODELS, default='full_pose')
+    p.add_argument('--model', choices=MODELS, default='full_pose',
+                   help='what device B will measure (default full_pose)')
     p.add_argument('--rate-b', type=positive, metavar='HZ',
                    help="pairs per second, device B's rate (default 50; with --bag and B "
                         'in it, the recorded pairs)')

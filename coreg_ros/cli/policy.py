@@ -42,6 +42,25 @@ def with_flags(message: str) -> str:
     return _NAMED.sub(spell, message)
 
 
+#: What each exit code of the commands that decide something means (their ``--help`` epilog;
+#: the README's table says the same). Every command: 1 an error, 130 Ctrl-C.
+EXIT_CODES = {
+    'calibrate': '0 a consistent calibration; 3 it converged but the data contradict the fit '
+                 'or the roles look swapped (the verdict says what to do); 1 an error',
+    'diagnose': '0 the diagnosis ran (what it found is the report, not the code); 1 an error',
+    'batch': '0 every recording done (calibrate: each consistent); 3 none failed but a '
+             'calibration contradicts its data; 1 a recording failed (the table names it) or '
+             'an error; 143 SIGTERM (the workers stopped)',
+    'validate-diagnosis': '0 every case ran; 1 a case failed (listed) or an error; 143 '
+                          'SIGTERM (the workers stopped)',
+}
+
+
+def exit_codes(command: str) -> str:
+    """Return the ``--help`` epilog of ``command`` saying what its exit codes mean."""
+    return f'exit codes: {EXIT_CODES[command]}; 130 Ctrl-C'
+
+
 def fail(command: str, message: str) -> int:
     """Print the one-line error of ``coreg COMMAND`` and return exit code 1."""
     print(f'{PROG} {command}: error: {message}', file=sys.stderr)

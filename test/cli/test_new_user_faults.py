@@ -236,3 +236,34 @@ def test_a_prior_from_the_same_samples_is_refused(rec, bag, tmp_path, capsys):
     write_pose_bag(tmp_path / 'other', other.streams)
     assert main(['calibrate', str(tmp_path / 'other'), '--prior', str(first)]) == 0
     assert 'prior: chi2' in capsys.readouterr().out
+
+
+def _options_without_help(parser, path):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _options_without_help(sub, f'{path} {name}')
+        elif action.help is None and not isinstance(action, argparse._HelpAction):
+            yield f'{path} {"/".join(action.option_strings) or action.dest}'
+
+
+def test_every_option_of_every_command_says_what_it_is():
+    # `coreg simulate --help` had five options without a word (and convert, fix-bag, plan,
+    # record and call one each)
+    from coreg_ros.cli.main import build_parser
+
+    assert list(_options_without_help(build_parser(), 'coreg')) == []
+
+
+@pytest.mark.parametrize('command', [['calibrate'], ['diagnose'], ['batch', 'calibrate'],
+                                     ['batch', 'diagnose'], ['validate-diagnosis']])
+def test_help_says_what_the_exit_codes_mean(command, capsys):
+    # the exit codes of diagnose and batch were documented nowhere
+    with pytest.raises(SystemExit):
+        main([*command, '--help'])
+    text = ' '.join(capsys.readouterr().out.split())
+    assert 'exit codes: 0 ' in text and '1 ' in text and '130 Ctrl-C' in text
+    if command[0] in ('calibrate', 'batch'):
+        assert '3 ' in text
