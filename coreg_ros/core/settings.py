@@ -85,8 +85,8 @@ class Settings:
             raise ConfigError(
                 f'method {self.method!r} is unknown; use one of {", ".join(METHODS)}')
         for name in ('max_gap', 'time_offset', 'min_pairs', 'max_iterations'):
-            _check_number(name, getattr(self, name), integer=name in ('min_pairs',
-                                                                       'max_iterations'))
+            integer = name in ('min_pairs', 'max_iterations')
+            _check_number(name, getattr(self, name), integer=integer)
         for name in ('sigma_a', 'sigma_b'):
             try:
                 value = tuple(float(v) for v in getattr(self, name))

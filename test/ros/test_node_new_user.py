@@ -41,8 +41,8 @@ def _quiet(_line):
     pass
 
 
-def test_swapped_devices_are_not_published_unless_the_roles_are_confirmed(ros_session,
-                                                                         start_node_here):
+def test_swapped_devices_are_not_published_unless_the_roles_are_confirmed(
+        ros_session, start_node_here):
     rec = simulate_recording(26, 12.0)
     # the noise of each device stated for the topic it arrives on: the swap fits well
     node = start_node_here({'qos_reliable': True, 'sigma_a': list(rec.truth.sigma_b),
@@ -62,8 +62,8 @@ def test_swapped_devices_are_not_published_unless_the_roles_are_confirmed(ros_se
     assert wait_for_result(ros_session, f'{NODE}/base_to_base', timeout=10.0) is not None
 
 
-def test_the_nodes_own_result_is_not_a_prior_for_its_own_samples(ros_session, start_node_here,
-                                                                  tmp_path, capfd):
+def test_the_nodes_own_result_is_not_a_prior_for_its_own_samples(
+        ros_session, start_node_here, tmp_path, capfd):
     rec = simulate_recording(27, 12.0)
     node = start_node_here({'qos_reliable': True, 'use_last_result_as_prior': True})
     play_streams(ros_session, rec.streams, rate=math.inf, wait_subscribers=20, log=_quiet)
@@ -113,8 +113,8 @@ def test_an_unwritable_storage_dir_makes_calibrate_answer_false(ros_session, sta
     ('other_node:\n  ros__parameters:\n    model: position_only\n',
      'has no "coreg_node: ros__parameters:" section (it has other_node)'),
 ])
-def test_a_parameter_file_that_sets_nothing_is_said_at_start_up(ros_domain, tmp_path, text,
-                                                                 words):
+def test_a_parameter_file_that_sets_nothing_is_said_at_start_up(
+        ros_domain, tmp_path, text, words):
     params = tmp_path / 'params.yaml'
     params.write_text(text)
     node = subprocess.Popen(

@@ -158,7 +158,7 @@ def same_data_prior(prior: Optional[Prior], streams_b: Sequence[PoseStream]) -> 
         return
     of_prior, of_this = shared
     raise InputError(
-        f"the prior was calibrated on these same samples (about {of_this:.0%} of this "
+        f'the prior was calibrated on these same samples (about {of_this:.0%} of this '
         f"recording's B samples are among its, {of_prior:.0%} of its here): it would count "
         f'them twice (σ too small by up to √2, the prior agreeing by construction); '
         f'calibrate without the prior (`prior`), or take one from another recording')
