@@ -331,6 +331,11 @@ def main(argv=None) -> int:
                  with_scipy=not args.no_scipy, scipy_cap=args.scipy_cap)
         scale.append(('calibrate_speed', 'Whole calibrate() at 100k and 1M pairs',
                       calibrate_speed_bench))
+    if not args.no_calibrate_speed:
+        from bench import restricted_bench
+        _section(results, 'restricted', restricted_bench.run)
+        scale.append(('restricted', 'Restricted rigs: calibrate() against a full-rank '
+                      'recording of the same size', restricted_bench))
     if args.bag_messages > 0:
         from bench import bag_bench
         _section(results, 'bags', bag_bench.run, n=args.bag_messages,

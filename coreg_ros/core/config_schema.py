@@ -36,6 +36,7 @@ NODE_DEFAULTS = {
     'frame_base_b': 'device_b_base',
     'frame_tool': 'device_a_tool',
     'frame_marker': 'device_b_marker',
+    'publish_tf': True,
     'storage_dir': '~/.ros/coreg',
     'resume_samples': False,
     'publish_fused_pose': True,

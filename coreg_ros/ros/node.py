@@ -17,7 +17,9 @@ Services (std_srvs/Trigger)
 Publications
     ``~/base_to_base`` (pose of ``frame_base_a`` in ``frame_base_b``) and ``~/tool_to_marker``
     (pose of ``frame_marker`` in ``frame_tool``), PoseWithCovarianceStamped, transient-local
-    so late subscribers get the last result; ``/diagnostics`` at 1 Hz (with messages lost in
+    so late subscribers get the last result; the same two transforms on ``/tf_static``
+    (``publish_tf``: ``frame_base_b`` -> ``frame_base_a``, ``frame_tool`` -> ``frame_marker``,
+    ``ros.static_tf``); ``/diagnostics`` at 1 Hz (with messages lost in
     the middleware or missing from the stamps, swapped frame ids, a wrong message type on a
     topic, and storage errors). Once a calibration exists, ``~/fused_pose`` and
     ``~/uncertainty_markers`` (``ros.uncertainty_outputs``). The live checks
@@ -80,6 +82,7 @@ from coreg_ros.ros.parameters import (
     read_config,
 )
 from coreg_ros.ros.sample_store import FLUSH_PERIOD, SampleStore
+from coreg_ros.ros.static_tf import StaticTf
 from coreg_ros.ros.status_publisher import StatusPublisher
 from coreg_ros.ros.uncertainty_outputs import (
     DRAIN_PERIOD,
@@ -169,10 +172,11 @@ class CoregNode(Node):
         pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # Wakes the services executor when a ~/calibrate fit in the worker thread is done.
         fitted = self.create_guard_condition(lambda: None)
+        self.static_tf = StaticTf(self, config.frames, config.publish_tf, log)
         self.calibrator = Calibrator(config, key, name, self.get_fully_qualified_name(),
                                      self.params, self.store, pub_base, pub_tool,
                                      self.get_clock(), log, self.alerts, io_lock,
-                                     fitted.trigger)
+                                     fitted.trigger, self.static_tf)
         self.outputs = UncertaintyOutputs(
             config, self.params, self.store.buffers,
             self.create_publisher(PoseWithCovarianceStamped, '~/fused_pose', FUSED_QOS),

@@ -106,6 +106,9 @@ PARAMETERS = (
     ('frame_base_b', DEFAULTS['frame_base_b'], _desc("device B's base frame", read_only=True)),
     ('frame_tool', DEFAULTS['frame_tool'], _desc("device A's tool frame", read_only=True)),
     ('frame_marker', DEFAULTS['frame_marker'], _desc("device B's marker frame", read_only=True)),
+    ('publish_tf', DEFAULTS['publish_tf'],
+     _desc('broadcast the calibration on /tf_static (tf2): frame_base_b -> frame_base_a (T0) '
+           'and frame_tool -> frame_marker (T1), latched', read_only=True)),
     ('storage_dir', DEFAULTS['storage_dir'],
      _desc('directory of the stored results (one file per node and configuration), the '
            'sample journal and saved sample bags', read_only=True)),
@@ -181,6 +184,8 @@ class NodeConfig:
         Reliable subscriptions instead of the sensor-data (best effort) profile.
     frame_base_a, frame_base_b, frame_tool, frame_marker : str
         Frame ids of the published poses.
+    publish_tf : bool
+        Broadcast T0 and T1 on /tf_static (``ros.static_tf``).
     storage_dir : str
         Directory of the stored results, the journal and sample bags, user (~) expanded.
     resume_samples : bool
@@ -197,6 +202,7 @@ class NodeConfig:
     frame_marker: str
     storage_dir: str
     resume_samples: bool = False
+    publish_tf: bool = True
 
     @property
     def frames(self) -> dict:
@@ -400,4 +406,5 @@ def read_config(node: Node) -> NodeConfig:
         frame_marker=str(values['frame_marker']),
         storage_dir=os.path.expanduser(storage),
         resume_samples=bool(values['resume_samples']),
+        publish_tf=bool(values['publish_tf']),
     )
