@@ -370,6 +370,10 @@ class SequenceCounter:
 
     #: Messages taken before the publishing rate (and so ``head``) is trusted.
     RATE_AFTER = 10
+    #: Why the count cannot be used.
+    NO_NUMBERS = 'the middleware gives no publication sequence numbers'
+    INTERLEAVED = ('sequence numbers do not increase: several publishers on the topic (or one '
+                   'restarted)')
 
     def __init__(self, created_ns: int):
         self.created_ns = int(created_ns)
@@ -396,14 +400,13 @@ class SequenceCounter:
             return
         numbers = [i.get('publication_sequence_number') if i else None for i in infos]
         if None in numbers:
-            self.why_not = 'the middleware gives no publication sequence numbers'
+            self.why_not = self.NO_NUMBERS
             return
         seq = np.asarray(numbers, dtype=np.int64)
         joined = seq if self._last is None else np.concatenate(([self._last], seq))
         steps = np.diff(joined)
         if np.any(steps <= 0):
-            self.why_not = ('sequence numbers do not increase: several publishers on the topic '
-                            '(or one restarted)')
+            self.why_not = self.INTERLEAVED
             return
         if self._first is None:
             self._first = (int(seq[0]), infos[0].get('source_timestamp'))
@@ -411,6 +414,25 @@ class SequenceCounter:
         self._last = int(seq[-1])
         if not self._head_decided:
             self._decide_head(infos[-1].get('source_timestamp'))
+
+    def update_one(self, info: dict) -> None:
+        """Take one message's info (the plain intake: plain Python, no numpy per message)."""
+        if self.why_not:
+            return
+        number = info.get('publication_sequence_number') if info else None
+        if number is None:
+            self.why_not = self.NO_NUMBERS
+            return
+        if self._last is None:
+            self._first = (number, info.get('source_timestamp'))
+        elif number <= self._last:
+            self.why_not = self.INTERLEAVED
+            return
+        else:
+            self.between += number - self._last - 1
+        self._last = number
+        if not self._head_decided:
+            self._decide_head(info.get('source_timestamp'))
 
     def _decide_head(self, last_source_ns) -> None:
         """Count the messages before the first taken if the publisher began after us."""

@@ -124,12 +124,12 @@ class SampleStore:
         if self.intake is not None:
             return self.intake.callback(topic)
         push = self.buffers[topic].push
-        sequence = self.sequences[topic].update
+        sequence = self.sequences[topic].update_one
         time_ns = time.time_ns
 
         def on_pose(msg: PoseStamped, info: dict) -> None:  # two arguments: rclpy passes info
             # Cheap on purpose: scalars into a preallocated ring, no logging.
-            sequence([info])
+            sequence(info)
             stamp, x, y, z, qw, qx, qy, qz = pose_stamped_values(msg)
             reason = push(stamp, time_ns(), x, y, z, qw, qx, qy, qz, msg.header.frame_id)
             if reason is not None:

@@ -19,6 +19,7 @@ from coreg_ros.files.bag.posebag import write_pose_bag
 from coreg_ros.ros.buffer import SequenceCounter
 from coreg_ros.ros.interface import SUB_DEPTH
 from coreg_ros.ros.messages import make_pose_stamped
+from coreg_ros.ros.node import PLAIN_ENV
 from coreg_ros.ros.tools import (
     call_trigger,
     diagnostics_values,
@@ -137,12 +138,14 @@ def test_a_parameter_file_that_sets_nothing_is_said_at_start_up(
     assert log.index(words) < log.index('listening to')  # said before it starts
 
 
-def test_messages_lost_on_the_way_are_counted_as_sent_whatever_the_stamps(ros_session,
-                                                                          start_node_here):
+@pytest.mark.parametrize('plain', ['0', '1'])  # the raw intake, one message per callback
+def test_messages_lost_on_the_way_are_counted_as_sent_whatever_the_stamps(
+        ros_session, start_node_here, monkeypatch, plain):
     # A fresh node subscribed but not yet taking (still starting up) while a device with an
     # irregular rate pours messages in: the middleware keeps some (its history is bounded)
     # and drops the rest. The node must then say how many it lost, exactly: the holes in
     # irregular stamps cannot tell it (they count intervals, not messages).
+    monkeypatch.setenv(PLAIN_ENV, plain)
     node = start_node_here(spin=False)
     pub = publishers(ros_session, (A,))[A]
     rng = np.random.default_rng(25)
@@ -189,6 +192,10 @@ def test_sequence_counter_counts_holes_and_a_late_publishers_head_only():
         counter.update(_infos(sent[chunk], sources[chunk]))
     assert counter.counting and counter.lost == len(sent) - keep.sum()
     assert counter.head == 300
+    one_by_one = SequenceCounter(created)  # the plain intake's way: the same count
+    for info in _infos(sent[keep], sources[keep]):
+        one_by_one.update_one(info)
+    assert (one_by_one.between, one_by_one.head) == (counter.between, counter.head)
     # a publisher running since long before: its earlier messages were for nobody here
     running = SequenceCounter(created)
     running.update(_infos(sent[300:], created - 10**8 + (sent[300:] - 300) * 1_000_000))
@@ -197,3 +204,7 @@ def test_sequence_counter_counts_holes_and_a_late_publishers_head_only():
     two = SequenceCounter(created)
     two.update(_infos([1, 2, 1, 3, 2], sources[:5]))
     assert not two.counting and 'several publishers' in two.why_not
+    two_one_by_one = SequenceCounter(created)
+    for info in _infos([1, 2, 1, 3, 2], sources[:5]):
+        two_one_by_one.update_one(info)
+    assert two_one_by_one.why_not == two.why_not
