@@ -369,6 +369,9 @@ class CalibrationResult:
         Checks that refuse a converged fit whatever its chi-square, by name:
         ``'devices_swapped'`` when the messages' frame ids say that A and B are swapped and
         the user has not confirmed the roles. Empty when none refuses.
+    noise : calibration.noise_verdict.NoiseEstimate, optional
+        Each device's noise estimated jointly with the calibration (``noise: auto``), which
+        the fit then used; None when the noise was stated.
 
     """
 
@@ -400,6 +403,7 @@ class CalibrationResult:
     direction_check: Optional[object] = None
     unobservable: tuple = ()
     cov_determined: Optional[np.ndarray] = None
+    noise: Optional[object] = None
     refusals: tuple = ()
 
     @property

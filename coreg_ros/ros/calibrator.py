@@ -282,6 +282,8 @@ class Calibrator:
             f'{result.iterations} iterations, '
             f'{seconds:.2f} s; base_to_base p [{p0[0]:.4f}, {p0[1]:.4f}, {p0[2]:.4f}] m, '
             f'tool_to_marker p [{p1[0]:.4f}, {p1[1]:.4f}, {p1[2]:.4f}] m; {stored}')
+        if result.noise is not None:  # noise: auto, what the calibration found of the noise
+            message += '; ' + (result.noise.verdict() or 'noise estimated: as stated')
         if result.held:  # a rig that cannot move in every direction: what is unknown
             message += '; held (the motion cannot show it, covariance unknown along it): ' + \
                 '; '.join(u.description for u in result.held)

@@ -75,6 +75,7 @@ from coreg_ros.ros.lifecycle import (
     shutdown_quietly,
 )
 from coreg_ros.ros.live_checks import LiveChecks, STALE_QOS
+from coreg_ros.ros.live_noise import NoiseSources
 from coreg_ros.ros.parameters import (
     check_params_files,
     declare_parameters,
@@ -146,10 +147,14 @@ class CoregNode(Node):
         for line in declare_parameters(self):
             self.get_logger().warning(line)
         self.config = config = read_config(self)
-        self.params = ParameterView(self)
+        self.noise = NoiseSources(config.noise_file, config.settings)
+        self.params = ParameterView(self, self.noise)
         settings, log, name = config.settings, self.get_logger(), self.get_name()
-        # What a stored result or a journal is valid for: one per node name and configuration.
-        key = persistence.config_key(settings.as_dict(), config.frames)
+        # What a stored result or a journal is valid for: one per node name and configuration
+        # (a noise file's covariances are part of it).
+        stated = settings.noise_dict()
+        key = persistence.config_key({**settings.as_dict(), **(
+            {'noise_file': stated} if stated else {})}, config.frames)
         io_lock = threading.Lock()  # the node's disk writes, one at a time
         self.alerts = Alerts(log, config.storage_dir)
         raw = os.environ.get(PLAIN_ENV, '').strip() in ('', '0')
@@ -188,9 +193,10 @@ class CoregNode(Node):
                                log)
         self.calibrator.add_listener(self.outputs)
         self.calibrator.add_listener(self.live)
+        self.calibrator.add_listener(self.noise)
         self.status = StatusPublisher(name, config, self.params, self.store, self.calibrator,
                                       self.live, self.alerts, pub_diag, self.get_clock(),
-                                      self.get_publishers_info_by_topic)
+                                      self.get_publishers_info_by_topic, self.noise)
 
         guard = self.alerts.guard_service
         # A group of its own: while ~/calibrate awaits its fit, the node's default group (the
@@ -238,6 +244,7 @@ class CoregNode(Node):
         """Answer ``~/reset``: forget the samples, start guidance afresh; keep the result."""
         held = self.store.forget()
         self.live.reset()
+        self.noise.forget()
         response.success = True
         response.message = f'forgot {held} samples; the published result is kept'
         return response

@@ -34,7 +34,6 @@ from coreg_ros.core.estimator import (
     carried_inputs,
     heading,
     InputState,
-    noise_covariance,
     normal_equations,
     ols_cost,
     ols_information,
@@ -460,7 +459,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     prior : Prior, optional
         Prior knowledge of the parameters, added to the fit.
     cov_a, cov_b : ndarray, shape (6, 6), optional
-        Full noise covariances (ROS layout) overriding ``sigma_a`` / ``sigma_b``.
+        Full noise covariances (ROS layout) overriding the settings' (``Settings.cov_a``:
+        ``noise_a`` if given, else ``sigma_a``).
     start : Parameters, optional
         A starting φ instead of the closed form.
     warm : bool
@@ -484,8 +484,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     """
     settings = settings or Settings()
     spec = SPECS[settings.model]
-    cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
-    cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
+    cov_a = settings.cov_a if cov_a is None else cov_a
+    cov_b = settings.cov_b if cov_b is None else cov_b
     fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b, paths)
     cov_a6 = np.asarray(cov_a, dtype=float).reshape(6, 6)
     refuse_if_nothing_moved(fitter.pos_a, fitter.quat_a,

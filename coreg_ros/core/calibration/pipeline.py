@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional, Union
 
+from coreg_ros.core.calibration.auto_noise import calibrate_with_noise
 from coreg_ros.core.calibration.clock_check import clock_problem
 from coreg_ros.core.calibration.offset_search import fit_at_offset, fit_with_offset_search
 from coreg_ros.core.calibration.pairing import stream_list
@@ -63,7 +64,10 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     streams_b : PoseStream or sequence of PoseStream
         Device B: marker pose(s) in B's base frame (three streams for ``three_marker``).
     settings : Settings
-        The configuration (model, method, noise, pairing, robust fit).
+        The configuration (model, method, noise, pairing, robust fit). With ``noise ==
+        'auto'`` each device's noise is estimated with the calibration (``auto_noise``): the
+        result then carries it (``noise``), is fitted and judged with it, and its verdict
+        names the noise that was misstated.
     prior : Prior, optional
         Prior knowledge of the parameters, added to the fit.
     frames : (str, str), optional
@@ -104,7 +108,10 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     streams_b = stream_list(streams_b)
     same_data_prior(prior, streams_b)
     try:
-        if settings.estimate_time_offset:
+        if settings.noise == 'auto':  # the noise estimated with the fit, and the fit at it
+            result, report, settings = calibrate_with_noise(stream_a, streams_b, settings,
+                                                            prior)
+        elif settings.estimate_time_offset:
             result, report = fit_with_offset_search(stream_a, streams_b, settings, prior)
         else:
             result, report = fit_at_offset(stream_a, streams_b, settings, prior,
@@ -125,7 +132,8 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
             raise
         raise error from e
     fitted = result
-    result = judge(fitted, stream_a, streams_b, settings, prior, frames, roles_confirmed)
+    result = with_noise_verdict(judge(fitted, stream_a, streams_b, settings, prior,
+                                      frames, roles_confirmed))
     check = None
     if direction_check and not float(result.p_value) >= CHECK_BELOW_P:  # NaN checks too
         check = check_directions(stream_a, streams_b, settings)
@@ -135,11 +143,20 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         # a bad fit nothing cheaper explains: is it the clock? (a few block fits)
         clock = clock_problem(stream_a, streams_b, settings)
         if clock:
-            result = judge(fitted, stream_a, streams_b, settings, prior, frames,
-                           roles_confirmed, clock)
+            result = with_noise_verdict(judge(fitted, stream_a, streams_b, settings, prior,
+                                              frames, roles_confirmed, clock))
             if check is not None:
                 result = with_direction_check(result, check)
     return result, report
+
+
+
+def with_noise_verdict(result: CalibrationResult) -> CalibrationResult:
+    """Return the result with the noise estimate's verdict (noise: auto) added to its own."""
+    if result.noise is None:
+        return result
+    said = result.noise.verdict()  # which device's noise was misstated, and how
+    return replace(result, verdict='; '.join(v for v in (result.verdict, said) if v))
 
 
 def same_data_prior(prior: Optional[Prior], streams_b: Sequence[PoseStream]) -> None:
