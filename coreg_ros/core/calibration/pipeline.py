@@ -150,7 +150,6 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     return result, report
 
 
-
 def with_noise_verdict(result: CalibrationResult) -> CalibrationResult:
     """Return the result with the noise estimate's verdict (noise: auto) added to its own."""
     if result.noise is None:
