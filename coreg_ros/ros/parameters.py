@@ -349,7 +349,6 @@ def check_params_files(args: list[str], node_name: str, warn=None) -> None:
                                     warn_section=warn), f'{path}: ')
 
 
-
 def rig_devices(values: dict, where: str) -> tuple:
     """
     Return the devices B_k a rig's keys (``devices``, ``device.<name>.*``) name; () without.
