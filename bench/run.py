@@ -292,6 +292,8 @@ def main(argv=None) -> int:
                         help='validation cases run with 1 and 2 workers (0 skips it)')
     parser.add_argument('--no-calibrate-speed', action='store_true',
                         help='skip the whole calibrate() at 100k and 1M pairs')
+    parser.add_argument('--rig-samples', type=int, default=250_000,
+                        help='samples per device of the rig benchmark (0 skips it)')
     parser.add_argument('--diagnosis-cases', type=int, default=500,
                         help='cases of the blind diagnosis validation (0: skip; the 60k-pair '
                              'diagnosis timing always runs)')
@@ -347,6 +349,11 @@ def main(argv=None) -> int:
                  with_scipy=not args.no_scipy, scipy_cap=args.scipy_cap)
         scale.append(('calibrate_speed', 'Whole calibrate() at 100k and 1M pairs',
                       calibrate_speed_bench))
+    if args.rig_samples > 0:
+        from bench import rig_bench
+        _section(results, 'rig', rig_bench.run, args.rig_samples)
+        scale.append(('rig', 'A rig: A + 3 devices with their own clocks against one pair',
+                      rig_bench))
     if not args.no_calibrate_speed:
         from bench import restricted_bench
         _section(results, 'restricted', restricted_bench.run)

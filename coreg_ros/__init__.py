@@ -21,6 +21,12 @@ _HOMES = {
     # calibration
     'calibrate': 'coreg_ros.api',
     'model_of': 'coreg_ros.api',
+    'Device': 'coreg_ros.api',
+    'calibrate_rig': 'coreg_ros.core.rig.pipeline',
+    'RigDevice': 'coreg_ros.core.rig.devices',
+    'RigResult': 'coreg_ros.core.rig.result',
+    'relative_base': 'coreg_ros.core.rig.loops',
+    'loop_report': 'coreg_ros.core.rig.loops',
     'calibrate_streams': 'coreg_ros.core.calibration.pipeline',
     'calibrate_pairs': 'coreg_ros.core.calibration.auto_noise',
     'pair_streams': 'coreg_ros.core.calibration.pairing',

@@ -6,12 +6,16 @@ sigma_a=(2e-4, 5e-4), sigma_b=(5e-4, 2e-3))`` runs the same pipeline as ``coreg 
 (pairing, clock offset when stamps are given, robust Ikits OLS/TLS, posterior covariance, fit
 verdict) and returns its ``CalibrationResult``; ``res.summary()`` is the text the command
 prints.
+
+A rig of more devices: ``cr.calibrate(pos_a, quat_a_wxyz, devices=[cr.Device('em1', pos_b1,
+quat_b1, stamps=t1, base='em'), cr.Device('cam', pos_b2, stamps=t2, sigma=(1e-3, 5e-3))],
+stamps_a=ta)`` calibrates every device jointly with A and returns a ``RigResult``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import fields
+from dataclasses import dataclass, fields
 import difflib
 import math
 import os
@@ -20,6 +24,8 @@ from typing import Optional, Union
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.rig.devices import RigDevice
+from coreg_ros.core.rig.result import RigResult
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
 import numpy as np
@@ -60,9 +66,72 @@ def _stamps(stamps, n: int, name: str) -> np.ndarray:
     return s.astype(np.int64)
 
 
+@dataclass(frozen=True)
+class Device:
+    """
+    One device B_k of a rig, as arrays (``calibrate(..., devices=[...])``).
+
+    Attributes
+    ----------
+    name : str
+    pos : array_like, shape (M, 3) or (M, 3, 3)
+        Its marker position(s) in its base frame, m; the model follows from the shapes as
+        for ``pos_b`` (``model_of``).
+    quat_wxyz : array_like, shape (M, 4), optional
+        Its marker orientation (w, x, y, z); leave out for a position-only device.
+    stamps : array_like of int64, shape (M,), optional
+        Its sample times on its own clock, ns (needed when A has stamps).
+    sigma : (float, float), optional
+        Its noise (position m, rotation rad); default ``sigma_b``.
+    base : str, optional
+        Devices with the same base are sensors of one device (one T0, one clock).
+
+    """
+
+    name: str
+    pos: object
+    quat_wxyz: object = None
+    stamps: object = None
+    sigma: Optional[tuple] = None
+    base: Optional[str] = None
+
+
+def _streams_b(pos_b: np.ndarray, quat_b_wxyz, stamps: np.ndarray, model: str) -> list:
+    """Device B's stream(s) from arrays: one, or one per marker for three markers."""
+    m = len(pos_b)
+    if model == 'three_marker':
+        ident = np.tile([1.0, 0.0, 0.0, 0.0], (m, 1))
+        return [PoseStream(stamps, pos_b[:, j], ident) for j in range(3)]
+    q_b = (np.tile([1.0, 0.0, 0.0, 0.0], (m, 1)) if quat_b_wxyz is None
+           else np.asarray(quat_b_wxyz, dtype=float))
+    return [PoseStream(stamps, pos_b, q_b)]
+
+
+def _rig(stream_a: PoseStream, devices, synchronised: bool, cfg: Settings) -> RigResult:
+    """Calibrate A with the devices B_k of ``devices`` (``Device``) jointly."""
+    from coreg_ros.core.rig.pipeline import calibrate_rig
+    rig = []
+    for d in devices:
+        if not isinstance(d, Device):
+            raise InputError(f'devices: expected coreg_ros.Device entries, got '
+                             f'{type(d).__name__}; e.g. Device("cam", pos, quat_wxyz, stamps=t)')
+        pos = np.asarray(d.pos, dtype=float)
+        model = model_of(pos, d.quat_wxyz)
+        if synchronised != (d.stamps is None):
+            raise InputError(f'device {d.name}: give stamps for every device and stamps_a, or '
+                             f'for none (simultaneous rows)')
+        if synchronised and len(pos) != len(stream_a):
+            raise InputError(f'device {d.name}: without stamps the rows are pairs with A, so it '
+                             f'needs {len(stream_a)} samples; got {len(pos)}')
+        stamps = _stamps(d.stamps, len(pos), f'device {d.name} stamps')
+        rig.append(RigDevice(d.name, tuple(_streams_b(pos, d.quat_wxyz, stamps, model)), model,
+                             None if d.sigma is None else tuple(d.sigma), d.base))
+    return calibrate_rig(stream_a, rig, cfg)
+
+
 #: Keywords of ``calibrate`` besides the ``Settings`` fields (for the nearest-name hint).
 _KEYWORDS = ('sigma_a', 'sigma_b', 'method', 'stamps_a', 'stamps_b', 'time_offset', 'robust',
-             'prior', 'noise', 'quat_b_wxyz')
+             'prior', 'noise', 'quat_b_wxyz', 'devices')
 #: Settings fields ``calibrate`` sets itself, and what to give instead.
 _DERIVED = {'model': 'the model follows from the shapes of pos_b and quat_b_wxyz (model_of)',
             'estimate_time_offset': "give time_offset='auto' (estimate) or seconds (fixed)"}
@@ -142,12 +211,13 @@ def _with_noise(settings: Settings, noise) -> Settings:
                      f"'b': DeviceNoise}}, got {type(noise).__name__}")
 
 
-def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
+def calibrate(pos_a, quat_a_wxyz, pos_b=None, quat_b_wxyz=None, *,
               sigma_a: tuple = Settings.sigma_a, sigma_b: tuple = Settings.sigma_b,
               method: str = 'tls', stamps_a=None, stamps_b=None,
               time_offset: Union[str, float] = 'auto', robust: bool = True,
               prior: Union[Prior, Mapping, str, os.PathLike, None] = None,
-              noise='stated', **settings) -> CalibrationResult:
+              devices: Optional[list] = None, noise='stated',
+              **settings) -> Union[CalibrationResult, RigResult]:
     """
     Calibrate from numpy arrays: T0 (A's base in B's base), T1 (B's marker in A's tool).
 
@@ -174,6 +244,10 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
     prior : Prior, dict, str or path-like, optional
         A priori estimate of T0 and T1 (Ikits B.3); a dict or a file (a previous result, or
         a partial prior) is loaded as ``coreg calibrate --prior`` loads it (``as_prior``).
+    devices : list of Device, optional
+        A rig: the devices B_k (instead of ``pos_b``), each with its arrays, stamps, noise
+        and base, calibrated jointly with A. ``sigma_b`` is the noise of a device without
+        its own.
     noise : 'stated', 'auto', str or Path, or dict
         ``'stated'``: ``sigma_a``/``sigma_b`` as given; ``'auto'``: each device's noise
         estimated with the calibration (``res.noise``; what the motion cannot separate held
@@ -186,9 +260,10 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
 
     Returns
     -------
-    CalibrationResult
+    CalibrationResult or RigResult
         ``success`` only when the estimator converged and the fit matches the stated noise;
-        ``summary()`` gives the text ``coreg calibrate`` prints.
+        ``summary()`` gives the text ``coreg calibrate`` prints. A ``RigResult`` with
+        ``devices``: each device's result in the rig and alone, the joint covariance.
 
     Raises
     ------
@@ -199,6 +274,26 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
     """
     _check_keywords(settings)
     estimate, offset = _offset(time_offset)
+    if devices is not None:
+        if pos_b is not None or quat_b_wxyz is not None or stamps_b is not None:
+            raise InputError('give device B as pos_b (one device) or as devices=[Device(...)] '
+                             '(a rig), not both')
+        if prior is not None:
+            raise InputError('a prior applies to one device B; calibrate that device alone '
+                             'with prior=, or the rig without it')
+        if not (isinstance(noise, str) and noise == 'stated'):
+            raise InputError("noise= applies to one device B; give a rig's noise as each "
+                             "Device's sigma (and sigma_a), or calibrate a device alone with "
+                             'noise=')
+        pos_a = np.asarray(pos_a, dtype=float)
+        ta = _stamps(stamps_a, len(pos_a), 'stamps_a')
+        cfg = Settings(method=method, sigma_a=tuple(sigma_a), sigma_b=tuple(sigma_b),
+                       robust=robust, estimate_time_offset=estimate and stamps_a is not None,
+                       time_offset=offset, **settings)
+        return _rig(PoseStream(ta, pos_a, np.asarray(quat_a_wxyz, dtype=float)), list(devices),
+                    stamps_a is None, cfg)
+    if pos_b is None:
+        raise InputError('give device B: pos_b (and quat_b_wxyz), or devices=[Device(...)]')
     prior = as_prior(prior)
     model = model_of(pos_b, quat_b_wxyz)
     pos_a = np.asarray(pos_a, dtype=float)
@@ -217,12 +312,6 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
                                **settings), noise)
     ta, tb = _stamps(stamps_a, n, 'stamps_a'), _stamps(stamps_b, m, 'stamps_b')
     stream_a = PoseStream(ta, pos_a, np.asarray(quat_a_wxyz, dtype=float))
-    if model == 'three_marker':
-        ident = np.tile([1.0, 0.0, 0.0, 0.0], (m, 1))
-        streams_b = [PoseStream(tb, pos_b[:, j], ident) for j in range(3)]
-    else:
-        q_b = (np.tile([1.0, 0.0, 0.0, 0.0], (m, 1)) if quat_b_wxyz is None
-               else np.asarray(quat_b_wxyz, dtype=float))
-        streams_b = [PoseStream(tb, pos_b, q_b)]
+    streams_b = _streams_b(pos_b, quat_b_wxyz, tb, model)
     result, _ = calibrate_streams(stream_a, streams_b, cfg, prior)
     return result

@@ -82,3 +82,35 @@ def test_bad_arrays_get_one_line_errors_that_name_the_fix(kwargs, words):
     with pytest.raises(cr.InputError, match=words) as e:
         cr.calibrate(**args)
     assert '\n' not in str(e.value)
+
+
+def test_a_rig_of_arrays_and_one_device_is_the_pair():
+    from coreg_ros.sim.rig import SimDevice, simulate_rig
+    devices = (SimDevice('cam', 'full_pose', 40.0, (5e-4, 2e-3), 300.0),
+               SimDevice('pen', 'position_only', 40.0, (5e-4, 2e-3), -0.02))
+    rig = simulate_rig(4, 20.0, devices)
+    a = rig.stream_a
+
+    def device(k, name):
+        s = rig.streams[k][0]
+        return cr.Device(name, s.position, s.quat_wxyz if k == 0 else None, stamps=s.stamps,
+                         sigma=devices[k].sigma)
+
+    both = cr.calibrate(a.position, a.quat_wxyz, devices=[device(0, 'cam'), device(1, 'pen')],
+                        stamps_a=a.stamps)
+    assert isinstance(both, cr.RigResult) and both.success
+    assert [d.result.model for d in both.devices] == ['full_pose', 'position_only']
+    assert abs(both.devices[0].result.time_offset.value_s - 300.0) < 1e-3
+    pose = cr.relative_base(both, 0, 1)  # the camera's base in the pen's
+    truth = rig.truths
+    expected = truth[1].p0 - quat.to_matrix(quat.multiply(truth[1].q0, quat.conjugate(
+        truth[0].q0))) @ truth[0].p0
+    assert np.all(np.abs(pose.position - expected) < 4 * np.sqrt(np.diag(pose.covariance)[:3]))
+    one = cr.calibrate(a.position, a.quat_wxyz, devices=[device(0, 'cam')], stamps_a=a.stamps)
+    s = rig.streams[0][0]
+    pair = cr.calibrate(a.position, a.quat_wxyz, s.position, s.quat_wxyz, stamps_a=a.stamps,
+                        stamps_b=s.stamps, sigma_b=devices[0].sigma)
+    assert np.array_equal(one.devices[0].result.params, pair.params)
+    assert np.array_equal(one.devices[0].result.cov_joint, pair.cov_joint)
+    with pytest.raises(cr.InputError, match='not both'):
+        cr.calibrate(a.position, a.quat_wxyz, s.position, devices=[device(0, 'cam')])

@@ -162,7 +162,7 @@ CORE_LEVELS = (
     ('estimator', 'noise'),                  # Ikits appendix B; a still device's noise
     ('uncertainty', 'clock'),                # Hoff & Vincent; the clock's signals and step
     ('calibration',),                        # streams and pairs to a judged result
-    ('planning',),                           # the Cramér-Rao bound, a recording's plan
+    ('planning', 'rig'),                     # the Cramér-Rao bound, a recording's plan; rigs
     ('live', 'diagnosis'),                   # guidance, watchdog, fusion; the gap diagnosis
 )
 

@@ -19,7 +19,7 @@ from coreg_ros.cli.options import (
     EXIT_INCONSISTENT,
     prior_from_args,
     roles_confirmed,
-    settings_from_args,
+    settings_and_devices,
 )
 from coreg_ros.cli.policy import exit_codes, PROG, with_flags
 
@@ -125,11 +125,14 @@ def cmd_calibrate(args) -> int:
     from coreg_ros.files.output_paths import check_output_dir, check_output_file
     from coreg_ros.report.calibration_report import points_from_flat
 
+    settings, devices = settings_and_devices(args)
+    check_output_file(args.json, '--json')  # before the work, not after it
+    if devices:  # a rig: several devices B
+        from coreg_ros.cli.rig_calibrate import run_rig
+        return run_rig(args, settings, devices, config_frames(args))
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
     out = sys.stderr if args.json == '-' else sys.stdout
-    check_output_file(args.json, '--json')  # before the work, not after it
     check_output_dir(args.report, '--report')
-    settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
     prior = prior_from_args(args)
     run = calibrate_bag(args.bag, settings, prior, frames=config_frames(args),
@@ -169,6 +172,12 @@ def register(sub) -> None:
     add_prior_options(p, "a previous result (--json output or the node's result.yaml) or a "
                          'partial prior (base_to_base / tool_to_marker with sigma per axis) '
                          'that this recording refines (Ikits B.3)')
+    p.add_argument('--shared-base', action='store_true',
+                   help='the B topics are sensors of one device: one base (T0) and one clock '
+                        'for all of them')
+    p.add_argument('--loops', action='store_true',
+                   help='a rig: also calibrate every two devices directly and check that the '
+                        "rig's loops close, naming the device that is off")
     add_check_options(p)
     p.add_argument('--report', metavar='DIR',
                    help='also write an HTML report (ellipsoids, axis cones, residuals) to DIR')

@@ -2,7 +2,8 @@
 ``coreg convert`` and ``coreg fix-bag``: CSV pose exports to a rosbag2 recording; bag repairs.
 
 The exports are read and checked by ``coreg_ros.files.csv_poses`` and written as
-``geometry_msgs/PoseStamped`` on ``/device_a/pose`` and ``/device_b/pose``.
+``geometry_msgs/PoseStamped`` on ``/device_a/pose`` and ``/device_b/pose``; several B exports
+(a rig, issue 23) go to ``/device_b1/pose``, ``/device_b2/pose``, ... or the ``--topic-b`` given.
 """
 
 from __future__ import annotations
@@ -41,8 +42,31 @@ def _describe(label: str, csv: CsvStream) -> str:
     return f'{label}: {len(s)} samples over {span:.3f} s (~{rate:.1f} Hz){note}'
 
 
+def b_topics(given, n: int) -> list:
+    """
+    Return the topics of ``n`` B exports: the ``--topic-b`` given, else the defaults.
+
+    One B keeps ``/device_b/pose``; a rig's B exports are numbered (``/device_b1/pose``, ...).
+
+    Raises
+    ------
+    ConfigError
+        A number of topics that is not the number of B exports.
+
+    """
+    if given is None:
+        if n == 1:
+            return [DEFAULT_TOPIC_B[0]]
+        stem, leaf = DEFAULT_TOPIC_B[0].rsplit('/', 1)
+        return [f'{stem}{k + 1}/{leaf}' for k in range(n)]
+    if len(given) != n:
+        raise ConfigError(f'--topic-b names {len(given)} topic(s) for {n} B export(s); give '
+                          f'one topic per B file, in their order')
+    return list(given)
+
+
 def cmd_convert(args) -> int:
-    """Convert two CSV exports to a rosbag2 recording."""
+    """Convert the CSV exports of A and of one or more devices B to a rosbag2 recording."""
     from coreg_ros.files.bag.posebag import write_pose_bag
     from coreg_ros.files.output_paths import check_new_bag
 
@@ -55,50 +79,74 @@ def cmd_convert(args) -> int:
     options = {side: {'quaternion_order': per_file('quaternion_order', side, 'xyzw'),
                       'units': per_file('units', side, 'm'),
                       'time_unit': per_file('time_unit', side, 's')} for side in 'ab'}
+    csv_b = list(args.csv_b)
+    topic_a, topics_b = args.topic_a, b_topics(args.topic_b, len(csv_b))
+    for topic in topics_b:
+        if topic == topic_a:
+            raise ConfigError(f'--topic-a and --topic-b are both {topic_a}; give two topics')
+        if topics_b.count(topic) > 1:
+            raise ConfigError(f'--topic-b names {topic} twice; give every B file its own topic')
     a = read_pose_csv(args.csv_a, invert=args.invert_a, frame_id=FRAME_A, name='CSV_A',
                       sort=args.sort, option='-a', **options['a'])
-    b = read_pose_csv(args.csv_b, invert=args.invert_b, frame_id=FRAME_B, name='CSV_B',
-                      sort=args.sort, option='-b', **options['b'])
+    several = len(csv_b) > 1
+    bs = [read_pose_csv(path, invert=args.invert_b, frame_id=FRAME_B,
+                        name=f'CSV_B{k + 1}' if several else 'CSV_B', sort=args.sort,
+                        option='-b', **options['b']) for k, path in enumerate(csv_b)]
     if not a.has_orientation:
         raise InputError(f'{args.csv_a} (device A) has no orientation columns (t, x, y, z): '
                          f"every model needs the orientation of A's tool; export its "
                          f'quaternion, or give the position-only tracker as B')
-    topic_a, topic_b = args.topic_a, args.topic_b
-    if topic_a == topic_b:
-        raise ConfigError(f'--topic-a and --topic-b are both {topic_a}; give two topics')
-    sa, sb = a.stream.stamps, b.stream.stamps
-    overlap = (min(sa[-1], sb[-1]) - max(sa[0], sb[0])) * 1e-9
-    write_pose_bag(args.out_bag, {topic_a: a.stream, topic_b: b.stream}, storage=args.storage)
+    write_pose_bag(args.out_bag, {topic_a: a.stream, **{t: b.stream for t, b in
+                                                        zip(topics_b, bs, strict=True)}},
+                   storage=args.storage)
     print(f'coreg convert: wrote {args.out_bag} ({args.storage})')
     print('  ' + _describe(f'{topic_a} (A{", inverted" if args.invert_a else ""})', a))
-    print('  ' + _describe(f'{topic_b} (B{", inverted" if args.invert_b else ""})', b))
-    if overlap <= 0:
-        print(f'  warning: the two streams do not overlap in time (gap {-overlap:.3f} s); '
-              f'they cannot be paired', file=sys.stderr)
-    else:
-        print(f'  overlap {overlap:.3f} s')
-    findings = check_conventions(
-        a, b, units=(options['a']['units'], options['b']['units']),
-        time_units=(options['a']['time_unit'], options['b']['time_unit']),
-        orders=(options['a']['quaternion_order'], options['b']['quaternion_order']),
-        inverted=(args.invert_a, args.invert_b))
-    for finding in findings:
-        print(f'  warning: {finding}; the calibration would fit badly', file=sys.stderr)
+    for topic, b in zip(topics_b, bs, strict=True):
+        print('  ' + _describe(f'{topic} (B{", inverted" if args.invert_b else ""})', b))
+    for topic, b in zip(topics_b, bs, strict=True):
+        _report_overlap(a, b, topic if several else None)
+        findings = check_conventions(
+            a, b, units=(options['a']['units'], options['b']['units']),
+            time_units=(options['a']['time_unit'], options['b']['time_unit']),
+            orders=(options['a']['quaternion_order'], options['b']['quaternion_order']),
+            inverted=(args.invert_a, args.invert_b))
+        for finding in findings:
+            where = f'{topic}: ' if several else ''
+            print(f'  warning: {where}{finding}; the calibration would fit badly',
+                  file=sys.stderr)
     return 0
+
+
+def _report_overlap(a: CsvStream, b: CsvStream, topic_b) -> None:
+    """Print A's and B's overlap in time, or say that their clocks differ and what then."""
+    sa, sb = a.stream.stamps, b.stream.stamps
+    overlap = (min(sa[-1], sb[-1]) - max(sa[0], sb[0])) * 1e-9
+    if overlap > 0:
+        print(f'  overlap {overlap:.3f} s' + (f' ({topic_b} and A)' if topic_b else ''))
+        return
+    # own clocks (boot time, phones minutes apart): the offset search pairs them all the same
+    what = f'{topic_b} and A' if topic_b else 'the two streams'
+    print(f'  warning: {what} do not overlap in time (gap {-overlap:.3f} s): their clocks '
+          f'differ; coreg calibrate finds the offset (--time-offset auto) if both moved, or '
+          f'give it with --time-offset S', file=sys.stderr)
 
 
 def register(subparsers) -> None:
     """Add the ``convert`` subcommand to the ``coreg`` parser's subparsers."""
     p = subparsers.add_parser(
-        'convert', help='convert two CSV pose exports (t, x, y, z, quaternion) to a rosbag2',
-        description='Convert two CSV exports, one row per sample "t, x, y, z, q, q, q, q" '
-                    '(t in seconds; comma and/or whitespace separated; optional header), to '
-                    'a rosbag2 with PoseStamped on two topics. After converting it checks the '
-                    'cheap explanations of a bad fit (a unit factor, mm or cm against m, between '
-                    'the files, a time unit, the quaternion column order) and names the option '
-                    'that fixes one.')
+        'convert', help='convert CSV pose exports (t, x, y, z, quaternion) of A and of one or '
+                        'more devices B to a rosbag2',
+        description='Convert CSV exports of device A and of one or more devices B, one row '
+                    'per sample "t, x, y, z, q, q, q, q" (t in seconds; comma and/or '
+                    'whitespace separated; optional header), to a rosbag2 with PoseStamped, '
+                    'one topic per file. After converting it checks the cheap explanations '
+                    'of a bad fit (a unit factor, mm or cm against m, between the files, a '
+                    'time unit, the quaternion column order) and names the option that fixes '
+                    'one.')
     p.add_argument('csv_a', help='device A export (tool pose in A base)')
-    p.add_argument('csv_b', help='device B export (marker pose in B base)')
+    p.add_argument('csv_b', nargs='+',
+                   help='device B export (marker pose in B base); several: a rig, one device '
+                        'per file (coreg calibrate --topic-b with their topics)')
     p.add_argument('out_bag', help='rosbag2 directory to create')
     for name, choices, default, what in (
             ('quaternion-order', QUATERNION_ORDERS, 'xyzw', 'order of the quaternion columns'),
@@ -117,7 +165,9 @@ def register(subparsers) -> None:
                    help='sort rows by time and drop repeated times instead of refusing them')
     add_storage_option(p)
     p.add_argument('--topic-a', default=DEFAULT_TOPIC_A, help=f'default {DEFAULT_TOPIC_A}')
-    p.add_argument('--topic-b', default=DEFAULT_TOPIC_B[0], help=f'default {DEFAULT_TOPIC_B[0]}')
+    p.add_argument('--topic-b', nargs='+', metavar='T',
+                   help=f'one topic per B file (default {DEFAULT_TOPIC_B[0]}; several B files: '
+                        f'/device_b1/pose, /device_b2/pose, ...)')
     p.set_defaults(func=cmd_convert)
     register_fix_bag(subparsers)
 

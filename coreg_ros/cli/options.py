@@ -33,7 +33,8 @@ def add_calibration_options(p: argparse.ArgumentParser, bag: bool = True) -> Non
     p.add_argument('--topic-a', help='device A PoseStamped topic (default /device_a/pose)')
     p.add_argument('--topic-b', nargs='+', metavar='T',
                    help='device B PoseStamped topic(s); three for three_marker '
-                        '(default /device_b/pose)')
+                        '(default /device_b/pose); several with full_pose or position_only: '
+                        'a rig, one device per topic, calibrated jointly')
     p.add_argument('--model', choices=MODELS, help='measurement model (default full_pose)')
     p.add_argument('--method', choices=METHODS, help='estimator (default tls)')
     default = Settings()
@@ -193,3 +194,50 @@ def prior_from_args(args):
     if args.gravity_aligned is not None:
         prior = replace(prior or Prior(), gravity_sigma=float(args.gravity_aligned))
     return prior
+
+
+def settings_and_devices(args) -> tuple:
+    """
+    Return (Settings, the rig's devices) from --config and the flags.
+
+    Several ``--topic-b`` with a model other than three_marker are a rig, one device per topic
+    (named by it, with ``--sigma-b``); without ``--topic-b``, the config's ``devices``. A rig
+    of one device is the two-device calibration (its topic, model and noise in the settings).
+    ``--shared-base`` makes the devices sensors of one device (one base, one clock).
+    """
+    from argparse import Namespace
+
+    from coreg_ros.core.errors import ConfigError
+    from coreg_ros.core.rig.devices import device_specs, DeviceSpec
+    from coreg_ros.files.parameters import load_parameters
+
+    values = load_parameters(args.config) if args.config else {}
+    topics = list(args.topic_b or [])
+    model = args.model or values.get('model') or Settings().model
+    shared = bool(getattr(args, 'shared_base', False))
+    sigma = tuple(args.sigma_b) if args.sigma_b else None
+    specs, flags = [], args
+    if len(topics) > 1 and model != 'three_marker':
+        specs = [DeviceSpec(t, (t,), model, sigma) for t in topics]
+        flags = Namespace(**{**vars(args), 'topic_b': topics[:1]})
+    elif not topics and values.get('devices'):
+        specs = [s if sigma is None else DeviceSpec(s.name, s.topics, s.model, sigma, s.base)
+                 for s in device_specs(values, model)]
+        flags = Namespace(**{**vars(args), 'topic_b': list(specs[0].topics),
+                             'model': specs[0].model})
+    if shared:
+        if len(specs) < 2:
+            raise ConfigError('--shared-base makes several B topics sensors of one device; give '
+                              'two or more with --topic-b T1 T2 (or a devices list)')
+        specs = [DeviceSpec(s.name, s.topics, s.model, s.sigma, 'shared') for s in specs]
+    settings = settings_from_args(flags)
+    every = [settings.topic_a] + [t for spec in specs for t in spec.topics]
+    same = [t for t in every if every.count(t) > 1]
+    if specs and same:
+        whose = 'device A and a device B' if same[0] == settings.topic_a else 'two devices B'
+        raise ConfigError(f'topic {same[0]} is given for {whose}: each device needs its own '
+                          f"topic (a B topic that is A's would calibrate A against itself)")
+    if len(specs) == 1:
+        one = specs[0]
+        return settings.updated(topic_b=one.topics, model=one.model, sigma_b=one.sigma), []
+    return settings, specs

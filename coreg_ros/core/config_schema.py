@@ -79,6 +79,12 @@ CHOICES = {
     'noise': NOISE_MODES,
 }
 
+#: A rig's keys (issue 23), beside the two-device keys: ``devices`` names the devices B_k in
+#: order, ``device.<name>.<field>`` describes each (a nested mapping in the file, as ROS
+#: flattens it): its topic(s), model, noise (position m, rotation rad) and base (devices with
+#: the same base are sensors of one device).
+RIG_FIELDS = {'topic': 'str_list', 'model': 'str', 'sigma': 'float_list', 'base': 'str'}
+
 #: Keys ROS itself gives every node (not ours, never warned about), all booleans.
 ROS_KEYS = ('use_sim_time', 'start_type_description_service')
 ROS_PREFIXES = ('qos_overrides.',)
@@ -207,6 +213,45 @@ def check_value(key: str, value: Any, where: str = '') -> Any:
     return [float(v) for v in value]
 
 
+def check_rig_value(key: str, value: Any, where: str = '') -> Any:
+    """
+    Check one of a rig's keys (``RIG_FIELDS``): ``devices`` or ``device.<name>.<field>``.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the key, what was found and an example.
+
+    """
+    value = _plain(value)
+    if key == 'devices':
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+            raise ConfigError(f'{where}devices must be a list of device names, got '
+                              f'{_describe(value)}; e.g. devices: [em1, camera]')
+        return value
+    parts = key.split('.')
+    if len(parts) != 3 or parts[2] not in RIG_FIELDS or not parts[1]:
+        raise ConfigError(f'{where}{key} is no device key; write device.<name>.<field> with a '
+                          f'field of {", ".join(RIG_FIELDS)}, e.g. device.camera.topic: '
+                          f'/camera/pose')
+    kind, example_line = RIG_FIELDS[parts[2]], {
+        'topic': f'{key}: [/{parts[1]}/pose]', 'model': f'{key}: full_pose',
+        'sigma': f'{key}: [0.0005, 0.002]', 'base': f'{key}: {parts[1]}'}[parts[2]]
+    if kind == 'str_list' and isinstance(value, str):
+        value = [value]
+    ok = {'str': isinstance(value, str) and value,
+          'str_list': isinstance(value, list) and value and all(isinstance(v, str) for v in value),
+          'float_list': isinstance(value, list) and len(value) == 2 and all(
+              _is_number(v) and math.isfinite(v) and v > 0 for v in value)}[kind]
+    if not ok:
+        extra = ' (two positive: position m, rotation rad)' if kind == 'float_list' else ''
+        raise ConfigError(f'{where}{key} must be {_WHAT[kind]}{extra}, got {_describe(value)}; '
+                          f'e.g. {example_line}')
+    return [float(v) for v in value] if kind == 'float_list' else value
+
+
 def _check_range(key: str, value: Any, where: str) -> None:
     if key in RANGES:
         lo, hi = RANGES[key]
@@ -262,6 +307,8 @@ def check_parameters(values: Mapping[str, Any], where: str = '') -> tuple[dict, 
         if key in DEFAULTS:
             checked[key] = check_value(key, value, where)
             _check_range(key, checked[key], where)
+        elif key == 'devices' or key.startswith('device.'):
+            checked[key] = check_rig_value(key, value, where)
         elif key in ROS_KEYS and not isinstance(value, bool):
             # ROS declares these booleans on every node and refuses anything else
             raise ConfigError(f'{where}{key} must be true or false, got {_describe(value)}; '

@@ -26,10 +26,13 @@ def fit_verdict(p_value: float) -> str:
 
 def format_time_offset(timing) -> str:
     """One line on the clock offset (and drift) the pairs were made with."""
+    # clocks minutes or hours apart (own clocks, boot against epoch time) read best in s
+    value = (f'{timing.value_s:.6f} s' if abs(timing.value_s) >= 1.0
+             else f'{timing.value_s * 1e3:.3f} ms')
     if not timing.estimated:
-        return f'time offset: {timing.value_s * 1e3:.3f} ms ({timing.message or "given"})'
-    line = (f'time offset: {timing.value_s * 1e3:.3f} ± {timing.sigma_s * 1e3:.3f} ms '
-            f"(B's clock minus A's; estimated jointly with the transforms)")
+        return f'time offset: {value} ({timing.message or "given"})'
+    how = timing.message or 'estimated jointly with the transforms'
+    line = f"time offset: {value} ± {timing.sigma_s * 1e3:.3f} ms (B's clock minus A's; {how})"
     if timing.drift_ppm is not None:
         line += f', clock drift {timing.drift_ppm:.2f} ± {timing.drift_sigma_ppm:.2f} ppm'
     return line

@@ -32,6 +32,18 @@ def _warn_once(line: str) -> None:
         print(f'coreg: warning: {line}', file=sys.stderr)
 
 
+def _flattened(params: dict, prefix: str = '') -> dict:
+    """Nested mappings as dotted names, as ROS reads them (``device: {cam: {topic: ..}}``)."""
+    out = {}
+    for key, value in params.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict) and isinstance(key, str):
+            out.update(_flattened(value, name + '.'))
+        else:
+            out[name] = value
+    return out
+
+
 def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once,
                     warn_section=None) -> dict:
     """
@@ -105,7 +117,7 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once,
         if not isinstance(params, dict):
             raise ConfigError(f'config file {path}: section {key!r} has no '
                               f'"ros__parameters:" mapping; see config/coreg.yaml')
-        values.update(params)
+        values.update(_flattened(params))
         found = True
     if not found:
         # as ROS does for the node: a file for other nodes sets nothing here (said, not fatal)

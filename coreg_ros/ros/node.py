@@ -26,6 +26,11 @@ Publications
     (``ros.live_checks``) add two statuses to each /diagnostics message: guidance while
     collecting (``<node>: guidance``) and the watchdog of the published calibration
     (``<node>: watchdog``); and publish ``~/calibration_stale``.
+A rig
+    With a devices list in the parameter file (``devices``, ``device.<name>.*``) every topic
+    above and the /diagnostics statuses are per device (``~/<name>/base_to_base``...,
+    ``<node>/<name>: ...``): one channel per device, each calibrated with A
+    (``ros.rig_channels``); ``~/calibrate`` calibrates them all.
 Persistence
     The result is stored atomically in ``storage_dir`` under a name of the node and its
     configuration (model, topics, frames) and republished at start-up only by a node of that
@@ -56,6 +61,7 @@ third of a core: bench/bench_node.py.)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import os
 import sys
 import threading
@@ -79,9 +85,11 @@ from coreg_ros.ros.live_noise import NoiseSources
 from coreg_ros.ros.parameters import (
     check_params_files,
     declare_parameters,
+    NodeConfig,
     ParameterView,
     read_config,
 )
+from coreg_ros.ros.rig_channels import device_config, DeviceView, rig_topics
 from coreg_ros.ros.sample_store import FLUSH_PERIOD, SampleStore
 from coreg_ros.ros.static_tf import StaticTf
 from coreg_ros.ros.status_publisher import StatusPublisher
@@ -111,6 +119,18 @@ __all__ = ['CoregNode', 'FLUSH_PERIOD', 'LATCHED_QOS', 'main', 'NODE_NAME', 'Nod
 #: Environment switch back to one deserialised message per callback (the path before the raw
 #: intake; kept as the benchmark's baseline and as a fallback): ``COREG_NODE_PLAIN=1``.
 PLAIN_ENV = 'COREG_NODE_PLAIN'
+
+
+@dataclass(frozen=True)
+class Channel:
+    """What calibrates, guides and watches one device B against A (a rig has one per device)."""
+
+    device: str
+    calibrator: Calibrator
+    outputs: UncertaintyOutputs
+    live: LiveChecks
+    status: StatusPublisher
+    noise: NoiseSources
 
 
 class CoregNode(Node):
@@ -151,14 +171,17 @@ class CoregNode(Node):
         self.params = ParameterView(self, self.noise)
         settings, log, name = config.settings, self.get_logger(), self.get_name()
         # What a stored result or a journal is valid for: one per node name and configuration
-        # (a noise file's covariances are part of it).
+        # (a rig's journal holds every device's topics; a noise file's covariances are part
+        # of it).
+        topics_b = rig_topics(config.devices) or settings.topic_b
         stated = settings.noise_dict()
-        key = persistence.config_key({**settings.as_dict(), **(
+        key = persistence.config_key({**settings.as_dict(), 'topic_b': list(topics_b), **(
             {'noise_file': stated} if stated else {})}, config.frames)
         io_lock = threading.Lock()  # the node's disk writes, one at a time
         self.alerts = Alerts(log, config.storage_dir)
         raw = os.environ.get(PLAIN_ENV, '').strip() in ('', '0')
-        self.store = SampleStore(config, name, key, self.alerts, log, io_lock, raw=raw)
+        self.store = SampleStore(config, name, key, self.alerts, log, io_lock, raw=raw,
+                                 topics_b=topics_b)
 
         # The subscriptions get a node (and so an executor and a thread) of their own.
         self.stream_node = Node(f'{name}_streams', namespace=self.get_namespace(),
@@ -170,57 +193,113 @@ class CoregNode(Node):
         # a cheap 2 Hz no-op timer makes the stream executor look at the context regularly.
         self.stream_node.create_timer(0.5, lambda: None)
 
-        pub_base = self.create_publisher(PoseWithCovarianceStamped, '~/base_to_base',
-                                         LATCHED_QOS)
-        pub_tool = self.create_publisher(PoseWithCovarianceStamped, '~/tool_to_marker',
-                                         LATCHED_QOS)
         pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # Wakes the services executor when a ~/calibrate fit in the worker thread is done.
         fitted = self.create_guard_condition(lambda: None)
-        self.static_tf = StaticTf(self, config.frames, config.publish_tf, log)
-        self.calibrator = Calibrator(config, key, name, self.get_fully_qualified_name(),
-                                     self.params, self.store, pub_base, pub_tool,
-                                     self.get_clock(), log, self.alerts, io_lock,
-                                     fitted.trigger, self.static_tf)
-        self.outputs = UncertaintyOutputs(
-            config, self.params, self.store.buffers,
-            self.create_publisher(PoseWithCovarianceStamped, '~/fused_pose', FUSED_QOS),
-            self.create_publisher(MarkerArray, '~/uncertainty_markers', MARKER_QOS),
-            self.create_timer(DRAIN_PERIOD, self._fuse, autostart=False), self.get_clock(), log)
-        self.live = LiveChecks(name, self.store.topics, self.params, self.store.buffers,
-                               self.calibrator, self.outputs,
-                               self.create_publisher(Bool, '~/calibration_stale', STALE_QOS),
-                               log)
-        self.calibrator.add_listener(self.outputs)
-        self.calibrator.add_listener(self.live)
-        self.calibrator.add_listener(self.noise)
-        self.status = StatusPublisher(name, config, self.params, self.store, self.calibrator,
-                                      self.live, self.alerts, pub_diag, self.get_clock(),
-                                      self.get_publishers_info_by_topic, self.noise)
+        wiring = (pub_diag, fitted.trigger, io_lock)
+        self.channels: list[Channel] = []
+        for spec in config.devices:  # a rig: one channel per device, each calibrated with A
+            own = device_config(config, spec)
+            own_key = persistence.config_key(own.settings.as_dict(), own.frames)
+            # its own noise sources: its stated noise, what it measures while still
+            noise = NoiseSources(None, own.settings)
+            self.channels.append(self._channel(
+                own, DeviceView(ParameterView(self), spec, noise), own_key, spec.name, wiring,
+                noise))
+        if not config.devices:
+            self.channels.append(self._channel(config, self.params, key, '', wiring,
+                                               self.noise))
+        # the two-device node's collaborators (a rig's: its first device's)
+        first = self.channels[0]
+        self.calibrator, self.outputs, self.live, self.status, self.noise = (
+            first.calibrator, first.outputs, first.live, first.status, first.noise)
+        self.static_tf = self.calibrator.static_tf
 
         guard = self.alerts.guard_service
         # A group of its own: while ~/calibrate awaits its fit, the node's default group (the
         # timers, the other services, the wake-up above) stays free to run.
         self.create_service(Trigger, '~/calibrate',
-                            guard('calibrate', self.calibrator.on_calibrate),
+                            guard('calibrate', self._on_calibrate if config.devices
+                                  else self.calibrator.on_calibrate),
                             callback_group=MutuallyExclusiveCallbackGroup())
         self.create_service(Trigger, '~/reset', guard('reset', self._on_reset))
         self.create_service(Trigger, '~/save_samples',
                             guard('save_samples', self.store.on_save_samples))
-        self.create_timer(1.0, self.alerts.guard_timer('diagnostics', self.status.publish))
+        self.create_timer(1.0, self.alerts.guard_timer('diagnostics', self._publish_status))
         self.add_on_set_parameters_callback(self.params.check_change)
-        self.add_post_set_parameters_callback(self.outputs.on_parameters)
-        self.calibrator.republish_stored()
+        for channel in self.channels:
+            self.add_post_set_parameters_callback(channel.outputs.on_parameters)
+            channel.calibrator.republish_stored()
         self.store.start_journal()
         # rosbags' type store takes ~0.2 s to build (more under load): built now, not at the
         # first journal flush, where it would hold up the fused-pose and diagnostics timers.
         bag_typestore()
         self.create_timer(FLUSH_PERIOD,
                           self.alerts.guard_timer('journal', self.store.flush_journal))
+        listening = (', '.join(f'{s.name} {" ".join(s.topics)} ({s.model})'
+                               for s in config.devices) if config.devices else
+                     f'B {", ".join(settings.topic_b)}; model {settings.model}')
         log.info(
-            f'listening to A {settings.topic_a}, B {", ".join(settings.topic_b)} '
-            f'({"reliable" if config.qos_reliable else "sensor-data"} QoS); model '
-            f'{settings.model}, method {settings.method}; storage {config.storage_dir}')
+            f'listening to A {settings.topic_a}, {listening} '
+            f'({"reliable" if config.qos_reliable else "sensor-data"} QoS); method '
+            f'{settings.method}; storage {config.storage_dir}')
+
+    def _channel(self, config: NodeConfig, params, key: str, device: str, wiring,
+                 noise: NoiseSources) -> Channel:
+        """
+        Build the collaborators that calibrate, guide and watch one device B against A.
+
+        ``device`` is '' for the two-device node (topics ``~/base_to_base``...); a rig's device
+        name puts them under ``~/<device>/`` and names its statuses ``<node>/<device>``.
+        """
+        pub_diag, wake, io_lock = wiring
+        name, log, prefix = self.get_name(), self.get_logger(), '~/'
+        if device:
+            name, prefix = f'{name}/{device}', f'~/{device}/'
+        pub_base = self.create_publisher(PoseWithCovarianceStamped, f'{prefix}base_to_base',
+                                         LATCHED_QOS)
+        pub_tool = self.create_publisher(PoseWithCovarianceStamped, f'{prefix}tool_to_marker',
+                                         LATCHED_QOS)
+        static_tf = StaticTf(self, config.frames, config.publish_tf, log,
+                             base_parent='a' if device else 'b')
+        calibrator = Calibrator(config, key, name.replace('/', '_'),
+                                self.get_fully_qualified_name(), params, self.store, pub_base,
+                                pub_tool, self.get_clock(), log, self.alerts, io_lock, wake,
+                                static_tf)
+        fuse: list = []  # the fused-pose timer ticks the outputs made with it
+        outputs = UncertaintyOutputs(
+            config, params, self.store.buffers,
+            self.create_publisher(PoseWithCovarianceStamped, f'{prefix}fused_pose', FUSED_QOS),
+            self.create_publisher(MarkerArray, f'{prefix}uncertainty_markers', MARKER_QOS),
+            self.create_timer(DRAIN_PERIOD, lambda: fuse[0].tick(), autostart=False),
+            self.get_clock(), log)
+        fuse.append(outputs)
+        live = LiveChecks(name, (config.settings.topic_a, *config.settings.topic_b), params,
+                          self.store.buffers, calibrator, outputs,
+                          self.create_publisher(Bool, f'{prefix}calibration_stale', STALE_QOS),
+                          log)
+        calibrator.add_listener(outputs)
+        calibrator.add_listener(live)
+        calibrator.add_listener(noise)
+        status = StatusPublisher(name, config, params, self.store, calibrator, live,
+                                 self.alerts, pub_diag, self.get_clock(),
+                                 self.get_publishers_info_by_topic, noise)
+        return Channel(device, calibrator, outputs, live, status, noise)
+
+    def _publish_status(self) -> None:
+        """Publish every channel's /diagnostics (the diagnostics timer)."""
+        for channel in self.channels:
+            channel.status.publish()
+
+    async def _on_calibrate(self, request, response):
+        """Answer a rig's ``~/calibrate``: every device with A, in turn; each says how it went."""
+        lines, ok = [], True
+        for channel in self.channels:
+            answer = await channel.calibrator.on_calibrate(request, Trigger.Response())
+            ok = ok and answer.success
+            lines.append(f'{channel.device}: {answer.message}')
+        response.success, response.message = ok, ' | '.join(lines)
+        return response
 
     def _subscribe(self, topic: str, qos: QoSProfile):
         """Subscribe to a pose topic, counting the messages the middleware reports lost."""
@@ -236,15 +315,12 @@ class CoregNode(Node):
         store.attach(topic, sub)
         return sub
 
-    def _fuse(self) -> None:
-        """Fuse and publish (the fused-pose timer: its period and state are the outputs')."""
-        self.outputs.tick()
-
     def _on_reset(self, request, response):
         """Answer ``~/reset``: forget the samples, start guidance afresh; keep the result."""
         held = self.store.forget()
-        self.live.reset()
-        self.noise.forget()
+        for channel in self.channels:
+            channel.live.reset()
+            channel.noise.forget()
         response.success = True
         response.message = f'forgot {held} samples; the published result is kept'
         return response

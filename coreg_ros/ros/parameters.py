@@ -8,6 +8,7 @@ others belong to the node only.
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass
 import os
 import sys
@@ -172,6 +173,11 @@ PARAMETERS = (
 if [name for name, _, _ in PARAMETERS] != list(DEFAULTS):  # one table of keys, one of types
     raise AssertionError('ros.parameters.PARAMETERS and core.config_schema.DEFAULTS differ')
 
+#: What ``ros2 param describe`` says of a rig's keys (declared only when given).
+RIG_DESCRIPTION = ('a rig (issue 23): devices lists the devices B_k, device.<name>.{topic,'
+                   'model,sigma,base} describes each; every device is calibrated with A, '
+                   'on ~/<name>/base_to_base, ~/<name>/tool_to_marker')
+
 #: Names of the calibration keys (those of Settings).
 CALIBRATION_KEYS = ('topic_a', 'topic_b', 'model', 'method', 'sigma_a', 'sigma_b', 'max_gap',
                     'time_offset', 'estimate_time_offset', 'estimate_clock_drift', 'robust',
@@ -199,6 +205,9 @@ class NodeConfig:
         Directory of the stored results, the journal and sample bags, user (~) expanded.
     resume_samples : bool
         Load the journal of an interrupted session at start-up.
+    devices : tuple of DeviceSpec
+        A rig's devices B_k (``devices``, ``device.<name>.*``), each calibrated with A; empty:
+        the one device B of ``topic_b``.
     noise_file : files.noise_file.NoiseFile or None
         The ``noise_file`` read (and checked against the topics) at start-up; ``settings``
         carry its noise.
@@ -216,6 +225,7 @@ class NodeConfig:
     resume_samples: bool = False
     noise_file: object = None
     publish_tf: bool = True
+    devices: tuple = ()
 
     @property
     def frames(self) -> dict:
@@ -248,15 +258,22 @@ def declare_parameters(node: Node) -> list[str]:
     # later rclpy moves them, the declare-time exceptions below still give one line.
     overrides = getattr(node, '_parameter_overrides', None)
     warnings: list[str] = []
+    rig: list = []
     if isinstance(overrides, dict):
         values = {name: p.value for name, p in overrides.items()}
         checked, warnings = check_parameters(values, where='parameters: ')
+        rig_devices(checked, 'parameters: ')
         for name, value in checked.items():
             if values[name] != value or type(values[name]) is not type(value):
                 overrides[name] = Parameter(name, value=value)
+        # a rig's devices (issue 23): declared as given, read-only (the node is built on them)
+        rig = [(k, v, ParameterDescriptor(read_only=True, description=RIG_DESCRIPTION))
+               for k, v in checked.items() if k == 'devices' or k.startswith('device.')]
     try:
         node.declare_parameters('', [(name, default, desc)
                                      for name, default, desc in PARAMETERS])
+        if rig:
+            node.declare_parameters('', rig)
     except ParameterException as e:
         raise ConfigError(_one_line(e)) from None
     return warnings
@@ -328,7 +345,38 @@ def check_params_files(args: list[str], node_name: str, warn=None) -> None:
             print(f'coreg_node: warning: {line}', file=sys.stderr)
     name = node_name_of(args, node_name)
     for path in params_files(args):
-        load_parameters(path, name, warn=lambda line: None, warn_section=warn)
+        rig_devices(load_parameters(path, name, warn=lambda line: None,
+                                    warn_section=warn), f'{path}: ')
+
+
+def rig_devices(values: dict, where: str) -> tuple:
+    """
+    Return the devices B_k a rig's keys (``devices``, ``device.<name>.*``) name; () without.
+
+    The node calibrates each device with A (``ros.rig_channels``). Refused in one line: a
+    stray or incomplete device key, a device on A's topic, two devices on one topic.
+
+    Raises
+    ------
+    ConfigError
+
+    """
+    from coreg_ros.core.rig.devices import device_specs
+
+    if not values.get('devices'):
+        if any(k.startswith('device.') for k in values):
+            device_specs(values, 'full_pose')  # names the stray key
+        return ()
+    model = values.get('model') or DEFAULTS['model']
+    specs = device_specs(values, model)
+    topics_b = [t for s in specs for t in s.topics]
+    every = [values.get('topic_a') or DEFAULTS['topic_a'], *topics_b]
+    same = [t for t in every if every.count(t) > 1]
+    if same:
+        whose = 'device A and a device B' if same[0] == every[0] else 'two devices B'
+        raise ConfigError(f'{where}topic {same[0]} is given for {whose}: each device needs its '
+                          f'own topic (device.<name>.topic)')
+    return tuple(specs)
 
 
 def _plain(value):
@@ -409,6 +457,13 @@ def read_config(node: Node) -> NodeConfig:
     """
     values = {name: node.get_parameter(name).value for name, _, _ in PARAMETERS}
     settings = settings_from_values(values)
+    if str(values['noise_file']).strip() and node.has_parameter('devices'):
+        raise ConfigError("parameters: noise_file applies to one device B; give a rig's noise "
+                          "as each device's sigma (device.<name>.sigma) and sigma_a")
+    rig = {f'device.{k}': list(p.value) if isinstance(p.value, (list, tuple, array)) else p.value
+           for k, p in node.get_parameters_by_prefix('device').items()}
+    if node.has_parameter('devices'):
+        rig['devices'] = list(node.get_parameter('devices').value)
     noise = None
     if str(values['noise_file']).strip():
         from coreg_ros.files.noise_file import load_noise_file, with_noise_file
@@ -429,4 +484,5 @@ def read_config(node: Node) -> NodeConfig:
         resume_samples=bool(values['resume_samples']),
         noise_file=noise,
         publish_tf=bool(values['publish_tf']),
+        devices=rig_devices({**values, **rig}, 'parameters: '),
     )

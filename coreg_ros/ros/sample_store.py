@@ -62,6 +62,8 @@ class SampleStore:
     raw : bool
         Take the messages raw and in bulk (``RawIntake``); False: one deserialised message
         per callback.
+    topics_b : sequence of str, optional
+        The B topics held (a rig: every device's); default ``settings.topic_b``.
 
     Attributes
     ----------
@@ -85,7 +87,7 @@ class SampleStore:
     """
 
     def __init__(self, config: NodeConfig, node_name: str, config_key: str, alerts: Alerts,
-                 logger, io_lock: threading.Lock, raw: bool = True):
+                 logger, io_lock: threading.Lock, raw: bool = True, topics_b=None):
         settings = config.settings
         self.config = config
         self.node_name = node_name
@@ -93,7 +95,8 @@ class SampleStore:
         self.alerts = alerts
         self.logger = logger
         self.io_lock = io_lock
-        self.topics = (settings.topic_a, *settings.topic_b)
+        self.topics = (settings.topic_a,
+                       *(settings.topic_b if topics_b is None else topics_b))
         self.buffers = {t: StreamBuffer(config.buffer_capacity) for t in self.topics}
         self.gaps = {t: GapCounter() for t in self.topics}
         self.lost = dict.fromkeys(self.topics, 0)   # middleware message-lost events

@@ -21,6 +21,7 @@ once and publishes its own topics as before. docs/tf.md has the details.
 
 from __future__ import annotations
 
+from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import UncertainPose
 from coreg_ros.files.export import frame_problem
 from coreg_ros.ros.messages import pose_to_transform
@@ -53,6 +54,10 @@ class StaticTf:
         The ``publish_tf`` parameter; False: nothing is created or sent.
     logger : rclpy.impl.rcutils_logger.RcutilsLogger
         Where a missing type or frame ids tf2 would refuse are reported, once.
+    base_parent : str
+        ``'b'``: T0 as ``base_b`` -> ``base_a``; ``'a'``: its inverse, ``base_a`` ->
+        ``base_b`` (a rig: A's base is the parent of every device's base, as tf2's one-parent
+        rule needs).
 
     Attributes
     ----------
@@ -61,8 +66,9 @@ class StaticTf:
 
     """
 
-    def __init__(self, node, frames: dict, enabled: bool, logger):
+    def __init__(self, node, frames: dict, enabled: bool, logger, base_parent: str = 'b'):
         self.frames = dict(frames)
+        self.base_parent = base_parent
         self.via = None
         self._send = None
         if not enabled:
@@ -101,5 +107,9 @@ class StaticTf:
         if self._send is None:
             return
         f = self.frames
-        self._send([pose_to_transform(base_to_base, f['base_b'], f['base_a'], stamp),
-                    pose_to_transform(tool_to_marker, f['tool'], f['marker'], stamp)])
+        if self.base_parent == 'a':
+            p, q = invert_poses(base_to_base.position, base_to_base.quat_wxyz)
+            base = pose_to_transform(UncertainPose(p, q), f['base_a'], f['base_b'], stamp)
+        else:
+            base = pose_to_transform(base_to_base, f['base_b'], f['base_a'], stamp)
+        self._send([base, pose_to_transform(tool_to_marker, f['tool'], f['marker'], stamp)])

@@ -29,6 +29,9 @@ def test_diagnose_bag_json_and_report(tmp_path, capsys):
     assert data['gap_detected'] is True
     assert data['effects'][0]['name'] == 'outliers'
     assert {'name', 'estimate', 'held_out_gain'} <= set(data['effects'][0])
+    # whose effect it is (issue 23, item 5): outliers in the residuals could be either's
+    assert data['effects'][0]['device'] == 'A or B'
+    assert f"outliers [{data['effects'][0]['kind']}; devices A or B]" in text, text
     assert 'chi2_per_dof' in data['gap_before'] and 'chi2_per_dof' in data['gap_after']
     html = (rep / 'index.html').read_text()
     assert 'img src' in html

@@ -168,3 +168,29 @@ def test_real_eth_robot_arm_camera(tmp_path, capsys):
     assert np.allclose(streams[A].position[0], [x, y, z])
     assert np.allclose(quat.canonical(streams[A].quat_wxyz[0]),
                        quat.canonical(np.array([qw, qx, qy, qz])))
+
+
+def test_several_b_exports_make_a_rig_bag(tmp_path, capsys):
+    # a rig (issue 23): A and two devices B, one topic per file; the second B on its own clock
+    from coreg_ros.sim.rig import SimDevice, simulate_rig
+    rig = simulate_rig(3, 4.0, (SimDevice('b1', 'full_pose', 30.0, (5e-4, 2e-3), 0.0),
+                                SimDevice('b2', 'full_pose', 40.0, (5e-4, 2e-3), 600.0)))
+    a = write_csv(tmp_path / 'a.csv', rig.stream_a)
+    b1, b2 = (write_csv(tmp_path / f'b{k}.csv', s[0]) for k, s in enumerate(rig.streams))
+    assert main(['convert', a, b1, b2, str(tmp_path / 'bag')]) == 0
+    captured = capsys.readouterr()
+    topics = ['/device_b1/pose', '/device_b2/pose']
+    assert all(t in captured.out for t in topics)
+    assert ('/device_b2/pose and A do not overlap in time' in captured.err
+            and '/device_b1/pose' not in captured.err)
+    streams = read_pose_bag(tmp_path / 'bag', [A, *topics])
+    assert_same(streams[A], rig.stream_a)
+    for t, s in zip(topics, rig.streams, strict=True):
+        assert_same(streams[t], s[0])
+    for argv, words in ((['--topic-b', '/cam'], '1 topic(s) for 2 B export(s)'),
+                        (['--topic-b', '/cam', '/cam'], 'names /cam twice'),
+                        (['--topic-b', '/cam', A], 'both /device_a/pose')):
+        assert main(['convert', a, b1, b2, str(tmp_path / 'bag2'), *argv]) == 1
+        err = capsys.readouterr().err
+        assert words in err and err.count('\n') == 1, err
+    assert not (tmp_path / 'bag2').exists()

@@ -19,15 +19,18 @@ from typing import Optional
 from coreg_ros.core.calibration.calibrate import calibrate, MAX_REJECTED_SHARE
 from coreg_ros.core.calibration.observability import held_basis, result_covariances
 from coreg_ros.core.calibration.pairing import pair_for, validated_streams
-from coreg_ros.core.clock.timing import (
+from coreg_ros.core.clock.coarse import (
     clock_step,
-    coarse_offsets,
-    offset_step,
+    CoarsePeak,
+    lever_speed_correlation,
+    main_peak,
+    MAX_CANDIDATES,
     offsets_by_block,
-    OffsetStep,
-    query_seconds,
-    velocity_noise_cov,
+    SAME_PEAK_WIDTHS,
+    speed_correlation,
+    SpeedCorrelation,
 )
+from coreg_ros.core.clock.timing import OffsetStep, query_seconds, velocity_step
 from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
 from coreg_ros.core.estimator import output_covariance
@@ -55,6 +58,15 @@ TRIAL_ITERATIONS = 8
 STEP_TOLERANCE_S = 0.1
 #: Candidates closer than this (s) are one.
 SAME_CANDIDATE_S = 2e-3
+#: A further search's lag is a new candidate only this far (s) from every other: within a
+#: correlation peak's width it is the same lag, which the fit refines anyway.
+NEW_LAG_S = 0.25
+#: The coarse estimate replaces the given offset only if it lies more than this many of its
+#: σ from it (otherwise the given value is kept, as the motion cannot tell them apart).
+COARSE_EXCLUDES_SIGMAS = 3.0
+#: A coarse lag is clear when its trial fit's median residual is at most this share of the
+#: best fit at any other lag (a wrong lag leaves residuals of the motion's size).
+FIT_CLEAR_RATIO = 0.2
 
 
 def fit_at_offset(stream_a: PoseStream, streams_b: list, settings: Settings,
@@ -113,6 +125,7 @@ class _Round:
     step: OffsetStep
     tau: float
     kappa: Optional[float]
+    half: float
 
     def score(self) -> float:
         """
@@ -160,12 +173,12 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     stamps = np.take(pairs.stamps, keep)
     t_a = query_seconds(stamps, tau, 0.0 if kappa is None else kappa, ctx.reference_ns,
                         ctx.origin_ns)
-    v, w = ctx.trajectory.velocity(t_a, ctx.half, max_gap=settings.max_gap)
     since = None if kappa is None else (stamps - np.int64(ctx.reference_ns)).astype(
         float) * 1e-9
-    step = offset_step(params, data, np.hstack([v, w]), since, result.param_cov,
-                       velocity_noise_cov(ctx.cov_a, ctx.half), _prior_information(ctx, params))
-    return _Round(result, report, pairs, params, step, tau, kappa)
+    step, half = velocity_step(ctx.trajectory, t_a, ctx.half, settings.max_gap, params, data,
+                               since, result.param_cov, ctx.cov_a,
+                               _prior_information(ctx, params))
+    return _Round(result, report, pairs, params, step, tau, kappa, half)
 
 
 def _prior_information(ctx: _Context, params: Parameters) -> Optional[np.ndarray]:
@@ -196,16 +209,30 @@ def _refine(ctx: _Context, streams_b: list, rnd: _Round) -> _Round:
     return rnd
 
 
-def _candidates(ctx: _Context) -> list:
-    """Return the given τ, then the coarse search's peaks, without near-duplicates."""
+def _candidates(ctx: _Context) -> tuple[list, Optional[SpeedCorrelation]]:
+    """
+    Return the given τ, then the coarse search's peaks, without near-duplicates.
+
+    And the speeds' correlation they come from (None when the signals give none).
+    """
     angular = ctx.settings.model != 'position_only'
-    found = [tau for tau, _ in coarse_offsets(ctx.stream_a, ctx.streams_b, angular=angular,
-                                              trajectory_a=ctx.trajectory)]
+    corr = speed_correlation(ctx.stream_a, ctx.streams_b, angular=angular,
+                             trajectory_a=ctx.trajectory)
+    found = [] if corr is None else [corr.tau(k) for k in corr.peaks()[:MAX_CANDIDATES]]
     out = []
     for tau in [float(ctx.settings.time_offset)] + found:
         if all(abs(tau - t) > SAME_CANDIDATE_S for t in out):
             out.append(tau)
-    return out
+    if ctx.settings.model == 'position_only':
+        # the tool origin's speed may miss the marker's lag (a long lever, much rotation):
+        # the lags where some point of the tool moves as the marker does, if new
+        lever = lever_speed_correlation(ctx.stream_a, ctx.streams_b[0],
+                                        trajectory_a=ctx.trajectory)
+        for k in [] if lever is None else lever.peaks()[:MAX_CANDIDATES]:
+            tau = lever.tau(k)
+            if all(abs(tau - t) > NEW_LAG_S for t in out):
+                out.append(tau)
+    return out, corr
 
 
 def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Settings,
@@ -230,11 +257,13 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
     # one round per candidate, then the best few refined: a wrong lag is far off at once
     firsts = []
     plain = replace(trial, settings=trial.settings.updated(robust=False))
-    for tau in _candidates(ctx):
+    candidates, corr = _candidates(ctx)
+    failures = {}
+    for tau in candidates:
         try:  # scored by the median residual: robust without rejecting
             firsts.append(_round(plain, sub_b, tau, kappa0, None))
-        except CoregError:
-            continue
+        except CoregError as e:
+            failures[tau] = e
     firsts.sort(key=_Round.score)
     best = None
     for first in firsts[:REFINED_CANDIDATES]:
@@ -247,8 +276,17 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
     given = float(settings.time_offset)
     if best is None:
         # no candidate fits: the fit at the given offset says why, in its own words
-        result, report = fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
-            given, message='not estimated: no offset within the overlap gave a fit'))
+        try:
+            result, report = fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
+                given, message='not estimated: no offset within the overlap gave a fit'))
+        except TooFewPairsError as e:
+            error = _no_offset_error(e, given, main_peak(corr), failures)
+            if corr is None and settings.model == 'full_pose' and np.ptp(
+                    ctx.streams_b[0].quat_wxyz, axis=0).max() == 0.0:
+                error = error.with_message(
+                    f"{error}; device B's orientation never changes: a position-only tracker "
+                    f'needs --model position_only')
+            raise error from e
         return result, report
     if noise_from is not None:
         settings = noise_from(ctx.timing(best.tau, best.kappa), best.result)
@@ -267,14 +305,86 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
         raise
     ok, why = full.step.determined()
     if not ok:
+        peak = main_peak(corr)
+        if peak is not None and abs(full.tau - given) > COARSE_EXCLUDES_SIGMAS * peak.sigma_s:
+            return _coarse_or_refused(full, ctx, plain, sub_b, firsts, peak, why), full.report
         return fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
             given, message=f'not estimated ({why}); kept the given {given:g} s'))
     return _final(full, ctx), full.report
 
 
-def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
-    """Apply the last (linear) step to τ and φ; marginalise φ's covariance over τ."""
+def _no_offset_error(error: CoregError, given: float, peak: Optional[CoarsePeak],
+                     failures: dict) -> CoregError:
+    """
+    Build the error when no lag gave a fit and the given offset pairs too little.
+
+    The coarse peak's own failure (a tool that never moves, say) is the reason when there is
+    one; the message says that the stamps do not pair at the given offset and how to give it.
+    """
+    how = ("give the offset (coreg calibrate --time-offset S, node time_offset: B's clock "
+           "minus A's, in s)")
+    if peak is None:
+        return error.with_message(
+            f"{error}; the offset search found no peak in the devices' speeds at any lag where "
+            f'they overlap: {how}')
+    near = [tau for tau in failures if abs(tau - peak.tau_s) <= SAME_PEAK_WIDTHS * peak.sigma_s]
+    if near:
+        cause = failures[near[0]]
+        return cause.with_message(
+            f"{cause} (at the clock offset where the devices' speeds agree best, "
+            f'{peak.describe()}; the given offset {given:g} s pairs too few samples); or '
+            f'{how}')
+    return error.with_message(
+        f"{error}; no lag gives a fit where the devices' speeds agree ({peak.describe()}): "
+        f'{how}')
+
+
+def _coarse_or_refused(full: _Round, ctx: _Context, plain: _Context, sub_b: list,
+                       firsts: list, peak: CoarsePeak, why: str) -> CalibrationResult:
+    """
+    Return the fit at the coarse lag with the peak's σ when the lag is clear; else refuse.
+
+    The fine step cannot pin τ (``why``) but the coarse lag excludes the given offset. The
+    lag is clear when its trial fit beats every fit at another lag by ``FIT_CLEAR_RATIO``
+    (the correlation's runner-up peak is tried when no candidate lies outside the peak).
+    """
+    width = SAME_PEAK_WIDTHS * peak.sigma_s
+    best = min((f for f in firsts if abs(f.tau - full.tau) <= width), key=_Round.score,
+               default=None)
+    others = [f.score() for f in firsts if abs(f.tau - full.tau) > width]
+    if not others and peak.runner_up_tau_s is not None:
+        try:
+            others.append(_round(plain, sub_b, peak.runner_up_tau_s, full.kappa, None).score())
+        except CoregError:
+            pass
+    clear = best is not None and (not others
+                                  or best.score() <= FIT_CLEAR_RATIO * min(others))
+    if not clear:
+        raise TooFewPairsError(
+            f'the clock offset is not determined: the fine step cannot pin it ({why}) and no '
+            f"lag gives a clear peak in the devices' speeds ({peak.describe()}; the fits "
+            f'there are no better than elsewhere); give the offset (coreg calibrate '
+            f"--time-offset S, node time_offset: B's clock minus A's, in s) or record a "
+            f'livelier motion')
+    message = (f'coarse estimate: the fine step cannot pin it ({why}); σ is the half width '
+               f"of the devices' speed correlation peak ({peak.describe()})")
+    return _final(full, ctx, sigma_s=peak.sigma_s, message=message)
+
+
+def _final(rnd: _Round, ctx: _Context, sigma_s: Optional[float] = None,
+           message: str = 'estimated jointly with the transforms') -> CalibrationResult:
+    """
+    Apply the last (linear) step to τ and φ; marginalise φ's covariance over τ.
+
+    With ``sigma_s`` (the coarse estimate), τ stays where it is, with that σ (no drift).
+    """
     step, result = rnd.step, rnd.result
+    if sigma_s is not None:
+        step = replace(step, delta=np.zeros(1), cov=np.array([[sigma_s ** 2]]),
+                       dphi=step.dphi[:, :1])
+    elif rnd.half != ctx.half:
+        message += (f"; A's velocity over ±{rnd.half:.2g} s (its stated noise dominates "
+                    f'shorter windows)')
     d = step.delta
     params = rnd.params.stepped(step.dphi @ d)
     cov = step.marginal_cov(result.param_cov)
@@ -282,13 +392,12 @@ def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
                                                    held_basis(result, params.spec))
     T, _ = tangent_map(params)
     cross = T @ (step.dphi @ step.cov)
-    kappa = None if rnd.kappa is None else rnd.kappa + float(d[1])
-    drift_sigma = None if kappa is None else float(np.sqrt(step.cov[1, 1])) * 1e6
+    kappa = rnd.kappa if rnd.kappa is None or d.size < 2 else rnd.kappa + float(d[1])
+    drift_sigma = None if kappa is None or d.size < 2 else float(np.sqrt(step.cov[1, 1])) * 1e6
     timing = TimeOffset(rnd.tau + float(d[0]), step.sigma, True,
                         drift_ppm=None if kappa is None else kappa * 1e6,
                         drift_sigma_ppm=drift_sigma, reference_ns=ctx.reference_ns,
-                        message='estimated jointly with the transforms', cross_cov=cross,
-                        cov=step.cov)
+                        message=message, cross_cov=cross, cov=step.cov)
     chi2 = max(0.0, result.chi2 - float(d @ np.linalg.solve(step.cov, d)))
     dof = result.dof - d.size
     p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')

@@ -17,7 +17,7 @@ from typing import Optional, Union
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.calibration.pairing import pair_for, validated_streams
-from coreg_ros.core.clock.timing import coarse_offsets
+from coreg_ros.core.clock.coarse import coarse_offsets
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.so3 import invert_poses

@@ -5,11 +5,8 @@ Ikits' model (eq. 16) extended with time: device B's sample stamped ``t`` on B's
 A at ``t - τ(t)`` on A's clock, with ``τ(t) = τ0 + κ (t - t_mid)`` (κ the clock drift,
 dimensionless; reported in ppm).
 
-1. **Coarse search** (any offset within the streams' overlap, up to minutes): the angular
-   speed of A's tool and of B's marker are equal under a rigid link whatever T0 and T1 are
-   (``|ω_B| = |R0 ω_A|``), so their cross-correlation over lags peaks at τ. For a
-   position-only B the speeds of the two points are correlated, not equal; the candidates
-   are then told apart by the fit.
+1. **Coarse search** (``coarse``, any offset within the streams' overlap, whatever the
+   stamps): the devices' speeds cross-correlated over lags peak at τ.
 2. **Joint step**: with φ at its optimum for the current τ, the offset's column per pair is
    ``c = -F_x ẋ_A`` (``linearized``). Eliminating φ (Schur complement on the information of
    φ, priors included) gives τ's information ``S = h_ττ - h_φτᵀ H⁻¹ h_φτ``, the step
@@ -22,32 +19,35 @@ dimensionless; reported in ppm).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Optional
 
-from coreg_ros.core import quaternion as quat
+from coreg_ros.core.clock.coarse import (  # noqa: F401 (importers of its first home)
+    clock_step,
+    coarse_offsets,
+    MAX_CANDIDATES,
+    offsets_by_block,
+    speed_correlation,
+    SpeedCorrelation,
+)
 from coreg_ros.core.clock.trajectory import Trajectory
 from coreg_ros.core.estimator.linearized import Chunk, chunks, PairData
 from coreg_ros.core.models import Parameters
-from coreg_ros.core.types import PoseStream
 import numpy as np
-from scipy import fft
 
 #: Largest posterior σ of τ (s) for which τ counts as determined by the motion.
 MAX_SIGMA_S = 0.010
 #: The velocity signature must carry this many times the information A's noise alone would.
 MIN_SIGNAL_TO_NOISE = 4.0
-#: Candidates of the coarse search that are refined by the fit.
-MAX_CANDIDATES = 3
-#: Smallest share of the shorter signal two signals must overlap at a lag.
-MIN_OVERLAP_SHARE = 0.3
 #: Every how many pairs the noise share of the velocity signature is evaluated.
 NOISE_STRIDE = 32
-#: Half-width (s) of the central differences of the coarse speed signals.
-COARSE_HALF_WINDOW = 0.1
-#: Largest number of grid samples of one coarse signal (bounds time and memory).
-MAX_GRID = 1 << 16
+#: Longest half window (s) of A's velocity in the offset step: where A's stated noise
+#: dominates the short window's velocity, the window is doubled up to this (human and robot
+#: motions keep their shape over it; a still recording stays at its noise at every window).
+MAX_VELOCITY_HALF_WINDOW = 0.8
+#: A longer window is used once its velocity carries this many times the information A's
+#: noise alone would (the noise inflates τ's information by its share).
+LONG_WINDOW_SIGNAL_TO_NOISE = 16.0
 
 
 def query_seconds(stamps_b: np.ndarray, tau0: float, kappa: float, reference_ns: int,
@@ -57,186 +57,6 @@ def query_seconds(stamps_b: np.ndarray, tau0: float, kappa: float, reference_ns:
     since_ref = (np.asarray(stamps_b, dtype=np.int64) - np.int64(reference_ns)).astype(
         float) * 1e-9
     return rel - tau0 - kappa * since_ref
-
-
-# --------------------------------------------------------------------------- coarse search
-
-
-def _grid_step(*streams: PoseStream) -> float:
-    """Grid step (s) of the coarse signals: the coarser device's interval, bounded."""
-    steps = [float(np.median(np.diff(s.stamps))) * 1e-9 for s in streams if len(s) > 1]
-    step = max(steps + [0.002])
-    span = max(float(s.stamps[-1] - s.stamps[0]) * 1e-9 for s in streams)
-    return max(step, span / MAX_GRID)
-
-
-def _frame_of_markers(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> np.ndarray:
-    """Orientation (w, x, y, z) of the frame spanned by three marker positions, (n, 4)."""
-    x = p2 - p1
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    z = np.cross(x, p3 - p1)
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    y = np.cross(z, x)
-    return quat.from_matrix(np.stack([x, y, z], axis=2))
-
-
-def _speed(stream_or_streams, origin_ns: int, step: float, angular: bool,
-           trajectory: Optional[Trajectory] = None):
-    """(start s, speed on a uniform grid): |ω| (rad/s) if ``angular`` else |v| (m/s)."""
-    streams = stream_or_streams if isinstance(stream_or_streams, (list, tuple)) else [
-        stream_or_streams]
-    first = streams[0]
-    t = (first.stamps - np.int64(origin_ns)).astype(float) * 1e-9
-    grid = np.arange(t[0], t[-1], step)
-    # a longer window than the calibration uses: the coarse signal needs the shape of the
-    # motion, not its detail, and noisy trackers (a degree of orientation noise) need smoothing
-    half = max(1.5 * step, COARSE_HALF_WINDOW)
-    if len(streams) == 3:
-        trajs = [Trajectory((s.stamps - np.int64(origin_ns)).astype(float) * 1e-9, s.position,
-                            np.tile([1.0, 0.0, 0.0, 0.0], (len(s), 1))) for s in streams]
-        pts = [tr.pose(grid)[0] for tr in trajs]
-        traj = Trajectory(grid, pts[0], _frame_of_markers(*pts))
-    else:
-        traj = trajectory or Trajectory(t, first.position, first.quat_wxyz)
-    v, w = traj.velocity(grid, half)
-    return grid, np.linalg.norm(w if angular else v, axis=1)
-
-
-def _windowed_correlation(a: np.ndarray, b: np.ndarray, min_overlap: int):
-    """
-    Pearson correlation of a[i] with b[i + k] over the overlap, for every lag k.
-
-    Returns
-    -------
-    lags : ndarray of int, shape (La + Lb - 1,)
-    r : ndarray, shape (La + Lb - 1,)
-        -inf where the overlap is shorter than ``min_overlap``.
-    overlap : ndarray, shape (La + Lb - 1,)
-        Overlap as a share of the shorter signal.
-
-    """
-    la, lb = len(a), len(b)
-    nfft = fft.next_fast_len(la + lb - 1)
-    xc = fft.irfft(np.conj(fft.rfft(a, nfft)) * fft.rfft(b, nfft), nfft)
-    lags = np.arange(-(la - 1), lb)
-    sab = xc[lags % nfft]
-    i0 = np.maximum(0, -lags)
-    i1 = np.minimum(la, lb - lags)
-    n = (i1 - i0).astype(float)
-    ca = np.concatenate([[0.0], np.cumsum(a)])
-    ca2 = np.concatenate([[0.0], np.cumsum(a * a)])
-    cb = np.concatenate([[0.0], np.cumsum(b)])
-    cb2 = np.concatenate([[0.0], np.cumsum(b * b)])
-    sa, sa2 = ca[i1] - ca[i0], ca2[i1] - ca2[i0]
-    sb, sb2 = cb[i1 + lags] - cb[i0 + lags], cb2[i1 + lags] - cb2[i0 + lags]
-    var = (n * sa2 - sa * sa) * (n * sb2 - sb * sb)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        r = (n * sab - sa * sb) / np.sqrt(np.where(var > 0, var, np.nan))
-    r = np.where((n >= min_overlap) & np.isfinite(r), r, -np.inf)
-    return lags, r, n / min(la, lb)
-
-
-def coarse_offsets(stream_a: PoseStream, streams_b: Sequence[PoseStream], *,
-                   angular: bool, max_candidates: int = MAX_CANDIDATES,
-                   trajectory_a: Optional[Trajectory] = None) -> list:
-    """
-    Candidate offsets τ (s) from the cross-correlation of the devices' speeds, best first.
-
-    Parameters
-    ----------
-    stream_a : PoseStream
-        Device A (validated: increasing stamps, unit quaternions).
-    streams_b : sequence of PoseStream
-        Device B: one stream, or three marker streams (their triangle gives an orientation).
-    angular : bool
-        Correlate angular speeds (B has an orientation, or three markers) rather than the
-        speeds of the tool and marker origins (position-only B).
-    max_candidates : int
-        Largest number of candidate offsets returned.
-    trajectory_a : Trajectory, optional
-        A's trajectory on its own clock, seconds from its first stamp, if already built.
-
-    Returns
-    -------
-    list of (float, float)
-        (τ s, correlation) of the highest local maxima, refined to a fraction of the grid
-        step by a parabola through the peak.
-
-    """
-    streams_b = list(streams_b)
-    step = _grid_step(stream_a, *streams_b)
-    if min(len(stream_a), len(streams_b[0])) < 4:
-        return []
-    ta, a = _speed(stream_a, int(stream_a.stamps[0]), step, angular, trajectory_a)
-    b_arg = streams_b if len(streams_b) == 3 else streams_b[0]
-    tb, b = _speed(b_arg, int(streams_b[0].stamps[0]), step, angular)
-    if len(a) < 8 or len(b) < 8 or np.std(a) == 0 or np.std(b) == 0:
-        return []
-    min_overlap = max(8, int(MIN_OVERLAP_SHARE * min(len(a), len(b))))
-    lags, r, overlap = _windowed_correlation(a - a.mean(), b - b.mean(), min_overlap)
-    inner = (r[1:-1] >= r[:-2]) & (r[1:-1] > r[2:]) & np.isfinite(r[1:-1])
-    peaks = np.flatnonzero(inner) + 1
-    if peaks.size == 0:
-        return []
-    # a peak over a short overlap is a weaker witness: rank by r·√(overlap share)
-    strength = r[peaks] * np.sqrt(overlap[peaks])
-    peaks = peaks[np.argsort(strength)[::-1][:max_candidates]]
-    base = float(int(streams_b[0].stamps[0]) - int(stream_a.stamps[0])) * 1e-9
-    base += float(tb[0] - ta[0])
-    out = []
-    for k in peaks:
-        y0, y1, y2 = r[k - 1], r[k], r[k + 1]
-        curve = y0 - 2 * y1 + y2
-        frac = 0.5 * (y0 - y2) / curve if curve < 0 and np.isfinite(y0 + y2) else 0.0
-        out.append((base + (lags[k] + float(np.clip(frac, -0.5, 0.5))) * step, float(y1)))
-    return out
-
-
-def offsets_by_block(stream_a: PoseStream, streams_b: Sequence[PoseStream], *, angular: bool,
-                     n_blocks: int = 6) -> list:
-    """
-    Find the best coarse offset of each of ``n_blocks`` consecutive time blocks of B.
-
-    Returns
-    -------
-    list of (float, float, float)
-        (start s, end s, τ s) per block with a candidate, times from B's first stamp.
-
-    """
-    first = streams_b[0]
-    edges = np.linspace(0, len(first), n_blocks + 1).astype(int)
-    out = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        if hi - lo < 16:
-            continue
-        block = [PoseStream(first.stamps[lo:hi], first.position[lo:hi],
-                            first.quat_wxyz[lo:hi], first.frame_id)] + list(streams_b[1:])
-        found = coarse_offsets(stream_a, block, angular=angular, max_candidates=1)
-        if found:
-            t0 = float(first.stamps[lo] - first.stamps[0]) * 1e-9
-            t1 = float(first.stamps[hi - 1] - first.stamps[0]) * 1e-9
-            out.append((t0, t1, found[0][0]))
-    return out
-
-
-def clock_step(blocks: list, tolerance_s: float) -> Optional[str]:
-    """
-    Describe a clock step in the blocks' offsets, or return None.
-
-    A step: the earlier blocks agree with each other, the later blocks too, and the two runs
-    differ by more than ``tolerance_s``.
-    """
-    taus = np.array([b[2] for b in blocks])
-    for k in range(1, len(taus)):
-        before, after = taus[:k], taus[k:]
-        if (np.ptp(before) < tolerance_s and np.ptp(after) < tolerance_s
-                and abs(np.median(after) - np.median(before)) > tolerance_s):
-            return (f'the clock offset changes from {np.median(before):.3f} s to '
-                    f'{np.median(after):.3f} s between {blocks[k - 1][1]:.1f} s and '
-                    f'{blocks[k][0]:.1f} s into the recording (a clock step): split the '
-                    f'recording there (coreg fix-bag BAG NEW_BAG --split-at-jump S) and '
-                    f'calibrate each part')
-    return None
 
 
 # --------------------------------------------------------------------------- joint step
@@ -392,3 +212,54 @@ def _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_co
     except np.linalg.LinAlgError:
         return OffsetStep(np.zeros(k), None, dphi, snr)
     return OffsetStep(-cov @ g_t, cov, dphi, snr)
+
+
+def velocity_step(trajectory: Trajectory, t_a: np.ndarray, half: float,
+                  max_gap: Optional[float], params: Parameters, data: PairData,
+                  since_ref: Optional[np.ndarray], param_cov: np.ndarray, cov_a: np.ndarray,
+                  prior_information: Optional[np.ndarray] = None) -> tuple[OffsetStep, float]:
+    """
+    Make the offset step with A's velocity over the shortest window that shows the motion.
+
+    The stillness test judges the motion recorded: a velocity at the level of A's stated
+    noise over the window ``half`` may be a clear motion over a longer one (noisy trackers,
+    low rates), while white noise stays at its level at every window. The window is doubled
+    up to ``MAX_VELOCITY_HALF_WINDOW`` until its velocity carries
+    ``LONG_WINDOW_SIGNAL_TO_NOISE`` times what A's noise alone would; if none does, the step
+    over ``half`` is returned (and says the recording is still).
+
+    Parameters
+    ----------
+    trajectory : Trajectory
+        A's tool poses on A's clock (s from its origin).
+    t_a : ndarray, shape (N,)
+        The pairs' A-clock times, s on the trajectory's axis.
+    half : float
+        The first half window, s.
+    max_gap : float, optional
+        Longest gap between A samples a window may span, s (``Trajectory.velocity``).
+    params, data, since_ref, param_cov, prior_information
+        As ``offset_step``.
+    cov_a : ndarray, shape (6, 6)
+        A's noise covariance, ROS layout.
+
+    Returns
+    -------
+    step : OffsetStep
+    half : float
+        The half window (s) of the velocity the step was made with.
+
+    """
+    def step_over(h):
+        v, w = trajectory.velocity(t_a, h, max_gap=max_gap)
+        return offset_step(params, data, np.hstack([v, w]), since_ref, param_cov,
+                           velocity_noise_cov(cov_a, h), prior_information)
+
+    step, used = step_over(half), half
+    longer = half
+    while step.signal_to_noise < MIN_SIGNAL_TO_NOISE and 2.0 * longer <= MAX_VELOCITY_HALF_WINDOW:
+        longer *= 2.0
+        candidate = step_over(longer)
+        if candidate.cov is not None and candidate.signal_to_noise >= LONG_WINDOW_SIGNAL_TO_NOISE:
+            step, used = candidate, longer
+    return step, used

@@ -341,4 +341,4 @@ def jitter_finding(report: StampReport) -> Optional[Finding]:
                            device=worst.device, dropped=worst.dropped, gaps=worst.gaps,
                            text=text)
     return Finding(name=TimestampJitterCandidate.name, kind=TimestampJitterCandidate.kind,
-                   source=STAMPS, estimate=estimate)
+                   device=worst.device, source=STAMPS, estimate=estimate)

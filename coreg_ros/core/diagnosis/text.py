@@ -45,7 +45,8 @@ def _lines(report: DiagnosisReport) -> str:
     if report.effects:
         lines.append('effects:')
         for e in report.effects:
-            lines.append(f'  {e.name} [{e.kind}]: {e.estimate.text} (held-out gain '
+            lines.append(f'  {e.name} [{e.kind}; {_whose(e.device)}]: {e.estimate.text} '
+                         f'(held-out gain '
                          f'{e.held_out_gain:.1f} nats, {e.blocks_improved}/{e.blocks} '
                          f'blocks)')
     else:
@@ -62,6 +63,13 @@ def _lines(report: DiagnosisReport) -> str:
         for dev in report.stamps.devices:
             lines.append(f'stamps {dev.device}: {dev.text}')
     return '\n'.join(lines)
+
+
+def _whose(device: str) -> str:
+    """Say whose effect it is, as the text names it (``Finding.device``)."""
+    if device == 'link':
+        return 'the link between the devices'
+    return f'device {device}' if device in ('A', 'B') else f'devices {device}'
 
 
 def _gap_lines(report: DiagnosisReport) -> list:

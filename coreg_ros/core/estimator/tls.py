@@ -51,6 +51,17 @@ def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
     """
     pos_b, quat_b = problem.output(sl)
     e_y, j_phi, j_x = linearize(params, x.pos[sl], x.quat[sl], pos_b, quat_b, with_input=True)
+    r_x, A_x = input_blocks(problem, x, sl)
+    return r_x, e_y @ problem.whiten_b.T, A_x, problem.whiten_out(j_x), problem.whiten_out(j_phi)
+
+
+def input_blocks(problem, x: InputState, sl: slice) -> tuple[np.ndarray, np.ndarray]:
+    """
+    A's whitened input residuals r_x (c, 6) and their Jacobian A_x (c, 6, 6) (eqs. 44, 49).
+
+    ``problem`` is anything with A's measured ``pos_a``, ``quat_a``, ``whiten_a`` and
+    ``a_scale`` (a ``Problem``; the instants shared by a rig's devices, ``rig.shared_instants``).
+    """
     ex_rot, dex = error_rotation_jacobian(x.quat[sl], problem.quat_a[sl])
     e_x = np.concatenate([x.pos[sl] - problem.pos_a[sl], ex_rot], axis=1)
     Lx = problem.whiten_a
@@ -62,7 +73,7 @@ def _tls_blocks(problem: Problem, params: Parameters, x: InputState, sl: slice):
         w = 1.0 / np.sqrt(problem.a_scale[sl])
         r_x = r_x * w[:, None]
         A_x = A_x * w[:, None, None]
-    return r_x, e_y @ problem.whiten_b.T, A_x, problem.whiten_out(j_x), problem.whiten_out(j_phi)
+    return r_x, A_x
 
 
 def _damped(U: np.ndarray, lam: float) -> np.ndarray:

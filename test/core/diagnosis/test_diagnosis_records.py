@@ -47,6 +47,7 @@ def test_registry_one_class_per_effect():
     for name, cls in CANDIDATES.items():
         assert cls.name == name and issubclass(cls, CandidateEffect)
         assert cls.kind in ('structured', 'noise')
+        assert cls.device in ('A', 'B', 'A and B', 'A or B', 'link')
         assert cls.simpler is None or CANDIDATES[cls.simpler].acts_on == cls.acts_on
         if cls.acts_on in ('time', 'mean'):
             assert cls.term is not None and not cls.var_params
@@ -74,13 +75,15 @@ def test_clock_estimates_shift_with_the_coarse_search():
 def test_finding_places_its_source_and_renaming():
     tau = CANDIDATES['time_offset'](tau_s=0.01, sigma_s=1e-4, text='10.00 ± 0.10 ms')
     found = Finding.of(tau, source=COARSE_SEARCH)
-    assert list(found.as_dict()) == ['name', 'kind', 'estimate', 'source', 'held_out_gain',
-                                     'held_out_gain_per_residual', 'blocks_improved',
-                                     'blocks']
+    assert list(found.as_dict()) == ['name', 'kind', 'device', 'estimate', 'source',
+                                     'held_out_gain', 'held_out_gain_per_residual',
+                                     'blocks_improved', 'blocks']
+    assert found.device == 'B'  # B's clock against A's
     stamps = StampJitter(sigma_s=1e-3, sigma_sigma_s=1e-5, device='B', dropped=3, gaps=[],
                          text='1.00 ms')
-    read = Finding(name='timestamp_jitter', kind='noise', estimate=stamps, source=STAMPS)
-    assert list(read.as_dict())[:4] == ['name', 'kind', 'source', 'estimate']
+    read = Finding(name='timestamp_jitter', kind='noise', device='B', estimate=stamps,
+                   source=STAMPS)
+    assert list(read.as_dict())[:5] == ['name', 'kind', 'device', 'source', 'estimate']
     local = ClusteredOutliers.of(12, 0.006, 'time 28-32 s', False).sized(
         LocalSize(max_mm=3.8, rms_mm=3.4, noise_mm=0.5, from_s=29.0, to_s=30.0))
     renamed = Finding.of(local, renamed_from='outliers', held_out_gain=105.6)
@@ -90,6 +93,18 @@ def test_finding_places_its_source_and_renaming():
     assert list(doc['estimate']) == ['flagged_pairs', 'flagged_share', 'where', 'at_cap', 'text',
                                      'max_mm', 'rms_mm', 'window_s']
     assert doc['estimate']['text'].endswith('; up to 3.80 mm (RMS 3.40 mm) in 29-30 s')
+
+
+def test_every_effect_says_whose_it_is():
+    # issue 23, item 5: the effect's device, as the simulator injects it (sim.injected)
+    whose = {'time_offset': 'B', 'clock_drift': 'B', 'field_distortion': 'B',
+             'distance_noise': 'B', 'scale': 'B', 'backlash': 'A', 'link_flex': 'link',
+             'noise_scale': 'A and B'}
+    for name, device in whose.items():
+        assert CANDIDATES[name].device == device, name
+    # what the residuals alone cannot place says so (the stamps name their device)
+    for name in ('outliers', 'timestamp_jitter', 'non_stationary'):
+        assert CANDIDATES[name].device == 'A or B', name
 
 
 def test_screened_candidate_keeps_its_keys_order():

@@ -48,6 +48,10 @@ class CandidateEffect(Record):
         Sets B's noise level: at most one such effect in a model.
     trend_checked : bool
         Accepted only if the offsets fitted per time block trend (``drift.drift_check``).
+    device : str
+        Whose effect it is (issue 23, item 5): ``'A'``, ``'B'`` (the device calibrated against
+        A: a rig's device of that calibration), ``'A and B'`` (both), ``'A or B'`` (the data
+        cannot tell which) or ``'link'`` (what joins the devices' tracked bodies).
 
     """
 
@@ -61,6 +65,7 @@ class CandidateEffect(Record):
     simpler: Optional[str] = None
     sets_noise_level = False
     trend_checked = False
+    device = 'A or B'
 
     @classmethod
     def size(cls, reading: FitReading) -> CandidateEffect:

@@ -26,6 +26,7 @@ class TimeOffsetCandidate(CandidateEffect):
     """
 
     name = 'time_offset'
+    device = 'B'
     acts_on = 'time'
     term = OffsetShift
     needs_motion = True
@@ -65,6 +66,7 @@ class ClockDriftCandidate(CandidateEffect):
     """
 
     name = 'clock_drift'
+    device = 'B'
     acts_on = 'time'
     term = DriftShift
     needs_motion = True

@@ -29,6 +29,9 @@ class Finding(Record):
     ----------
     name, kind : str
         The effect (``effects.CANDIDATES``) and whether it is structure or noise.
+    device : str
+        Whose effect it is (``CandidateEffect.device``; from the stamps, the device whose
+        stamps scatter).
     estimate : Record
         Its size with uncertainty (an instance of the effect's class, or
         ``stamps.StampJitter``).
@@ -53,6 +56,7 @@ class Finding(Record):
 
     name: str
     kind: str
+    device: str
     estimate: Record
     held_out_gain: float = 0.0
     held_out_gain_per_residual: float = 0.0
@@ -67,7 +71,8 @@ class Finding(Record):
     @classmethod
     def of(cls, estimate: CandidateEffect, **how) -> Finding:
         """Name the effect of an estimate (its class's name and kind)."""
-        return cls(name=estimate.name, kind=estimate.kind, estimate=estimate, **how)
+        return cls(name=estimate.name, kind=estimate.kind, device=estimate.device,
+                   estimate=estimate, **how)
 
     def as_dict(self) -> dict:
         """Return the finding's JSON dict: the source, when given, next to the estimate."""
@@ -76,5 +81,5 @@ class Finding(Record):
             return doc
         # what the stamps say is read before any residual; the coarse search refines after
         items = list(doc.items())
-        items.insert(2 if self.source == STAMPS else 3, ('source', self.source))
+        items.insert(3 if self.source == STAMPS else 4, ('source', self.source))
         return dict(items)

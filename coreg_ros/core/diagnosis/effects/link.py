@@ -29,6 +29,7 @@ class LinkFlexCandidate(CandidateEffect):
     """
 
     name = 'link_flex'
+    device = 'link'
     acts_on = 'mean'
     term = LinkFlex
 
@@ -114,6 +115,7 @@ class BacklashCandidate(CandidateEffect):
     """
 
     name = 'backlash'
+    device = 'A'
     acts_on = 'mean'
     term = Backlash
     needs_motion = True

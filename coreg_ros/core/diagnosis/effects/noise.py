@@ -30,6 +30,7 @@ class NoiseScaleCandidate(CandidateEffect):
     """
 
     name = 'noise_scale'
+    device = 'A and B'
     kind = 'noise'
     acts_on = 'variance'
     var_params = ('log_s2',)
@@ -67,6 +68,7 @@ class DistanceNoiseCandidate(CandidateEffect):
     """
 
     name = 'distance_noise'
+    device = 'B'
     kind = 'noise'
     acts_on = 'variance'
     var_params = ('log_c', 'k')

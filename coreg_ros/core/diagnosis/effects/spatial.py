@@ -27,6 +27,7 @@ class ScaleCandidate(CandidateEffect):
     """
 
     name = 'scale'
+    device = 'B'
     acts_on = 'mean'
     term = Scale
     spatial = True
@@ -63,6 +64,7 @@ class FieldDistortionCandidate(CandidateEffect):
     """
 
     name = 'field_distortion'
+    device = 'B'
     acts_on = 'mean'
     term = FieldDistortion
     spatial = True
