@@ -48,6 +48,11 @@ def _assert_same(streams, rec):
         np.testing.assert_array_equal(streams[topic].quat_wxyz, rec.streams[topic].quat_wxyz)
 
 
+def _info(k: int) -> dict:
+    """The message info rclpy gives a two-argument callback: the k-th message of a publisher."""
+    return {'publication_sequence_number': k + 1, 'source_timestamp': 0}
+
+
 def test_sample_store_journals_what_it_takes_and_a_new_one_resumes_it(tmp_path):
     log = rclpy.logging.get_logger('coreg_test_store')
     first = _store(_config(tmp_path), log)
@@ -56,12 +61,13 @@ def test_sample_store_journals_what_it_takes_and_a_new_one_resumes_it(tmp_path):
     for topic, s in rec.streams.items():  # as the subscriptions deliver them, flushed 4 times
         take = first.callback(topic)
         for k in range(len(s)):
-            take(make_pose_stamped(int(s.stamps[k]), s.frame_id, s.position[k], s.quat_wxyz[k]))
+            take(make_pose_stamped(int(s.stamps[k]), s.frame_id, s.position[k], s.quat_wxyz[k]),
+                 _info(k))
             if k % (len(s) // 4) == 0:
                 first.flush_journal()
     s = rec.streams[A]
     first.callback(A)(make_pose_stamped(int(s.stamps[-1]), s.frame_id, s.position[-1],
-                                        s.quat_wxyz[-1]))  # sent twice: refused, counted
+                                        s.quat_wxyz[-1]), _info(len(s)))  # sent twice: refused, counted
     assert first.buffers[A].rejected['duplicate_stamp'] == 1
     first.flush_journal()
     journal = first.journal.folder
