@@ -13,6 +13,7 @@ from typing import Optional
 
 from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.diagnosis.causes import Cause
 from coreg_ros.core.diagnosis.detect import Detection
 from coreg_ros.core.diagnosis.effects.finding import Finding
 from coreg_ros.core.diagnosis.effects.local import (
@@ -115,8 +116,8 @@ def with_stamps(stamps: StampReport, findings: list) -> list:
     return [found] + findings
 
 
-def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter
-                     ) -> tuple:
+def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter,
+                     local: bool = True) -> tuple:
     """
     Outliers versus structure, and an excess left in some blocks or cells only.
 
@@ -160,7 +161,7 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
     ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
     stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
     local = NonStationaryCandidate.name
-    if (emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
+    if (local and emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
             and not any(f.name == local for f in findings)):
         estimate = LocalExcess.of(emap.text, emap.share_in_time_blocks, emap.share_in_cells,
                                   ex_after)
@@ -200,7 +201,7 @@ def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
 def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
             detection: Detection, location: Location,
             noise_excess: Optional[NoiseExcess] = None,
-            stamps: Optional[StampReport] = None) -> str:
+            stamps: Optional[StampReport] = None, cause: Optional[Cause] = None) -> str:
     """
     One sentence: no gap, timing issues, a gap nothing explains, noise, or the gap explained.
 
@@ -220,12 +221,17 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         ``noise_excess`` of the final fit.
     stamps : StampReport, optional
         What the stamps say (from the streams).
+    cause : causes.Cause, optional
+        A mistake a cheap check names: the answer.
 
     Returns
     -------
     str
 
     """
+    if cause is not None:
+        return (f'the recording as given cannot be diagnosed ({cause.check.replace("_", " ")})'
+                f': {cause.text}; no effect is looked for until it is fixed')
     if not gap:
         return (f'no gap: the recording fits the model with the stated noise '
                 f'(chi2/dof {detection.chi2_per_dof:.3f}, p = {detection.p_value:.2g})')

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.diagnosis.causes import Cause
 from coreg_ros.core.diagnosis.detect import Detection
 from coreg_ros.core.diagnosis.findings import ExcessLeft, NoiseExcess
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
@@ -81,6 +82,9 @@ class DiagnosisReport(Record):
     excess_left : ExcessLeft
     location : Location
         Where the base fit's excess lies.
+    not_significant : list of significance.NotSignificant
+        Effects the held-out data support that are too small to matter at the stated noise,
+        with their sizes (never among ``effects``).
     verdict : str
         The answer in one sentence.
     detection : Detection
@@ -98,6 +102,9 @@ class DiagnosisReport(Record):
         The offset the coarse search moved the pairing by, s.
     pairing : Pairing, optional
         How the streams were paired (from the streams).
+    cause : causes.Cause, optional
+        A mistake a cheap check names (units, swapped devices, ...): the answer, instead of
+        any effect.
 
     """
 
@@ -109,6 +116,7 @@ class DiagnosisReport(Record):
     noise_excess: Optional[NoiseExcess]
     excess_left: ExcessLeft
     location: Location
+    not_significant: list
     verdict: str
     detection: Detection
     candidates: list
@@ -121,3 +129,4 @@ class DiagnosisReport(Record):
     stamps: Optional[StampReport] = optional()
     coarse_offset_s: Optional[float] = optional()
     pairing: Optional[Pairing] = optional()
+    cause: Optional[Cause] = optional()

@@ -298,11 +298,24 @@ def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str
     # neither the pick nor its not-separable rival, and is not refitted
     todo = sorted(todo, key=lambda n: -predicted.get(n, np.inf))
     best_gain = 0.0
+    # the best-predicted candidate of each way of acting is refitted whenever it could matter:
+    # a reference whose outlier model sets aside what the candidate would explain (an offset
+    # under glitches) weighs its one-step prediction down, the refit finds it
+    leaders = set()
+    for how in ('time', 'mean', 'variance'):
+        ranked = [n for n in todo if CANDIDATES[n].acts_on == how
+                  and predicted.get(n, np.inf) >= SCREEN_SHARE * thr]
+        # with the simpler one it extends (a drift the per-block check refuses leaves the
+        # constant offset)
+        leaders.update(ranked[:1] + [CANDIDATES[n].simpler for n in ranked[:1]
+                                     if CANDIDATES[n].simpler in ranked])
     for i, name in enumerate(todo):
         sel.progress(lo + (hi - lo) * i / max(len(todo), 1), f'round {round_no + 1}: {name}')
         pred = predicted.get(name)
         reason = ''
-        if pred is not None and pred < SCREEN_SHARE * thr:
+        if name in leaders:
+            pass
+        elif pred is not None and pred < SCREEN_SHARE * thr:
             # the refit cannot gain the practical size: its in-sample gain bounds the
             # held-out one, and the one-step prediction from the reference is that gain
             reason = (f'screened: predicted in-sample gain {pred:.1f} nats, below '
@@ -423,10 +436,6 @@ def select_effects(sel: Selector, start) -> Selection:
                 not_sep = []
         if best is None:
             break
-        if r == 0:
-            # later rounds only revisit what improved on the base model on its own: an
-            # effect that helps nothing alone is not looked for behind another one
-            names = [c.name for c in cands if c.passes or c.behind]
         accepted = accepted + (best.name,)
         chosen.append((best, not_sep))
         for other in not_sep:

@@ -8,6 +8,8 @@ from coreg_ros.core.diagnosis.report import DiagnosisReport
 def format_diagnosis(report: DiagnosisReport) -> str:
     """Human-readable summary of a diagnosis report."""
     lines = [f'verdict: {report.verdict}']
+    if report.cause is not None:
+        lines.append(f'cause ({report.cause.check}): {report.cause.text}')
     det = report.detection
     flags = ', '.join(det.flags.raised) or 'none'
     lines.append(f'detect: chi2/dof {det.chi2_per_dof:.3f} (p = {det.p_value:.3g}), '
@@ -32,6 +34,8 @@ def format_diagnosis(report: DiagnosisReport) -> str:
                          f'blocks)')
     else:
         lines.append('effects: none')
+    for small in report.not_significant:
+        lines.append(f'  not significant: {small.name} [{small.kind}]: {small.text}')
     if report.not_separable:
         lines.append('not separable with this motion: '
                      + '; '.join(' vs '.join(p) for p in report.not_separable))

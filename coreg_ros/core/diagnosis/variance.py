@@ -167,6 +167,16 @@ def loglik(var: VarState, st: PairStats, with_parts: bool = False):
     return ll
 
 
+def total_variance(var: VarState, st: PairStats) -> np.ndarray:
+    """
+    Total variance of each pair's decorrelated error under the noise model, inliers (n,).
+
+    The trace of ``Cov(z)``: the diagonal variances and the jitter's rank-one part.
+    """
+    _, _, D, _ = components(var, st)
+    return np.sum(D, axis=1) + var.beta * np.sum(st.u ** 2, axis=1)
+
+
 def inflation(var: VarState, st: PairStats) -> float:
     """
     Factor (>= 1) on a fit's parameter variances: the chi-square per dof left under it.
