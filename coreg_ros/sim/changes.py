@@ -36,6 +36,7 @@ from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
+from coreg_ros.sim.injected.timing import step_stamps
 from coreg_ros.sim.motion import random_unit
 import numpy as np
 
@@ -201,12 +202,10 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
             streams[topic] = replace(s, position=pos, quat_wxyz=q)
         desc['noise_factor'] = float(change.noise_factor)
     elif change.name == 'clock_step':
-        shift = np.int64(int(round(change.clock_s * 1e9)))
+        shift = int(round(change.clock_s * 1e9))
         for topic in rec.topics_b:
             s = streams[topic]
-            stamps = s.stamps.copy()
-            stamps[stamps >= at] += shift
-            streams[topic] = replace(s, stamps=stamps)
+            streams[topic] = replace(s, stamps=step_stamps(s.stamps, at, shift))
         desc['clock_s'] = float(change.clock_s)
     else:
         dp, dtheta = _resolved(change, rng)

@@ -15,6 +15,7 @@ from typing import Optional
 
 from coreg_ros.core.diagnosis.data import grid_cells, time_folds
 from coreg_ros.core.diagnosis.record import Record
+from coreg_ros.core.diagnosis.timeline import flagged_runs, FlaggedRuns, run_bounds
 import numpy as np
 from scipy import stats
 
@@ -122,8 +123,10 @@ class FlaggedPairs(Record):
     share : float
         Their share of all pairs.
     p_time, p_workspace : float
-        p-values of the homogeneity of the flagged share over time blocks and cells.
+        p-values of the homogeneity of the flagged runs over time blocks and cells.
     where : str
+    runs : timeline.FlaggedRuns
+        The flagged pairs grouped in time: changes, bursts.
 
     """
 
@@ -135,6 +138,7 @@ class FlaggedPairs(Record):
     p_time: float
     p_workspace: float
     where: str
+    runs: FlaggedRuns
 
 
 @dataclass(frozen=True)
@@ -278,10 +282,12 @@ def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -
     """
     Whether flagged pairs cluster in time or in the workspace (then: structure, not glitches).
 
-    Glitches strike at random: the flagged count per time block and per workspace cell is
-    then binomial with the overall share. A chi-square test of that homogeneity (and a
-    practical size: some block holds at least three times the share it would) says the
-    flagged pairs are not outliers but a structured or non-stationary error there.
+    The flagged pairs are grouped into runs in time first (``timeline.flagged_runs``): a run
+    that lasts seconds is a change; shorter runs are glitch episodes, each counted once.
+    Glitches strike at random: the runs per time block and per workspace cell are then
+    binomial with the overall rate. A chi-square test of that homogeneity (and a practical
+    size: some block holds at least three times the runs it would) says the flagged pairs
+    are not outliers but a structured or non-stationary error there.
 
     Parameters
     ----------
@@ -302,12 +308,20 @@ def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -
     p_value = {'time': 1.0, 'workspace': 1.0}
     found = {'time': False, 'workspace': False}
     where = []
-    if k >= 8:
-        p_value, found, where = _clusters(data, flagged, n_blocks)
+    runs = flagged_runs(data.t, flagged)
+    if runs.changes:
+        found['time'] = True
+        where.append('time ' + ', '.join(f'{a:.0f}-{b:.0f} s' for a, b in runs.changes[:4])
+                     + ' (lasting, not a burst)')
+    elif runs.runs >= 8:
+        first, _ = run_bounds(flagged, runs.merge_gap)
+        episodes = np.zeros(n, dtype=bool)
+        episodes[first] = True
+        p_value, found, where = _clusters(data, episodes, n_blocks)
     return FlaggedPairs(clustered=found['time'] or found['workspace'], in_time=found['time'],
                         in_workspace=found['workspace'], count=k, share=float(k / max(n, 1)),
                         p_time=p_value['time'], p_workspace=p_value['workspace'],
-                        where='; '.join(where))
+                        where='; '.join(where), runs=runs)
 
 
 def _clusters(data, flagged: np.ndarray, n_blocks: int) -> tuple:

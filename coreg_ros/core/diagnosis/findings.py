@@ -117,7 +117,7 @@ def with_stamps(stamps: StampReport, findings: list) -> list:
 
 
 def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter,
-                     local: bool = True) -> tuple:
+                     look_local: bool = True) -> tuple:
     """
     Outliers versus structure, and an excess left in some blocks or cells only.
 
@@ -149,19 +149,19 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
     if found is not None:
         cl = ex.flagged_clustering(data, flagged)
         at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
-        if cl.clustered or at_cap:
+        if cl.clustered:
             # the flagged pairs are where it acts (the excess map counts them out)
             estimate = sized(ClusteredOutliers.of(cl.count, cl.share, cl.where, at_cap),
                              flagged)
             named = replace(found, name=estimate.name, kind=estimate.kind, estimate=estimate,
                             renamed_from=found.name)
         else:
-            named = replace(found, estimate=found.estimate.capped(at_cap))
+            named = replace(found, estimate=found.estimate.capped(at_cap).in_runs(cl.runs))
         findings = _replaced(findings, found, named)
     ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
     stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
     local = NonStationaryCandidate.name
-    if (local and emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
+    if (look_local and emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
             and not any(f.name == local for f in findings)):
         estimate = LocalExcess.of(emap.text, emap.share_in_time_blocks, emap.share_in_cells,
                                   ex_after)

@@ -116,12 +116,19 @@ class Model:
         """Return the number of fitted parameters beyond φ."""
         return self.n_mean - self.P + len(self.var_names)
 
-    def initial_state(self, base: State) -> State:
-        """Start from a state of a sub-model, with zero θ for the new effects."""
+    def initial_state(self, base: State, warm: bool = False) -> State:
+        """
+        Start from a state of a sub-model, with zero θ for the new effects.
+
+        With ``warm``, a new effect whose term has a ``start`` (a located clock step) starts
+        there instead.
+        """
         st = base.copy()
+        starts = {t.name: t.start() for t in self.time + self.mean if hasattr(t, 'start')}
         for n, sl in self.slices.items():
             if n not in st.theta:
-                st.theta[n] = np.zeros(sl.stop - sl.start)
+                st.theta[n] = (starts[n] if warm and n in starts
+                               else np.zeros(sl.stop - sl.start))
         st.theta = {n: v for n, v in st.theta.items() if n in self.slices}
         var = st.var
         defaults = vm.VarState()
@@ -345,7 +352,7 @@ class Model:
         def run(s):
             return self.normal(s, idx, folds, n_folds, keep)
 
-        state = self.initial_state(start)
+        state = self.initial_state(start, warm=True)
         ps = run(state)
         if self.var_names:
             state.var = vm.fit_variance(ps.stats, state.var, self.var_names)

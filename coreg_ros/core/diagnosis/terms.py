@@ -363,3 +363,32 @@ class DriftShift(TimeShift):
         """Shift by the offset at the start plus the drift since."""
         u = t / max(duration, 1e-9)
         return theta[0] + theta[1] * u, np.stack([np.ones_like(u), u], axis=1)
+
+
+class StepShift(TimeShift):
+    """
+    A clock that steps at one instant: ``s = τ + Δ·1[t ≥ t_s]``, θ = (τ, Δ), s.
+
+    The instant t_s is located once per recording before the effects are scored
+    (``steps.locate_clock_step``, kept in ``data.cache['clock_step']``); the fit starts at the
+    scan's one-step estimate of θ.
+    """
+
+    name = 'clock_step'
+    n = 2
+
+    def setup(self, data: DiagData) -> None:
+        """Read the located instant (the middle of the recording if none was located)."""
+        found = data.cache.get('clock_step')
+        self.at = float(found.at_s) if found is not None else 0.5 * float(data.t[-1])
+        self.theta0 = (np.asarray(found.theta, dtype=float) if found is not None
+                       else np.zeros(2))
+
+    def start(self) -> np.ndarray:
+        """Return the fit's starting θ: the scan's estimate."""
+        return self.theta0.copy()
+
+    def shift(self, theta, t, duration):
+        """Shift by τ, and by Δ more from the instant on."""
+        after = (t >= self.at).astype(float)
+        return theta[0] + theta[1] * after, np.stack([np.ones_like(t), after], axis=1)

@@ -24,15 +24,16 @@ import numpy as np
 from scipy import optimize
 
 _LOG2PI = float(np.log(2.0 * np.pi))
-#: Largest share of outliers: beyond it the errors are a wrong noise model, not glitches.
-MAX_OUTLIER_SHARE = 0.2
+#: Largest share of outliers: beyond half the pairs the "outliers" are the data and the
+#: model is wrong (``calibrate`` refuses such a recording as a whole).
+MAX_OUTLIER_SHARE = 0.5
 
 _BOUNDS = {
     'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0),
     # EM noise grows with the distance from the source: the exponent is not negative
     'k': (0.0, 8.0),
     'log_beta': (np.log(1e-5 ** 2), np.log(0.5 ** 2)),
-    'logit_eps': (-12.0, float(np.log(0.2 / 0.8))), 'log_lam': (np.log(5.0), np.log(1e5)),
+    'logit_eps': (-12.0, 0.0), 'log_lam': (np.log(5.0), np.log(1e5)),
 }
 
 

@@ -89,12 +89,18 @@ class Outliers:
     fraction: float
     stage = 'measured'
     _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    name = 'outliers'
+
+    def _chosen(self, n: int, count: int, rng) -> np.ndarray:
+        """Return the samples to corrupt (``count`` of ``n``, at random)."""
+        return np.sort(rng.choice(n, size=count, replace=False)) if count else np.array([], int)
 
     def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
         """Corrupt the chosen B samples."""
         n = len(streams[context.topics_b[0]])
         count = int(round(self.fraction * n))
-        idx = np.sort(rng.choice(n, size=count, replace=False)) if count else np.array([], int)
+        idx = self._chosen(n, count, rng)
+        count = len(idx)
         out = dict(streams)
         for j, t in enumerate(context.topics_b):
             s = streams[t]
@@ -114,6 +120,38 @@ class Outliers:
 
     def as_dict(self) -> dict:
         """Describe the effect: ``fraction``, the count and the jump sizes."""
-        return {'name': 'outliers', 'value': self.fraction, 'unit': EFFECT_UNITS['outliers'],
+        return {'name': self.name, 'value': self.fraction, 'unit': EFFECT_UNITS[self.name],
                 'stage': self.stage, 'fraction': self.fraction, 'jump_m': list(OUTLIER_JUMP),
                 'angle_rad': [float(a) for a in OUTLIER_ANGLE], **self._found}
+
+
+@dataclass(frozen=True)
+class OutlierBursts(Outliers):
+    """
+    Outliers that come in bursts: ``fraction`` of B's samples, in runs of ``runs`` samples.
+
+    Each run (its length drawn uniformly from ``runs``, inclusive) starts at a random sample,
+    runs apart (a tracker losing a marker for a few frames, a reflection crossing the view);
+    every sample of a run jumps as ``Outliers``' do, each by its own jump.
+    """
+
+    runs: tuple = (2, 6)
+    name = 'outlier_bursts'
+
+    def _chosen(self, n: int, count: int, rng) -> np.ndarray:
+        """Return ``count`` samples in runs at random, not overlapping nor touching."""
+        lo, hi = int(self.runs[0]), int(self.runs[1])
+        taken = np.zeros(n, dtype=bool)
+        lengths = []
+        for _ in range(100 * max(count, 1)):
+            if taken.sum() >= count:
+                break
+            length = min(int(rng.integers(lo, hi + 1)), count - int(taken.sum()))
+            start = int(rng.integers(0, max(n - length, 1)))
+            if taken[max(start - 1, 0):start + length + 1].any():
+                continue
+            taken[start:start + length] = True
+            lengths.append(length)
+        self._found['run_lengths'] = [int(v) for v in (min(lengths), max(lengths))] if (
+            lengths) else []
+        return np.flatnonzero(taken)

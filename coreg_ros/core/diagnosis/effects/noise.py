@@ -155,6 +155,9 @@ class OutliersCandidate(CandidateEffect):
     at_cap : bool, optional
         The share is at the model's cap (``variance.MAX_OUTLIER_SHARE``): a wrong noise
         model, not glitches.
+    run_median, run_max : int, optional
+        Outliers in a row (median, largest), when they come in bursts
+        (``timeline.FlaggedRuns``).
 
     """
 
@@ -168,6 +171,8 @@ class OutliersCandidate(CandidateEffect):
     scale: float
     text: str
     at_cap: Optional[bool] = optional()
+    run_median: Optional[int] = optional()
+    run_max: Optional[int] = optional()
 
     @classmethod
     def size(cls, reading):
@@ -187,3 +192,11 @@ class OutliersCandidate(CandidateEffect):
             text += (f' (at the cap of {vm.MAX_OUTLIER_SHARE * 100:.0f} %: more pairs lie '
                      'outside the stated noise; these are not glitches)')
         return replace(self, at_cap=bool(at_cap), text=text)
+
+    def in_runs(self, runs) -> OutliersCandidate:
+        """Say that the outliers come in bursts (``timeline.FlaggedRuns``), when they do."""
+        if not runs.bursts:
+            return self
+        return replace(self, run_median=runs.median_length, run_max=runs.max_length,
+                       text=f'{self.text}, in bursts of up to {runs.max_length} samples '
+                            f'(median {runs.median_length}) at random times')
