@@ -117,7 +117,7 @@ def predict_blocks(fit, folds: np.ndarray, n_folds: int) -> Heldout:
         zc = st.z + dz
         # raw error correction e + J δ: z = T e, so δe = T⁻¹ δz
         e_out[pos:pos + c] = e + np.linalg.solve(T, dz[:, :, None])[:, :, 0]
-        stc = vm.PairStats(zc, st.lam, st.u, st.log_g)
+        stc = st.with_z(zc)
         quad0[pos:pos + c] = np.sum(zc ** 2 / (1.0 + st.lam), axis=1)
         for k in np.unique(fo):
             sel = fo == k

@@ -19,7 +19,9 @@ with the matrix determinant lemma and Sherman-Morrison.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Optional
 
+from coreg_ros.core.diagnosis import noise_shape as ns
 import numpy as np
 from scipy import optimize
 
@@ -53,6 +55,9 @@ class VarState:
     logit_eps, log_lam : float
         Outliers: share ε = 1 / (1 + exp(-logit)) (-inf for none) and the scale λ of their
         standard deviation.
+    shape : tuple
+        The shape S of B's position noise in B's base frame (``noise_shape``): its six
+        upper-triangular values; empty for the stated (S = I).
 
     """
 
@@ -63,10 +68,12 @@ class VarState:
     logit_eps: float = -np.inf
     log_lam: float = float(np.log(30.0))
     free: tuple = field(default=())
+    shape: tuple = ()
 
     def with_values(self, names, values) -> VarState:
-        """Return a copy with the named parameters set."""
-        return replace(self, **{n: float(v) for n, v in zip(names, values, strict=True)})
+        """Return a copy with the named parameters set (``shape``: a tuple of six, or ())."""
+        return replace(self, **{n: (tuple(float(x) for x in v) if n == 'shape' else float(v))
+                                for n, v in zip(names, values, strict=True)})
 
     @property
     def eps(self) -> float:
@@ -94,6 +101,11 @@ class PairStats:
         Output rate ḟ in those coordinates (for jitter), 1/s.
     log_g : ndarray, shape (n,)
         log(r / r0), the marker's distance from B's base relative to the median.
+    V : ndarray, shape (n, m, m), optional
+        The rotation from B's whitened output to these coordinates (z = Vᵀ W e), for a noise
+        shape (``noise_shape``); None when no model needs it.
+    markers : int
+        Markers (position blocks) per pair.
 
     """
 
@@ -101,10 +113,17 @@ class PairStats:
     lam: np.ndarray
     u: np.ndarray
     log_g: np.ndarray
+    V: Optional[np.ndarray] = None
+    markers: int = 1
 
     def take(self, idx) -> PairStats:
         """Stats of the pairs idx."""
-        return PairStats(self.z[idx], self.lam[idx], self.u[idx], self.log_g[idx])
+        return PairStats(self.z[idx], self.lam[idx], self.u[idx], self.log_g[idx],
+                         None if self.V is None else self.V[idx], self.markers)
+
+    def with_z(self, z: np.ndarray) -> PairStats:
+        """Return the same pairs with other errors z (held-out predictions)."""
+        return replace(self, z=z)
 
 
 def components(var: VarState, st: PairStats):
@@ -120,6 +139,8 @@ def components(var: VarState, st: PairStats):
         β / (1 + β Σ u²/D).
 
     """
+    if var.shape:
+        return _shaped_components(var, st)
     a = np.exp(var.log_c + 2.0 * var.k * st.log_g)[:, None]
     D = np.exp(var.log_s2) * (a + st.lam)
     quad = np.sum(st.z ** 2 / D, axis=1)
@@ -134,6 +155,22 @@ def components(var: VarState, st: PairStats):
     else:
         c = np.zeros(len(quad))
     return quad, logdet, D, c
+
+
+def shaped_covariances(var: VarState, st: PairStats) -> np.ndarray:
+    """Each pair's error covariance (n, m, m) under a noise shape (``noise_shape``)."""
+    if st.V is None:
+        raise ValueError("a noise shape needs the pairs' rotations (PairStats.V)")
+    M = ns.whitened_block(ns.shape_matrix(var.shape), st.z.shape[1], st.markers)
+    g = np.exp(var.log_c + 2.0 * var.k * st.log_g)
+    return ns.covariances(M, st.V, st.lam, float(np.exp(var.log_s2)), g, var.beta, st.u)
+
+
+def _shaped_components(var: VarState, st: PairStats):
+    """``components`` under a noise shape: full covariances, D their diagonal, no rank one."""
+    C = shaped_covariances(var, st)
+    quad, logdet, _ = ns.quadratic_logdet(C, st.z)
+    return quad, logdet, np.diagonal(C, axis1=1, axis2=2).copy(), np.zeros(len(quad))
 
 
 def loglik(var: VarState, st: PairStats, with_parts: bool = False):
@@ -175,6 +212,8 @@ def total_variance(var: VarState, st: PairStats) -> np.ndarray:
     The trace of ``Cov(z)``: the diagonal variances and the jitter's rank-one part.
     """
     _, _, D, _ = components(var, st)
+    if var.shape:
+        return np.sum(D, axis=1)  # the full covariance's trace: the jitter is in it
     return np.sum(D, axis=1) + var.beta * np.sum(st.u ** 2, axis=1)
 
 
@@ -243,6 +282,8 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
     """
     if not names:
         return var
+    if 'shape' in names:
+        return _fit_with_shape(st, var, names, step)
     start = var
     for name in names:
         if not np.isfinite(getattr(start, name)):
@@ -291,6 +332,22 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
     return start.with_values(names, np.clip(x, lo, hi))
 
 
+def _fit_with_shape(st: PairStats, var: VarState, names: tuple, step: float) -> VarState:
+    """Fit a noise shape by EM, alternated with the other named parameters (held in turn)."""
+    others = tuple(n for n in names if n != 'shape')
+    if not var.shape:
+        var = var.with_values(['shape'], [(1.0, 1.0, 1.0, 0.0, 0.0, 0.0)])
+    for _ in range(3 if others else 1):
+        _, p_in, _ = loglik(var, st, with_parts=True)
+        S = ns.fit_shape(st.z, st.V, st.lam, p_in, float(np.exp(var.log_s2)),
+                         np.exp(var.log_c + 2.0 * var.k * st.log_g), var.beta, st.u,
+                         ns.shape_matrix(var.shape), st.markers)
+        var = var.with_values(['shape'], [ns.shape_params(S)])
+        if others:
+            var = fit_variance(st, var, others, step)
+    return var
+
+
 def _outliers_em(st: PairStats, var: VarState, iterations: int = 60) -> VarState:
     """Share and scale of the outliers by expectation-maximisation (inlier noise fixed)."""
     m = st.z.shape[1]
@@ -312,7 +369,19 @@ def _outliers_em(st: PairStats, var: VarState, iterations: int = 60) -> VarState
 
 
 def variance_covariance(st: PairStats, var: VarState, names: tuple) -> np.ndarray:
-    """Covariance of the fitted variance parameters: inverse Hessian of -log L (numerical)."""
+    """
+    Covariance of the fitted variance parameters: inverse Hessian of -log L (numerical).
+
+    A noise shape's six values are left out (NaN): its size is read from its axes
+    (``effects.noise.AnisotropicNoiseCandidate``).
+    """
+    if 'shape' in names:
+        out = np.full((len(names), len(names)), np.nan)
+        rest = [i for i, n in enumerate(names) if n != 'shape']
+        if rest:
+            sub_names = tuple(names[i] for i in rest)
+            out[np.ix_(rest, rest)] = variance_covariance(st, var, sub_names)
+        return out
     k = len(names)
     x0 = np.array([getattr(var, n) for n in names], dtype=float)
 

@@ -38,6 +38,8 @@ outlier_bursts      fraction   measured  that fraction of B's samples jump as ou
                                          in runs of 2-6 samples at random times
 clock_step          s          measured  B's stamps + VALUE from a random instant (25-75 %
                                          of the recording) on: the offset steps
+anisotropic_noise   factor     noise     B's position noise × VALUE along one direction of
+                                         B's base frame (an axis, or a random direction)
 =================== ========== ========= ====================================================
 
 ``as_dict()`` gives ``name``, ``value`` (as parsed), ``unit``, ``stage`` and the effect's
@@ -63,6 +65,7 @@ from coreg_ros.sim.injected.field import (
 )
 from coreg_ros.sim.injected.link import Backlash, LinkFlex, play_operator
 from coreg_ros.sim.injected.noise import (
+    AnisotropicNoise,
     DistanceNoise,
     NoiseScale,
     OUTLIER_ANGLE,
@@ -81,9 +84,10 @@ from coreg_ros.sim.injected.timing import (
 )
 
 __all__ = [
-    'ALL_EFFECT_NAMES', 'Backlash', 'ClockDrift', 'ClockStep', 'DISTORTION_ROTATION_PER_MM',
-    'DistanceNoise', 'EFFECT_NAMES', 'EFFECT_UNITS', 'EXTRA_EFFECT_NAMES', 'FieldDistortion',
-    'JITTER_DROP_FRACTION', 'LinkFlex', 'NoiseScale', 'NonStationary', 'OUTLIER_ANGLE',
-    'OUTLIER_JUMP', 'OutlierBursts', 'Outliers', 'Scale', 'SharedClock', 'TimeOffset',
-    'TimestampJitter', 'make_effect', 'parse_effect', 'play_operator'
+    'ALL_EFFECT_NAMES', 'AnisotropicNoise', 'Backlash', 'ClockDrift', 'ClockStep',
+    'DISTORTION_ROTATION_PER_MM', 'DistanceNoise', 'EFFECT_NAMES', 'EFFECT_UNITS',
+    'EXTRA_EFFECT_NAMES', 'FieldDistortion', 'JITTER_DROP_FRACTION', 'LinkFlex', 'NoiseScale',
+    'NonStationary', 'OUTLIER_ANGLE', 'OUTLIER_JUMP', 'OutlierBursts', 'Outliers', 'Scale',
+    'SharedClock', 'TimeOffset', 'TimestampJitter', 'make_effect', 'parse_effect',
+    'play_operator'
 ]

@@ -15,7 +15,8 @@ EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distort
                 'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
 #: Further cases real rigs show (issue 11): a distortion that comes and goes, and both
 #: devices stamped by one host clock (a constant offset, no drift).
-EXTRA_EFFECT_NAMES = ('non_stationary', 'shared_clock', 'outlier_bursts', 'clock_step')
+EXTRA_EFFECT_NAMES = ('non_stationary', 'shared_clock', 'outlier_bursts', 'clock_step',
+                      'anisotropic_noise')
 #: Every name ``parse_effect`` accepts.
 ALL_EFFECT_NAMES = EFFECT_NAMES + EXTRA_EFFECT_NAMES
 
@@ -28,6 +29,7 @@ EFFECT_UNITS = {
     'non_stationary': 'mm at most, during a window', 'shared_clock': 's of B latency over A',
     'outlier_bursts': 'fraction of B samples, in runs of 2-6',
     'clock_step': 's added to B stamps from a random instant on',
+    'anisotropic_noise': "factor on B's position noise along one axis of B's base",
 }
 
 

@@ -8,6 +8,7 @@ Errors of the samples themselves: noise larger than stated or growing with dista
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.sim.injected.common import EFFECT_UNITS, full_pose, scale_noise
@@ -50,6 +51,47 @@ class DistanceNoise:
         return {'name': 'distance_noise', 'value': self.exponent,
                 'unit': EFFECT_UNITS['distance_noise'], 'stage': self.stage,
                 'exponent': self.exponent, **self._found}
+
+
+@dataclass(frozen=True)
+class AnisotropicNoise:
+    """
+    B's position noise ``factor`` × larger along one direction of B's base frame.
+
+    The noise of each B sample (and marker) about its clean value is stretched along
+    ``axis`` (a unit vector in B's base frame; drawn when None: one of B's axes in two cases
+    of three, a random direction in the third): n ↦ n + (factor - 1)(n·a)a. B's rotation
+    noise and A's noise stay as stated (an optical tracker's depth, an EM field axis).
+    """
+
+    factor: float
+    axis: Optional[tuple] = None
+    stage = 'noise'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
+        """Stretch the position noise of every B topic along the axis."""
+        if self.axis is not None:
+            a = np.asarray(self.axis, dtype=float)
+        elif rng.random() < 2.0 / 3.0:
+            a = np.eye(3)[int(rng.integers(3))]
+        else:
+            a = rng.standard_normal(3)
+        a = a / np.linalg.norm(a)
+        out = dict(streams)
+        for t in context.topics_b:
+            clean, noisy = context.clean_streams[t], streams[t]
+            n = noisy.position - clean.position
+            out[t] = replace(noisy, position=clean.position + n
+                             + (self.factor - 1.0) * (n @ a)[:, None] * a)
+        self._found['axis'] = a.tolist()
+        return out
+
+    def as_dict(self) -> dict:
+        """Describe the effect: ``factor`` and the axis in B's base frame."""
+        return {'name': 'anisotropic_noise', 'value': self.factor,
+                'unit': EFFECT_UNITS['anisotropic_noise'], 'stage': self.stage,
+                'factor': self.factor, **self._found}
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,13 @@ from coreg_ros.core.errors import ConfigError
 from coreg_ros.sim.injected.common import ALL_EFFECT_NAMES, EFFECT_UNITS
 from coreg_ros.sim.injected.field import FieldDistortion, NonStationary, Scale
 from coreg_ros.sim.injected.link import Backlash, LinkFlex
-from coreg_ros.sim.injected.noise import DistanceNoise, NoiseScale, OutlierBursts, Outliers
+from coreg_ros.sim.injected.noise import (
+    AnisotropicNoise,
+    DistanceNoise,
+    NoiseScale,
+    OutlierBursts,
+    Outliers,
+)
 from coreg_ros.sim.injected.timing import (
     ClockDrift,
     ClockStep,
@@ -24,6 +30,7 @@ _CLASSES = {
     'link_flex': LinkFlex, 'outliers': Outliers, 'backlash': Backlash,
     'noise_scale': NoiseScale, 'non_stationary': NonStationary, 'shared_clock': SharedClock,
     'outlier_bursts': OutlierBursts, 'clock_step': ClockStep,
+    'anisotropic_noise': AnisotropicNoise,
 }
 
 # accepted range of VALUE per effect: (low, high, low inclusive), for the error message
@@ -35,6 +42,7 @@ _RANGES = {
     'backlash': (0.0, 100.0, True), 'noise_scale': (0.0, 100.0, False),
     'non_stationary': (0.0, 1000.0, True), 'shared_clock': (-10.0, 10.0, True),
     'outlier_bursts': (0.0, 0.5, True), 'clock_step': (-10.0, 10.0, True),
+    'anisotropic_noise': (0.0, 100.0, False),
 }
 
 
@@ -110,4 +118,5 @@ _EXAMPLES = {
     'field_distortion': '5', 'distance_noise': '2', 'scale': '0.005', 'link_flex': '1',
     'outliers': '0.02', 'backlash': '0.3', 'noise_scale': '2', 'non_stationary': '3',
     'shared_clock': '0.02', 'outlier_bursts': '0.05', 'clock_step': '0.03',
+    'anisotropic_noise': '3',
 }

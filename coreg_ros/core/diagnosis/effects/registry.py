@@ -16,6 +16,7 @@ from coreg_ros.core.diagnosis.effects.clock import (
 from coreg_ros.core.diagnosis.effects.link import BacklashCandidate, LinkFlexCandidate
 from coreg_ros.core.diagnosis.effects.local import NonStationaryCandidate
 from coreg_ros.core.diagnosis.effects.noise import (
+    AnisotropicNoiseCandidate,
     DistanceNoiseCandidate,
     NoiseScaleCandidate,
     OutliersCandidate,
@@ -28,7 +29,8 @@ from coreg_ros.core.diagnosis.effects.spatial import FieldDistortionCandidate, S
 CANDIDATES = {c.name: c for c in (
     TimeOffsetCandidate, ClockDriftCandidate, ClockStepCandidate, TimestampJitterCandidate,
     FieldDistortionCandidate, DistanceNoiseCandidate, ScaleCandidate, LinkFlexCandidate,
-    OutliersCandidate, BacklashCandidate, NoiseScaleCandidate, NonStationaryCandidate)}
+    OutliersCandidate, BacklashCandidate, NoiseScaleCandidate, AnisotropicNoiseCandidate,
+    NonStationaryCandidate)}
 
 #: The candidates of the selection: effects fitted as extensions of the model (the names of
 #: ``coreg_ros.sim.injected.EFFECT_NAMES``).
