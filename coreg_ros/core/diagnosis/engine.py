@@ -195,8 +195,8 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     stamps = context.get('stamps')
     if stamps is not None and cause is None:
         findings = with_stamps(stamps, findings)
-    excess_left, findings = structure_checks(data, final, after, counted, findings, gap_after,
-                                             look_local=cause is None)
+    excess_left, findings, unexplained = structure_checks(
+        data, final, after, counted, findings, gap_after, errors[1], look_local=cause is None)
     excess = noise_excess(data, after, counted, findings, gap_after)
     gap_detected = bool(detection.gap or findings or cause is not None
                         or (stamps is not None and stamps.issues))
@@ -206,7 +206,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         gap_before=gap_before, gap_after=gap_after, noise_excess=excess,
         excess_left=excess_left, location=location, not_significant=small,
         verdict=verdict(gap_detected, findings, not_separable, gap_before, gap_after,
-                        detection, location, excess, stamps, cause),
+                        detection, location, excess, stamps, cause, unexplained),
         detection=detection,
         candidates=[[c.score(n_res) for c in sorted(cs, key=lambda c: -c.gain)]
                     for cs in found.rounds],
@@ -214,7 +214,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         model=data.spec.name, n_pairs=int(data.n), n_pairs_selection=int(len(sel.idx)),
         duration_s=float(data.t[-1] - data.t[0]) if data.n > 1 else 0.0,
         stated_noise=StatedNoise(list(data.sigma_a), list(data.sigma_b)),
-        stamps=stamps, coarse_offset_s=shift or None, cause=cause)
+        stamps=stamps, coarse_offset_s=shift or None, cause=cause, unexplained=unexplained)
     progress(1.0, 'done')
     return Diagnosis(report=report, data=data, base=base, final=final, before=before,
                      after=after, rounds=found.rounds)

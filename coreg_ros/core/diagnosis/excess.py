@@ -235,34 +235,7 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
     conc_t = bool(hot_t and share(ct['blocks']) >= 0.5 and hot_t_mask.mean() <= 0.5)
     by_place = 0.0
     if conc_t:
-        # a stationary local error shows in time too when the motion visits its place at
-        # some times only: predict the hot blocks' excess from the same cells at other times
-        from scipy.spatial import cKDTree
-
-        ex, ps = excess[sel], pts[sel]
-        cold = ~hot_t_mask
-        pred = np.zeros(int(hot_t_mask.sum()))
-        seen = np.zeros(int(hot_t_mask.sum()), dtype=bool)
-        if cold.sum() >= 20:
-            # the nearest pairs recorded at other times, close by: same place, other time
-            radius = 0.1 * float(np.max(np.ptp(ps, axis=0)))
-            tree = cKDTree(ps[cold])
-            dist, nn = tree.query(ps[hot_t_mask], k=10, distance_upper_bound=radius)
-            ok = np.isfinite(dist)
-            seen = ok.sum(axis=1) >= 5
-            vals = np.where(ok, ex[cold][np.minimum(nn, cold.sum() - 1)], 0.0)
-            pred = np.where(seen, vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1), 0.0)
-        if seen.mean() < 0.5:
-            # the motion never came back to these places: time and place cannot be told
-            # apart, so nothing is claimed about time
-            pred = np.full(len(pred), np.inf)
-        else:
-            pred = pred[seen]
-            hot_idx = np.flatnonzero(hot_t_mask)[seen]
-            hot_t_mask = np.zeros_like(hot_t_mask)
-            hot_t_mask[hot_idx] = True
-        e_hot = float(ex[hot_t_mask].mean()) if hot_t_mask.any() else 0.0
-        by_place = float(min(pred.mean() / e_hot, 1e3)) if e_hot > 0 else 1.0
+        by_place = explained_by_place(excess[sel], pts[sel], hot_t_mask)
         conc_t = by_place < 0.5
     conc_c = bool(hot_c and share(cc['blocks']) >= 0.5 and hot_c_mask.mean() <= 0.5)
     parts = []
@@ -276,6 +249,49 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
                      share_in_time_blocks=share(ct['blocks']),
                      share_in_cells=share(cc['blocks']), concentrated=conc_t or conc_c,
                      text='; '.join(parts))
+
+
+def explained_by_place(ex: np.ndarray, pts: np.ndarray, hot: np.ndarray) -> float:
+    """
+    How much of the excess at some times the same places show at other times (a share).
+
+    A stationary local error shows in time too when the motion visits its place at some times
+    only: the hot pairs' excess is predicted from the ten nearest pairs recorded at other
+    times within a tenth of the workspace (same place, other time).
+
+    Parameters
+    ----------
+    ex : ndarray, shape (N,)
+        Excess per pair.
+    pts : ndarray, shape (N, 3)
+        Where each pair is, m.
+    hot : ndarray of bool, shape (N,)
+        The pairs at the times in question.
+
+    Returns
+    -------
+    float
+        The predicted excess over the hot pairs' own (inf when the motion never came back to
+        those places: time and place cannot be told apart).
+
+    """
+    from scipy.spatial import cKDTree
+
+    cold = ~hot
+    pred = np.zeros(int(hot.sum()))
+    seen = np.zeros(int(hot.sum()), dtype=bool)
+    if cold.sum() >= 20:
+        radius = 0.1 * float(np.max(np.ptp(pts, axis=0)))
+        tree = cKDTree(pts[cold])
+        dist, nn = tree.query(pts[hot], k=10, distance_upper_bound=radius)
+        ok = np.isfinite(dist)
+        seen = ok.sum(axis=1) >= 5
+        vals = np.where(ok, ex[cold][np.minimum(nn, cold.sum() - 1)], 0.0)
+        pred = np.where(seen, vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1), 0.0)
+    if not seen.any() or seen.mean() < 0.5:
+        return float('inf')
+    e_hot = float(ex[hot][seen].mean())
+    return float(min(pred[seen].mean() / e_hot, 1e3)) if e_hot > 0 else 1.0
 
 
 def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -> FlaggedPairs:

@@ -27,6 +27,7 @@ from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import keyed, optional, Record
 from coreg_ros.core.diagnosis.stamps import jitter_finding, StampReport
+from coreg_ros.core.diagnosis.structure import leftover, TimeWindow, Unexplained
 import numpy as np
 
 
@@ -41,11 +42,14 @@ class ExcessLeft(Record):
         Where it lies, under the final model's noise (key ``map``).
     flagged_pairs : excess.FlaggedPairs, optional
         Whether the pairs the outlier model set aside cluster (with an outlier model).
+    window : structure.TimeWindow, optional
+        The window in time whose held-out errors stand out (``structure.time_window``).
 
     """
 
     excess_map: ex.ExcessMap = keyed('map')
     flagged_pairs: Optional[ex.FlaggedPairs] = optional()
+    window: Optional[TimeWindow] = optional()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -117,21 +121,22 @@ def with_stamps(stamps: StampReport, findings: list) -> list:
 
 
 def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter,
-                     look_local: bool = True) -> tuple:
+                     sd: np.ndarray, look_local: bool = True) -> tuple:
     """
     Outliers versus structure, and an excess left in some blocks or cells only.
 
     Flagged pairs that cluster in time or in the workspace are a structured or
     non-stationary error there, not glitches: the ``outliers`` finding is renamed
     ``non_stationary`` (kind structured) and says where. An outlier share at the model's cap
-    is said, never hidden. An excess left after the accepted effects that is concentrated in
-    some time blocks or workspace cells adds a ``non_stationary`` finding: no stationary
-    effect explains it.
+    is said, never hidden. A structured error left in one window of time that comes and goes
+    (``structure.leftover``) adds a ``non_stationary`` finding: no stationary effect explains
+    it. What else is left is the ``Unexplained`` structure, by its signature.
 
     Returns
     -------
     excess_left : ExcessLeft
     findings : list of Finding
+    unexplained : structure.Unexplained or None
 
     """
     flagged = ~counted
@@ -143,7 +148,6 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
         size = ex.local_error_size(data, after.e, hot)
         return estimate if size is None else estimate.sized(size)
 
-    hot_t = ex.hot_time_mask(data, emap)
     found = next((f for f in findings if f.name == OutliersCandidate.name), None)
     cl = None
     if found is not None:
@@ -158,20 +162,30 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
         else:
             named = replace(found, estimate=found.estimate.capped(at_cap).in_runs(cl.runs))
         findings = _replaced(findings, found, named)
-    ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
     stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
     local = NonStationaryCandidate.name
-    if (look_local and emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
-            and not any(f.name == local for f in findings)):
-        estimate = LocalExcess.of(emap.text, emap.share_in_time_blocks, emap.share_in_cells,
-                                  ex_after)
-        findings = findings + [Finding.of(sized(estimate, hot_t))]
+    window, unexplained = None, None
+    if look_local:
+        window, unexplained = leftover(data, after, sd, counted, stated_excess, emap)
+    if (window is not None and window.structured and window.kind == 'window'
+            and stated_excess > 0.02 and not any(f.name == local for f in findings)):
+        # a structured error that comes and goes: the library's non-stationary error
+        inside = (data.t >= window.from_s) & (data.t <= window.to_s)
+        estimate = LocalExcess.of(f'time {window.from_s:.0f}-{window.to_s:.0f} s',
+                                  emap.share_in_time_blocks, emap.share_in_cells,
+                                  float(np.mean(after.quad[inside & counted]) / data.m) - 1.0)
+        findings = findings + [Finding.of(sized(estimate, inside))]
+        if unexplained is not None:
+            # what is left beside the window, at the stated noise
+            rest = counted & ~inside
+            rest_excess = float(np.mean(after.quad_stated[rest]) / data.m) - 1.0
+            unexplained = leftover(data, after, sd, rest, rest_excess, emap)[1]
     ns = next((f for f in findings if f.name == local), None)
     if ns is not None and CANDIDATES[findings[0].name].sets_noise_level:
         # a local structured error goes before noise descriptions of it (a noise effect
         # never explains the gap)
         findings = [ns] + [f for f in findings if f is not ns]
-    return ExcessLeft(excess_map=emap, flagged_pairs=cl), findings
+    return ExcessLeft(excess_map=emap, flagged_pairs=cl, window=window), findings, unexplained
 
 
 def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
@@ -201,7 +215,8 @@ def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
 def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
             detection: Detection, location: Location,
             noise_excess: Optional[NoiseExcess] = None,
-            stamps: Optional[StampReport] = None, cause: Optional[Cause] = None) -> str:
+            stamps: Optional[StampReport] = None, cause: Optional[Cause] = None,
+            unexplained: Optional[Unexplained] = None) -> str:
     """
     One sentence: no gap, timing issues, a gap nothing explains, noise, or the gap explained.
 
@@ -223,6 +238,8 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         What the stamps say (from the streams).
     cause : causes.Cause, optional
         A mistake a cheap check names: the answer.
+    unexplained : structure.Unexplained, optional
+        What no effect of the library explains, by its signature.
 
     Returns
     -------
@@ -239,6 +256,9 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         return ('timing issues in the stamps, residuals fit the model: '
                 + '; '.join(f'{d.device}: {d.text}' for d in stamps.devices))
     if not effects:
+        if unexplained is not None:
+            return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}): no effect of the '
+                    f'library explains it; {unexplained.text}')
         return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}) but none of the '
                 f'candidate effects explains it; largest in {location.largest}')
     parts = []
@@ -277,4 +297,5 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
                 f'there is no excess to explain: {numbers}')
     if share < 0.05:
         verb = 'effects found but the gap did not shrink:'
-    return f'{verb} {"; ".join(parts)} ({share * 100:.0f} % of the excess): {numbers}'
+    left = f'; {unexplained.text}' if unexplained is not None else ''
+    return f'{verb} {"; ".join(parts)} ({share * 100:.0f} % of the excess): {numbers}{left}'

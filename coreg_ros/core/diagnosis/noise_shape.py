@@ -69,7 +69,7 @@ def covariances(M: np.ndarray, V: np.ndarray, lam: np.ndarray, s2: float, g: np.
         Output rate in the decorrelated coordinates, 1/s.
 
     """
-    C = np.einsum('nji,jk,nkl->nil', V, M, V) * g[:, None, None]
+    C = np.matmul(np.transpose(V, (0, 2, 1)), np.matmul(M, V)) * g[:, None, None]
     idx = np.arange(lam.shape[1])
     C[:, idx, idx] += lam
     C *= s2
@@ -118,13 +118,12 @@ def fit_shape(z: np.ndarray, V: np.ndarray, lam: np.ndarray, weight: np.ndarray,
         C = covariances(M, V, lam, s2, g, beta, u)
         # B's whitened noise b = V z-part: its covariance gᵢ s² M, its cross-covariance with
         # z is gᵢ s² M Vᵢ; E[b bᵀ | z] = P - K Vᵀ P + (K z)(K z)ᵀ with P = gᵢ s² M
-        P = (s2 * g)[:, None, None] * M[None]
-        PV = np.einsum('nij,njk->nik', P, V)
-        K = np.linalg.solve(C, np.transpose(PV, (0, 2, 1)))          # C⁻¹ Vᵀ P, (n, m, m)
-        Kz = np.einsum('nji,nj->ni', K, z)                           # (K z) = Pᵀ V C⁻¹ z
-        E = P - np.einsum('nij,njk->nik', PV, K) + Kz[:, :, None] * Kz[:, None, :]
-        # back to B's unscaled whitened noise (divide by gᵢ s²), averaged over the markers
-        E /= (s2 * g)[:, None, None]
+        # with P = gᵢ s² M (the scale taken out: E below is of the unscaled noise)
+        c = (s2 * g)[:, None, None]
+        MV = np.matmul(M, V)                                         # (n, m, m)
+        K = np.linalg.solve(C, np.transpose(MV, (0, 2, 1))) * c      # C⁻¹ Vᵀ P
+        Kz = np.matmul(np.transpose(K, (0, 2, 1)), z[:, :, None])[:, :, 0]   # Kᵀ z
+        E = M[None] - np.matmul(MV, K) + Kz[:, :, None] * Kz[:, None, :] / c
         blocks = sum(E[:, 3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(n_markers))
         new = np.einsum('n,nij->ij', weight, blocks) / (wsum * n_markers)
         new = 0.5 * (new + new.T)

@@ -21,6 +21,7 @@ from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.stamps import StampReport
+from coreg_ros.core.diagnosis.structure import Unexplained
 from coreg_ros.core.diagnosis.summary import Transforms
 
 
@@ -105,6 +106,9 @@ class DiagnosisReport(Record):
     cause : causes.Cause, optional
         A mistake a cheap check names (units, swapped devices, ...): the answer, instead of
         any effect.
+    unexplained : structure.Unexplained, optional
+        Held-out structure no effect of the library explains, by its signature (when, where,
+        which channel, tied to what), instead of the nearest name.
 
     """
 
@@ -130,3 +134,4 @@ class DiagnosisReport(Record):
     coarse_offset_s: Optional[float] = optional()
     pairing: Optional[Pairing] = optional()
     cause: Optional[Cause] = optional()
+    unexplained: Optional[Unexplained] = optional()

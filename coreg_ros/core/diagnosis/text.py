@@ -39,6 +39,8 @@ def format_diagnosis(report: DiagnosisReport) -> str:
     if report.not_separable:
         lines.append('not separable with this motion: '
                      + '; '.join(' vs '.join(p) for p in report.not_separable))
+    if report.unexplained is not None:
+        lines.append(report.unexplained.text)
     lines += _gap_lines(report)
     ne = report.noise_excess
     if ne is not None:
