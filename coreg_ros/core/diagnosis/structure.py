@@ -241,7 +241,7 @@ def _tied(data, excess: np.ndarray, counted: np.ndarray) -> dict:
 
 
 def _not_white(e_std: np.ndarray) -> Optional[float]:
-    """The largest autocorrelation of the columns of e_std, when they are not white."""
+    """Return the largest autocorrelation of e_std's columns, when they are not white."""
     qs, rhos = [], []
     for j in range(e_std.shape[1]):
         q, _, rho = ljung_box(e_std[:, j])
@@ -258,7 +258,7 @@ def _not_white(e_std: np.ndarray) -> Optional[float]:
 def leftover(data, after, sd: np.ndarray, counted: np.ndarray, stated_excess: float,
              emap) -> tuple:
     """
-    What the final model leaves: a window in time, and structure by its signature.
+    Find what the final model leaves: a window in time, and structure by its signature.
 
     Parameters
     ----------
