@@ -35,6 +35,10 @@ SIZE_RANGES = {
     'clock_step': ((0.002, 0.005), (0.005, 0.020), (0.020, 0.150)),
     # an optical tracker's depth axis, an EM field axis: noise × 1.2 to × 4 along it
     'anisotropic_noise': ((1.2, 1.5), (1.5, 2.5), (2.5, 4.0)),
+    # a bumped base, a slipped marker: mm; metal brought near: a factor on the noise
+    't0_step': ((0.2, 0.5), (0.5, 2.0), (2.0, 8.0)),
+    't1_step': ((0.2, 0.5), (0.5, 2.0), (2.0, 8.0)),
+    'noise_step': ((1.2, 1.5), (1.5, 2.5), (2.5, 4.0)),
 }
 #: Effects whose value may be negative (a clock set back, B stamped early).
 SIGNED = ('time_offset', 'clock_drift', 'shared_clock', 'clock_step')
@@ -42,7 +46,7 @@ SIGNED = ('time_offset', 'clock_drift', 'shared_clock', 'clock_step')
 #: each group in a case (one clock, one noise level, one kind of outliers).
 EXCLUSIVE = (('time_offset', 'clock_drift', 'shared_clock', 'clock_step'),
              ('noise_scale', 'distance_noise', 'anisotropic_noise'),
-             ('outliers', 'outlier_bursts'))
+             ('outliers', 'outlier_bursts'), ('t0_step', 't1_step'))
 SIZES = ('small', 'medium', 'large')
 #: Share of cases with a second effect at once, and of large offsets (0.1-2 s).
 TWO_SHARE = 0.3
@@ -129,7 +133,7 @@ def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE,
         lo, hi = SIZE_RANGES[second['effect']][SIZES.index(second['size'])]
         if second['effect'] != 'scale':
             v = float(np.sign(second['value']) * np.exp(rng.uniform(np.log(lo), np.log(hi))))
-            if second['effect'] in ('noise_scale', 'anisotropic_noise'):
+            if second['effect'] in ('noise_scale', 'anisotropic_noise', 'noise_step'):
                 v = abs(v)
             second.update(value=v, spec=f'{second["effect"]}={v:.6g}')
         case['second'] = second

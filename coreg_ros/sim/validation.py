@@ -24,16 +24,19 @@ import numpy as np
 
 #: The answer that names each simulated effect right (one host clock: a constant offset;
 #: outliers in bursts are outliers, their runs said).
-EXPECTED = {'shared_clock': 'time_offset', 'outlier_bursts': 'outliers'}
+EXPECTED = {'shared_clock': 'time_offset', 'outlier_bursts': 'outliers',
+            't0_step': 'pose_step', 't1_step': 'pose_step'}
 #: Effects that change only the noise model.
-NOISE_TRUTHS = ('noise_scale', 'distance_noise', 'timestamp_jitter', 'anisotropic_noise')
+NOISE_TRUTHS = ('noise_scale', 'distance_noise', 'timestamp_jitter', 'anisotropic_noise',
+                'noise_step')
 #: The estimate's key compared with the truth's value, per effect (None: no size).
 SIZE_KEYS = {'time_offset': 'tau_s', 'clock_drift': 'ppm', 'timestamp_jitter': 'sigma_s',
              'field_distortion': 'max_mm', 'distance_noise': 'exponent', 'scale': 'scale',
              'link_flex': 'sag_mm', 'outliers': 'fraction', 'backlash': 'width_mm',
              'noise_scale': 'factor', 'shared_clock': 'tau_s', 'non_stationary': 'max_mm',
              'outlier_bursts': 'fraction', 'clock_step': 'step_s',
-             'anisotropic_noise': 'factors'}
+             'anisotropic_noise': 'factors', 't0_step': 't0_mm', 't1_step': 't1_mm',
+             'noise_step': 'factor'}
 #: Answers beside the effects: no effect but structure by its signature, or a cheap cause.
 UNEXPLAINED, CAUSE = 'unexplained', 'cause'
 
@@ -64,7 +67,7 @@ def _size_ratio(name: str, estimate: Optional[dict], value) -> Optional[float]:
     v = float(value)
     if name == 'anisotropic_noise':
         est = est[0]  # the factor along the axis it grew along: the largest
-    if name in ('noise_scale', 'anisotropic_noise'):
+    if name in ('noise_scale', 'anisotropic_noise', 'noise_step'):
         # the size of a wrong noise model is how far the factor is from one, in log
         return float(np.log(est) / np.log(v)) if abs(np.log(v)) > 1e-9 else None
     return float(est / v) if v != 0 else None
@@ -255,7 +258,9 @@ def format_validation(summary: dict) -> str:
              'scale': 'scale', 'link_flex': 'flex', 'outliers': 'outl', 'backlash': 'blash',
              'noise_scale': 'nscl', 'not_separable': 'n.sep', 'non_stationary': 'nstat',
              'shared_clock': 'shclk', 'clock_step': 'cstep', 'anisotropic_noise': 'aniso',
-             'outlier_bursts': 'burst', UNEXPLAINED: 'unexp', CAUSE: 'cause'}
+             'outlier_bursts': 'burst', UNEXPLAINED: 'unexp', CAUSE: 'cause',
+             'pose_step': 'pstep', 'noise_step': 'nstep', 't0_step': 't0st',
+             't1_step': 't1st'}
     head = 'truth \\ answer'.ljust(18) + ''.join(short[c].rjust(6) for c in cm['columns_answer'])
     lines = [head]
     for r, counts in zip(cm['rows_truth'], cm['counts'], strict=True):

@@ -34,7 +34,7 @@ from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.causes import fit_cause
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.effects.base import FitReading
-from coreg_ros.core.diagnosis.effects.clock import ClockStepCandidate, TimeOffsetCandidate
+from coreg_ros.core.diagnosis.effects.clock import TimeOffsetCandidate
 from coreg_ros.core.diagnosis.effects.finding import COARSE_SEARCH, Finding
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.findings import (
@@ -49,7 +49,11 @@ from coreg_ros.core.diagnosis.report import CalibrationChange, DiagnosisReport, 
 from coreg_ros.core.diagnosis.residuals import base_errors, detect_locate
 from coreg_ros.core.diagnosis.selection import select_effects, Selection, Selector
 from coreg_ros.core.diagnosis.significance import practical, retest
-from coreg_ros.core.diagnosis.steps import locate_clock_step
+from coreg_ros.core.diagnosis.steps import (
+    locate_clock_step,
+    locate_noise_step,
+    locate_pose_step,
+)
 from coreg_ros.core.diagnosis.summary import gap_measures, transforms
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.models import Parameters
@@ -167,8 +171,12 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
     stride = int(np.ceil(data.n / opts.max_select_pairs))
     sel = Selector(data, np.arange(0, data.n, stride), opts, progress)
     shift = float(context.get('coarse_shift_s', 0.0))
-    if cause is None and ClockStepCandidate.name in opts.candidates:
+    if cause is None:
+        # the instants of the changes in time, located once (steps.py)
         data.cache['clock_step'] = locate_clock_step(data, base.state, sel.idx)
+        data.cache['pose_step'] = locate_pose_step(data, base.state, sel.idx)
+        quad = np.sum(errors[2] ** 2 / (1.0 + errors[3]), axis=1)
+        data.cache['noise_step'] = locate_noise_step(data, quad, sel.idx)
     if cause is None:
         found = select_effects(sel, base.state)
         progress(0.8, 're-testing the effects together')

@@ -26,6 +26,7 @@ from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import keyed, optional, Record
+from coreg_ros.core.diagnosis.residuals import base_errors
 from coreg_ros.core.diagnosis.stamps import jitter_finding, StampReport
 from coreg_ros.core.diagnosis.structure import leftover, TimeWindow, Unexplained
 import numpy as np
@@ -166,20 +167,22 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
     local = NonStationaryCandidate.name
     window, unexplained = None, None
     if look_local:
-        window, unexplained = leftover(data, after, sd, counted, stated_excess, emap)
+        e_in = base_errors(data, final)[0]
+        quad_in = vm.loglik(final.state.var, final.stats, with_parts=True)[2]
+        window, unexplained = leftover(data, e_in, quad_in, sd, counted, stated_excess, emap)
     if (window is not None and window.structured and window.kind == 'window'
             and stated_excess > 0.02 and not any(f.name == local for f in findings)):
         # a structured error that comes and goes: the library's non-stationary error
         inside = (data.t >= window.from_s) & (data.t <= window.to_s)
         estimate = LocalExcess.of(f'time {window.from_s:.0f}-{window.to_s:.0f} s',
                                   emap.share_in_time_blocks, emap.share_in_cells,
-                                  float(np.mean(after.quad[inside & counted]) / data.m) - 1.0)
+                                  float(np.mean(quad_in[inside & counted]) / data.m) - 1.0)
         findings = findings + [Finding.of(sized(estimate, inside))]
         if unexplained is not None:
             # what is left beside the window, at the stated noise
             rest = counted & ~inside
             rest_excess = float(np.mean(after.quad_stated[rest]) / data.m) - 1.0
-            unexplained = leftover(data, after, sd, rest, rest_excess, emap)[1]
+            unexplained = leftover(data, e_in, quad_in, sd, rest, rest_excess, emap)[1]
     ns = next((f for f in findings if f.name == local), None)
     if ns is not None and CANDIDATES[findings[0].name].sets_noise_level:
         # a local structured error goes before noise descriptions of it (a noise effect

@@ -132,7 +132,8 @@ class Model:
         st.theta = {n: v for n, v in st.theta.items() if n in self.slices}
         var = st.var
         defaults = vm.VarState()
-        for name in ('log_s2', 'log_c', 'k', 'log_beta', 'logit_eps', 'log_lam', 'shape'):
+        for name in ('log_s2', 'log_c', 'k', 'log_beta', 'logit_eps', 'log_lam', 'shape',
+                     'log_f'):
             if name not in self.var_names:
                 var = var.with_values([name], [getattr(defaults, name)])
         st.var = var
@@ -168,7 +169,7 @@ class Model:
         if self.mean:
             k = d.spec.n_markers
             f_pos = (e[:, :3 * k] + pos_b.reshape(len(idx), -1)).reshape(len(idx), k, 3)
-            ctx = Context(d, idx, state.params, xq, f_pos, jx, v)
+            ctx = Context(d, idx, state.params, xq, f_pos, jx, v, jphi)
             for eff in self.mean:
                 de, Je = eff.apply(ctx, state.theta[eff.name])
                 e = e + de
@@ -180,7 +181,11 @@ class Model:
         if 'shape' in self.var_names:
             # z = Vᵀ W e: V from the decorrelating map T = Vᵀ W and B's Cholesky factor
             V = np.transpose(T @ self.L_b, (0, 2, 1))
-        st = vm.PairStats(z, lam, u, self.log_g[idx], V, d.spec.n_markers)
+        # which pairs follow a located noise step (any model carries it: the screening
+        # fits a noise step on the reference's statistics)
+        found = d.cache.get('noise_step')
+        step = None if found is None else (t >= float(found.at_s)).astype(float)
+        st = vm.PairStats(z, lam, u, self.log_g[idx], V, d.spec.n_markers, step)
         Jz = None
         if jac:
             J = np.concatenate(cols, axis=2)
@@ -287,7 +292,9 @@ class Model:
         stats = vm.PairStats(*(np.concatenate([getattr(s, a) for s in parts])
                                for a in ('z', 'lam', 'u', 'log_g')),
                              None if parts[0].V is None else np.concatenate(
-                                 [s.V for s in parts]), parts[0].markers)
+                                 [s.V for s in parts]), parts[0].markers,
+                             None if parts[0].step is None else np.concatenate(
+                                 [s.step for s in parts]))
         return Pass(H, g, obj, stats, folds, Hk, gk, kept if keep else None)
 
     def step(self, state: State, delta: np.ndarray) -> State:

@@ -157,6 +157,22 @@ class Selector:
         return max(self.opts.min_gain, per * self.n_res)
 
 
+def blocks_judged(sel: Selector, name: str, labels: np.ndarray) -> np.ndarray:
+    """
+    Return the blocks (bool, K) an effect is judged on.
+
+    Those with pairs; for a change in time (``changes_at``) only those with pairs from its
+    instant on.
+    """
+    judged = np.bincount(labels, minlength=sel.K) > 0
+    key = CANDIDATES[name].changes_at
+    found = sel.data.cache.get(key) if key else None
+    if found is not None and labels is sel.tf:
+        after = sel.data.t[sel.idx] >= float(found.at_s)
+        judged &= np.bincount(labels[after], minlength=sel.K) > 0
+    return judged
+
+
 def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round_no: int
                     ) -> Candidate:
     """Fit ``accepted + (name,)``, score its held-out gain over ``ref`` and test it."""
@@ -182,10 +198,11 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     if gain < thr:
         reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
     labels = sel.sf if kind == 'workspace' else sel.tf
-    blocks = int(np.sum(np.bincount(labels, minlength=sel.K) > 0))
-    if np.sum(fold_gains > 0) < blocks - 1:
-        reasons.append(f'improves only {int(np.sum(fold_gains > 0))} of {blocks} {kind} '
-                       f'blocks')
+    judged = blocks_judged(sel, name, labels)
+    blocks = int(judged.sum())
+    improved = int(np.sum(fold_gains[judged] > 0))
+    if improved < max(blocks - 1, 1):
+        reasons.append(f'improves only {improved} of {blocks} {kind} blocks')
     cand.passes = not reasons
     cand.reason = '; '.join(reasons) if reasons else 'passes'
     return cand

@@ -32,6 +32,7 @@ from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import position_rotation_rows
 from coreg_ros.core.diagnosis.record import optional, Record
+from coreg_ros.core.diagnosis.selection import blocks_judged
 import numpy as np
 
 #: Smallest relative fall of the held-out RMS (stated noise) of a channel a structured effect
@@ -135,14 +136,15 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
     h0, _ = _fold_kind(sel, name, without)
     fold_gains = h.fold_sums(h.ll) - h0.fold_sums(h0.ll)
     gain = float(fold_gains.sum())
-    blocks = int(np.sum(np.bincount(labels, minlength=sel.K) > 0))
-    improved = int(np.sum(fold_gains > 0))
+    judged = blocks_judged(sel, name, labels)
+    blocks = int(judged.sum())
+    improved = int(np.sum(fold_gains[judged] > 0))
     thr = sel.threshold(0)
     reasons = []
     if gain < thr:
         reasons.append(f'with the others present its held-out gain is {gain:.1f} nats, below '
                        f'the practical {thr:.1f}')
-    if improved < blocks - 1:
+    if improved < max(blocks - 1, 1):
         reasons.append(f'with the others present it improves only {improved} of {blocks} '
                        f'blocks')
     # the stated-noise measures on the time blocks, over the pairs the full model counts
@@ -170,6 +172,30 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
                       reason='; '.join(reasons) if reasons else 'passes')
 
 
+def _simplest(sel, names: tuple, start) -> tuple:
+    """
+    Replace each effect by the simpler one it extends when that does as well beside the others.
+
+    A clock step whose step is small, a field that is only a scale: the simpler model loses
+    less than the nested margin of held-out log-likelihood (``Options.nested_share`` of the
+    practical threshold), so the simpler is named.
+    """
+    margin = max(sel.opts.min_gain, sel.opts.nested_share * sel.threshold(0))
+    for name in names:
+        simpler = CANDIDATES[name].simpler
+        if simpler is None or simpler in names:
+            continue
+        other = tuple(simpler if n == name else n for n in names)
+        if any(CANDIDATES[a].acts_on == 'time' for a in other if a != simpler) and (
+                CANDIDATES[simpler].acts_on == 'time'):
+            continue
+        full = sel.score(names, start)
+        alt = sel.score(other, full[0].state)
+        if float(full[1].ll.sum()) - float(alt[1].ll.sum()) < margin:
+            names = other
+    return names
+
+
 def retest(sel, accepted: tuple, start, base_excess: float) -> tuple:
     """
     Re-test every accepted effect in the final model; drop those the others explain.
@@ -194,7 +220,7 @@ def retest(sel, accepted: tuple, start, base_excess: float) -> tuple:
         The last test of every accepted effect (the dropped ones' says why).
 
     """
-    names = tuple(accepted)
+    names = _simplest(sel, tuple(accepted), start)
     tests: dict = {}
     while names:
         full = sel.score(names, start)
@@ -251,6 +277,20 @@ def noise_change(fit, name: str) -> float:
     return float(np.expm1(q))
 
 
+def _noise_feature(reading, name: str) -> Optional[float]:
+    """
+    Return the relative size of what sets a noise effect apart from a noise level, or None.
+
+    Distance noise: σ at the farthest pair over σ at the median distance, less one; a noise
+    shape: its largest axis factor over its smallest, less one.
+    """
+    if name not in ('distance_noise', 'anisotropic_noise'):
+        return None
+    est = CANDIDATES[name].size(reading)
+    ratio = est.edge_to_centre if name == 'distance_noise' else est.ratio
+    return float(abs(ratio - 1.0))
+
+
 def practical(reading, names: tuple, tests: dict) -> tuple:
     """
     Split the re-tested effects into those that matter at the stated noise and the others.
@@ -294,10 +334,16 @@ def practical(reading, names: tuple, tests: dict) -> tuple:
                 reasons.append(f'{size * 100:.3f} % of the pairs (floor {floor * 100:g} %)')
         else:
             size, floor = noise_change(reading.fit, name), NOISE_FLOOR
+            feature = _noise_feature(reading, name)
             if size < floor:
                 reasons.append(f'it changes the noise by {size * 100:.1f} % on '
                                f'{NOISE_SHARE * 100:.0f} % of the pairs (floor '
                                f'{floor * 100:g} %)')
+            elif feature is not None and feature < floor:
+                # a noise level, not the effect's own form: the level is noise_scale's
+                size = feature
+                reasons.append(f'what sets it apart from a noise level changes σ by only '
+                               f'{feature * 100:.1f} % (floor {floor * 100:g} %)')
         if reasons:
             estimate = effect.size(reading)
             small.append(NotSignificant(

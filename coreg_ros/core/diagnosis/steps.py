@@ -1,20 +1,26 @@
 """
-Changes that stay: where in time a step of B's clock offset fits best.
+Changes that stay: where in time a step of the clock, the calibration or the noise fits best.
 
 A clock that jumps (an NTP correction, a driver restart) moves B's offset from τ before to
-τ + Δ after some instant. The instant is located once per recording, before the effects are
-scored, by a score scan of the base fit (``timeline.step_scan``): the whitened residuals and
-columns of the base model with a time offset added (its column is the offset's, −J_x ẋ_A), the
-offset's column stepping after each candidate pair; the candidate that gains most is the step.
-The ``clock_step`` effect (``effects.clock``) then fits τ and Δ with the instant held
-(``terms.StepShift``), starting from the scan's one-step estimate.
+τ + Δ after some instant; a bumped base moves T0, a marker that slips moves T1; metal
+brought near an EM tracker raises its noise. Each instant is located once per recording,
+before the effects are scored, from the base fit:
+
+- clock and pose steps by a score scan (``timeline.step_scan``): the whitened residuals and
+  columns of the base model (with a time offset for the clock: its column −J_x ẋ_A), the
+  stepping columns (the offset's, or all of the calibration's in the tangent coordinates)
+  after each candidate pair; the candidate that gains most is the step;
+- a noise step by the likelihood ratio of a change of the noise's variance at each split.
+
+The effects (``clock_step``, ``pose_step``, ``noise_step``) then fit their sizes with the
+instant held (``terms.StepShift``, ``terms.PoseStep``, the noise model's ``log_f``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from coreg_ros.core.calibration.observability import WEAK_SHARE
+from coreg_ros.core.calibration.observability import tangent_matrix, WEAK_SHARE
 from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.diagnosis.fit import Model, State
 from coreg_ros.core.diagnosis.timeline import step_scan
@@ -70,25 +76,12 @@ def locate_clock_step(data: DiagData, state: State, idx: np.ndarray) -> ClockSte
     ClockStepStart
 
     """
-    model = Model(data, ('time_offset',))
-    st = model.initial_state(state)
-    parts = [model.evaluate(st, ch) for ch in model.chunks(idx)]
-    z = np.concatenate([p.st.z for p in parts])
-    lam = np.concatenate([p.st.lam for p in parts])
-    J = np.concatenate([p.Jz for p in parts])
-    w = 1.0 / np.sqrt(1.0 + lam)
-    r, J = -z * w, J * w[:, :, None]
-    quad = np.sum(r ** 2, axis=1)
-    limit = stats.chi2.isf(GROSS_P, data.m)
-    huber = np.sqrt(np.minimum(1.0, limit / np.maximum(quad, 1e-300)))
-    r *= huber[:, None]
-    J *= huber[:, None, None]
     n = len(idx)
-    side = max(int(MIN_SIDE * n), 20)
+    side, grid = _scan_grid(n)
     if n < 2 * side + 2:
         return ClockStepStart(float(data.t[idx[n // 2]] - data.t[0]), np.zeros(2), 0.0)
+    r, J = _whitened(data, state, idx, ('time_offset',))
     tau = J[:, :, -1:]
-    grid = np.unique(np.linspace(side, n - side, SCAN_SEGMENTS).astype(int))
     coarse = step_scan(r, J, tau, grid, WEAK_SHARE)
     j = int(np.searchsorted(grid, coarse.index))
     lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
@@ -101,3 +94,115 @@ def locate_clock_step(data: DiagData, state: State, idx: np.ndarray) -> ClockSte
     sol = np.linalg.lstsq(H, g, rcond=1e-12)[0]
     at = 0.5 * (data.t[idx[k - 1]] + data.t[idx[k]]) - data.t[0]
     return ClockStepStart(float(at), np.array([sol[-2], sol[-1]]), fine.gain)
+
+
+@dataclass(frozen=True)
+class Instant:
+    """
+    Where a change in time fits best.
+
+    Attributes
+    ----------
+    at_s : float
+        The instant, s from the first pair.
+    gain : float
+        The scan's gain there, nats.
+
+    """
+
+    at_s: float
+    gain: float
+
+
+def _scan_grid(n: int) -> tuple:
+    """Return the pairs kept on either side and the coarse candidate splits."""
+    side = max(int(MIN_SIDE * n), 20)
+    return side, np.unique(np.linspace(side, n - side, SCAN_SEGMENTS).astype(int))
+
+
+def _whitened(data: DiagData, state: State, idx: np.ndarray, names: tuple) -> tuple:
+    """Whitened residuals (n, m) and columns (n, m, p) of a model at the base state, Huber."""
+    model = Model(data, names)
+    st = model.initial_state(state)
+    parts = [model.evaluate(st, ch) for ch in model.chunks(idx)]
+    z = np.concatenate([p.st.z for p in parts])
+    lam = np.concatenate([p.st.lam for p in parts])
+    J = np.concatenate([p.Jz for p in parts])
+    w = 1.0 / np.sqrt(1.0 + lam)
+    r, J = -z * w, J * w[:, :, None]
+    quad = np.sum(r ** 2, axis=1)
+    huber = np.sqrt(np.minimum(1.0, stats.chi2.isf(GROSS_P, data.m) / np.maximum(quad, 1e-300)))
+    return r * huber[:, None], J * huber[:, None, None]
+
+
+def locate_pose_step(data: DiagData, state: State, idx: np.ndarray) -> Instant:
+    """
+    Locate a step of the calibration (T0 or T1 moved) on the pairs ``idx`` from the base fit.
+
+    Parameters
+    ----------
+    data : DiagData
+        The pairs.
+    state : fit.State
+        The base model's state.
+    idx : ndarray of int
+        The pairs scanned, in time order.
+
+    Returns
+    -------
+    Instant
+
+    """
+    n = len(idx)
+    side, grid = _scan_grid(n)
+    if n < 2 * side + 2:
+        return Instant(float(data.t[idx[n // 2]] - data.t[0]), 0.0)
+    # a constant clock offset among the common columns: its errors must not pass for a step
+    r, X = _whitened(data, state, idx, ('time_offset',))
+    J = np.matmul(X[:, :, :-1], np.linalg.inv(tangent_matrix(state.params)))
+    coarse = step_scan(r, X, J, grid, WEAK_SHARE)
+    j = int(np.searchsorted(grid, coarse.index))
+    lo, hi = grid[max(j - 1, 0)], grid[min(j + 1, len(grid) - 1)]
+    fine = step_scan(r, X, J, np.arange(max(lo, side), min(hi, n - side) + 1), WEAK_SHARE)
+    k = fine.index
+    return Instant(float(0.5 * (data.t[idx[k - 1]] + data.t[idx[k]]) - data.t[0]), fine.gain)
+
+
+def locate_noise_step(data: DiagData, quad: np.ndarray, idx: np.ndarray) -> Instant:
+    """
+    Locate a step of the noise's variance from the base fit's squared errors ``quad``.
+
+    The likelihood ratio of a variance s₁² before and s₂² after each split against one
+    s², ``½ m (N ln s² - k ln s₁² - (N - k) ln s₂²)``, on the squared errors capped at the
+    ``GROSS_P`` tail (glitches do not make a noise level).
+
+    Parameters
+    ----------
+    data : DiagData
+        The pairs.
+    quad : ndarray, shape (N,)
+        The base fit's squared normalised error per pair (all pairs).
+    idx : ndarray of int
+        The pairs scanned, in time order.
+
+    Returns
+    -------
+    Instant
+
+    """
+    m = data.m
+    q = np.minimum(quad[idx], stats.chi2.isf(GROSS_P, m))
+    n = len(q)
+    side, _ = _scan_grid(n)
+    if n < 2 * side + 2:
+        return Instant(float(data.t[idx[n // 2]] - data.t[0]), 0.0)
+    c = np.cumsum(q)
+    k = np.arange(side, n - side)
+    s1 = c[k - 1] / (k * m)
+    s2 = (c[-1] - c[k - 1]) / ((n - k) * m)
+    s = c[-1] / (n * m)
+    lr = 0.5 * m * (n * np.log(s) - k * np.log(s1) - (n - k) * np.log(s2))
+    best = int(np.argmax(lr))
+    kk = int(k[best])
+    return Instant(float(0.5 * (data.t[idx[kk - 1]] + data.t[idx[kk]]) - data.t[0]),
+                   float(lr[best]))

@@ -255,8 +255,8 @@ def _not_white(e_std: np.ndarray) -> Optional[float]:
     return top if p < 1e-3 and top >= NOT_WHITE else None
 
 
-def leftover(data, after, sd: np.ndarray, counted: np.ndarray, stated_excess: float,
-             emap) -> tuple:
+def leftover(data, e: np.ndarray, quad: np.ndarray, sd: np.ndarray, counted: np.ndarray,
+             stated_excess: float, emap) -> tuple:
     """
     Find what the final model leaves: a window in time, and structure by its signature.
 
@@ -264,14 +264,17 @@ def leftover(data, after, sd: np.ndarray, counted: np.ndarray, stated_excess: fl
     ----------
     data : DiagData
         The pairs.
-    after : heldout.Heldout
-        The final model's held-out predictions.
+    e : ndarray, shape (N, m)
+        The final model's raw errors (in sample: a held-out block of a change in time is
+        predicted from a short stretch on one side, which would make a window of its own).
+    quad : ndarray, shape (N,)
+        Their squared normalised size under the final noise model.
     sd : ndarray, shape (N, m)
         Each raw error's stated σ.
     counted : ndarray of bool, shape (N,)
         Pairs not set aside.
     stated_excess : float
-        Held-out χ²/dof at the stated noise minus one, after the effects.
+        Held-out χ²/dof at the stated noise minus one, after the effects (the gate).
     emap : excess.ExcessMap
         Where the excess lies under the final noise model.
 
@@ -284,9 +287,9 @@ def leftover(data, after, sd: np.ndarray, counted: np.ndarray, stated_excess: fl
 
     """
     m = data.m
-    e_std = after.e / sd
-    ex = after.quad / m - 1.0
-    window = time_window(data, after.quad, e_std, counted, ex)
+    e_std = e / sd
+    ex = quad / m - 1.0
+    window = time_window(data, quad, e_std, counted, ex)
     if window is not None and window.by_place >= 0.5:
         window = None  # the places visited then, not the time
     if stated_excess < LEFT_EXCESS:

@@ -36,6 +36,7 @@ _BOUNDS = {
     'k': (0.0, 8.0),
     'log_beta': (np.log(1e-5 ** 2), np.log(0.5 ** 2)),
     'logit_eps': (-12.0, 0.0), 'log_lam': (np.log(5.0), np.log(1e5)),
+    'log_f': (-6.0, 6.0),
 }
 
 
@@ -58,6 +59,8 @@ class VarState:
     shape : tuple
         The shape S of B's position noise in B's base frame (``noise_shape``): its six
         upper-triangular values; empty for the stated (S = I).
+    log_f : float
+        log of the factor on B's noise variance from a located instant on (a noise step).
 
     """
 
@@ -69,6 +72,7 @@ class VarState:
     log_lam: float = float(np.log(30.0))
     free: tuple = field(default=())
     shape: tuple = ()
+    log_f: float = 0.0
 
     def with_values(self, names, values) -> VarState:
         """Return a copy with the named parameters set (``shape``: a tuple of six, or ())."""
@@ -106,6 +110,8 @@ class PairStats:
         shape (``noise_shape``); None when no model needs it.
     markers : int
         Markers (position blocks) per pair.
+    step : ndarray, shape (n,), optional
+        1 for the pairs after a located noise step, else 0 (None: no step).
 
     """
 
@@ -115,11 +121,20 @@ class PairStats:
     log_g: np.ndarray
     V: Optional[np.ndarray] = None
     markers: int = 1
+    step: Optional[np.ndarray] = None
 
     def take(self, idx) -> PairStats:
         """Stats of the pairs idx."""
         return PairStats(self.z[idx], self.lam[idx], self.u[idx], self.log_g[idx],
-                         None if self.V is None else self.V[idx], self.markers)
+                         None if self.V is None else self.V[idx], self.markers,
+                         None if self.step is None else self.step[idx])
+
+    def b_log_factor(self, var: VarState) -> np.ndarray:
+        """Return log of the factor on B's noise variance per pair: distance, noise step."""
+        out = var.log_c + 2.0 * var.k * self.log_g
+        if self.step is not None and var.log_f != 0.0:
+            out = out + var.log_f * self.step
+        return out
 
     def with_z(self, z: np.ndarray) -> PairStats:
         """Return the same pairs with other errors z (held-out predictions)."""
@@ -141,7 +156,7 @@ def components(var: VarState, st: PairStats):
     """
     if var.shape:
         return _shaped_components(var, st)
-    a = np.exp(var.log_c + 2.0 * var.k * st.log_g)[:, None]
+    a = np.exp(st.b_log_factor(var))[:, None]
     D = np.exp(var.log_s2) * (a + st.lam)
     quad = np.sum(st.z ** 2 / D, axis=1)
     logdet = np.sum(np.log(D), axis=1)
@@ -162,7 +177,7 @@ def shaped_covariances(var: VarState, st: PairStats) -> np.ndarray:
     if st.V is None:
         raise ValueError("a noise shape needs the pairs' rotations (PairStats.V)")
     M = ns.whitened_block(ns.shape_matrix(var.shape), st.z.shape[1], st.markers)
-    g = np.exp(var.log_c + 2.0 * var.k * st.log_g)
+    g = np.exp(st.b_log_factor(var))
     return ns.covariances(M, st.V, st.lam, float(np.exp(var.log_s2)), g, var.beta, st.u)
 
 
@@ -340,7 +355,7 @@ def _fit_with_shape(st: PairStats, var: VarState, names: tuple, step: float) -> 
     for _ in range(3 if others else 1):
         _, p_in, _ = loglik(var, st, with_parts=True)
         S = ns.fit_shape(st.z, st.V, st.lam, p_in, float(np.exp(var.log_s2)),
-                         np.exp(var.log_c + 2.0 * var.k * st.log_g), var.beta, st.u,
+                         np.exp(st.b_log_factor(var)), var.beta, st.u,
                          ns.shape_matrix(var.shape), st.markers)
         var = var.with_values(['shape'], [ns.shape_params(S)])
         if others:

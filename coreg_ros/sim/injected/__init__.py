@@ -40,6 +40,9 @@ clock_step          s          measured  B's stamps + VALUE from a random instan
                                          of the recording) on: the offset steps
 anisotropic_noise   factor     noise     B's position noise × VALUE along one direction of
                                          B's base frame (an axis, or a random direction)
+t0_step, t1_step    mm         measured  T0 (T1) moves by VALUE (and turns 0.05° per mm)
+                                         at a random instant (``sim.changes``)
+noise_step          factor     measured  B's noise × VALUE from a random instant on
 =================== ========== ========= ====================================================
 
 ``as_dict()`` gives ``name``, ``value`` (as parsed), ``unit``, ``stage`` and the effect's

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Union
 
 from coreg_ros.core.errors import ConfigError
+from coreg_ros.sim.changes import StepEffect
 from coreg_ros.sim.injected.common import ALL_EFFECT_NAMES, EFFECT_UNITS
 from coreg_ros.sim.injected.field import FieldDistortion, NonStationary, Scale
 from coreg_ros.sim.injected.link import Backlash, LinkFlex
@@ -31,6 +33,8 @@ _CLASSES = {
     'noise_scale': NoiseScale, 'non_stationary': NonStationary, 'shared_clock': SharedClock,
     'outlier_bursts': OutlierBursts, 'clock_step': ClockStep,
     'anisotropic_noise': AnisotropicNoise,
+    't0_step': partial(StepEffect, 't0_step'), 't1_step': partial(StepEffect, 't1_step'),
+    'noise_step': partial(StepEffect, 'noise_step'),
 }
 
 # accepted range of VALUE per effect: (low, high, low inclusive), for the error message
@@ -42,7 +46,8 @@ _RANGES = {
     'backlash': (0.0, 100.0, True), 'noise_scale': (0.0, 100.0, False),
     'non_stationary': (0.0, 1000.0, True), 'shared_clock': (-10.0, 10.0, True),
     'outlier_bursts': (0.0, 0.5, True), 'clock_step': (-10.0, 10.0, True),
-    'anisotropic_noise': (0.0, 100.0, False),
+    'anisotropic_noise': (0.0, 100.0, False), 't0_step': (0.0, 1000.0, True),
+    't1_step': (0.0, 1000.0, True), 'noise_step': (1.0, 100.0, True),
 }
 
 
@@ -118,5 +123,5 @@ _EXAMPLES = {
     'field_distortion': '5', 'distance_noise': '2', 'scale': '0.005', 'link_flex': '1',
     'outliers': '0.02', 'backlash': '0.3', 'noise_scale': '2', 'non_stationary': '3',
     'shared_clock': '0.02', 'outlier_bursts': '0.05', 'clock_step': '0.03',
-    'anisotropic_noise': '3',
+    'anisotropic_noise': '3', 't0_step': '2', 't1_step': '1', 'noise_step': '2',
 }

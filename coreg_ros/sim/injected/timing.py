@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
+from coreg_ros.sim.changes import step_stamps
 from coreg_ros.sim.injected.common import EFFECT_UNITS
 from coreg_ros.sim.injection import EffectContext
 import numpy as np
@@ -176,13 +177,6 @@ class SharedClock:
                 'unit': EFFECT_UNITS['shared_clock'], 'stage': self.stage,
                 'latency_s': self.latency_s, 'host_jitter_s': self.host_jitter_s,
                 **self._found}
-
-
-def step_stamps(stamps: np.ndarray, at_ns: int, shift_ns: int) -> np.ndarray:
-    """Return the stamps with ``shift_ns`` added to those at or after ``at_ns`` (a clock step)."""
-    out = np.asarray(stamps, dtype=np.int64).copy()
-    out[out >= at_ns] += np.int64(shift_ns)
-    return out
 
 
 @dataclass(frozen=True)

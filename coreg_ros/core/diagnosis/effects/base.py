@@ -48,6 +48,10 @@ class CandidateEffect(Record):
         Sets B's noise level: at most one such effect in a model.
     trend_checked : bool
         Accepted only if the offsets fitted per time block trend (``drift.drift_check``).
+    changes_at : str or None
+        A change at one instant: the key of ``data.cache`` where the instant is located
+        (``steps``); it is judged on the time blocks from that instant on (before it, it
+        changes nothing).
 
     """
 
@@ -61,6 +65,7 @@ class CandidateEffect(Record):
     simpler: Optional[str] = None
     sets_noise_level = False
     trend_checked = False
+    changes_at: Optional[str] = None
 
     @classmethod
     def size(cls, reading: FitReading) -> CandidateEffect:

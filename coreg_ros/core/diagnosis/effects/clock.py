@@ -116,6 +116,7 @@ class ClockStepCandidate(CandidateEffect):
     """
 
     name = 'clock_step'
+    changes_at = 'clock_step'
     acts_on = 'time'
     term = StepShift
     needs_motion = True

@@ -8,6 +8,7 @@ read everything else from the class.
 
 from __future__ import annotations
 
+from coreg_ros.core.diagnosis.effects.change import NoiseStepCandidate, PoseStepCandidate
 from coreg_ros.core.diagnosis.effects.clock import (
     ClockDriftCandidate,
     ClockStepCandidate,
@@ -30,7 +31,7 @@ CANDIDATES = {c.name: c for c in (
     TimeOffsetCandidate, ClockDriftCandidate, ClockStepCandidate, TimestampJitterCandidate,
     FieldDistortionCandidate, DistanceNoiseCandidate, ScaleCandidate, LinkFlexCandidate,
     OutliersCandidate, BacklashCandidate, NoiseScaleCandidate, AnisotropicNoiseCandidate,
-    NonStationaryCandidate)}
+    PoseStepCandidate, NoiseStepCandidate, NonStationaryCandidate)}
 
 #: The candidates of the selection: effects fitted as extensions of the model (the names of
 #: ``coreg_ros.sim.injected.EFFECT_NAMES``).
