@@ -168,6 +168,7 @@ def summarize_validation(results: list) -> dict:
         matrix[truth][outcome] += 1
     # rigs that cannot move in every direction are scored apart: an effect the motion cannot
     # show is not expected there
+    n_cases = len(results)
     rigs = [r for r in results if r.get('motion', 'diverse') != 'diverse']
     results = [r for r in results if r.get('motion', 'diverse') == 'diverse']
     clean = [r for r in results if r['effect'] is None]
@@ -220,7 +221,7 @@ def summarize_validation(results: list) -> dict:
                     d[key + '_factor_up'] = float(np.exp(d[key]))
         detection[name] = d
     return {
-        'cases': len(results),
+        'cases': n_cases,
         'confusion_matrix': {'rows_truth': rows, 'columns_answer': cols,
                              'counts': [[matrix[r][c] for c in cols] for r in rows]},
         'false_alarm_rate_clean': false_alarm,

@@ -149,20 +149,6 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
         size = ex.local_error_size(data, after.e, hot)
         return estimate if size is None else estimate.sized(size)
 
-    found = next((f for f in findings if f.name == OutliersCandidate.name), None)
-    cl = None
-    if found is not None:
-        cl = ex.flagged_clustering(data, flagged)
-        at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
-        if cl.clustered:
-            # the flagged pairs are where it acts (the excess map counts them out)
-            estimate = sized(ClusteredOutliers.of(cl.count, cl.share, cl.where, at_cap),
-                             flagged)
-            named = replace(found, name=estimate.name, kind=estimate.kind, estimate=estimate,
-                            renamed_from=found.name)
-        else:
-            named = replace(found, estimate=found.estimate.capped(at_cap).in_runs(cl.runs))
-        findings = _replaced(findings, found, named)
     stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
     local = NonStationaryCandidate.name
     window, unexplained = None, None
@@ -170,19 +156,40 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
         e_in = base_errors(data, final)[0]
         quad_in = vm.loglik(final.state.var, final.stats, with_parts=True)[2]
         window, unexplained = leftover(data, e_in, quad_in, sd, counted, stated_excess, emap)
-    if (window is not None and window.structured and window.kind == 'window'
-            and stated_excess > 0.02 and not any(f.name == local for f in findings)):
-        # a structured error that comes and goes: the library's non-stationary error
+    comes_and_goes = (window is not None and window.structured and window.kind == 'window'
+                      and stated_excess > 0.02)
+    inside = np.zeros(data.n, dtype=bool)
+    if comes_and_goes:
         inside = (data.t >= window.from_s) & (data.t <= window.to_s)
+    found = next((f for f in findings if f.name == OutliersCandidate.name), None)
+    cl = None
+    if found is not None:
+        cl = ex.flagged_clustering(data, flagged)
+        at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
+        # flagged pairs mostly inside a window that comes and goes are where it acts
+        in_window = comes_and_goes and float(np.mean(inside[flagged])) >= 0.5
+        if cl.clustered or in_window:
+            where = cl.where if cl.clustered else (f'time {window.from_s:.0f}-'
+                                                   f'{window.to_s:.0f} s')
+            # the flagged pairs are where it acts (the excess map counts them out)
+            estimate = sized(ClusteredOutliers.of(cl.count, cl.share, where, at_cap),
+                             flagged | inside)
+            named = replace(found, name=estimate.name, kind=estimate.kind, estimate=estimate,
+                            renamed_from=found.name)
+        else:
+            named = replace(found, estimate=found.estimate.capped(at_cap).in_runs(cl.runs))
+        findings = _replaced(findings, found, named)
+    if comes_and_goes and not any(f.name == local for f in findings):
+        # a structured error that comes and goes: the library's non-stationary error
         estimate = LocalExcess.of(f'time {window.from_s:.0f}-{window.to_s:.0f} s',
                                   emap.share_in_time_blocks, emap.share_in_cells,
                                   float(np.mean(quad_in[inside & counted]) / data.m) - 1.0)
         findings = findings + [Finding.of(sized(estimate, inside))]
-        if unexplained is not None:
-            # what is left beside the window, at the stated noise
-            rest = counted & ~inside
-            rest_excess = float(np.mean(after.quad_stated[rest]) / data.m) - 1.0
-            unexplained = leftover(data, e_in, quad_in, sd, rest, rest_excess, emap)[1]
+    if comes_and_goes and unexplained is not None:
+        # what is left beside the window, at the stated noise
+        rest = counted & ~inside
+        rest_excess = float(np.mean(after.quad_stated[rest]) / data.m) - 1.0
+        unexplained = leftover(data, e_in, quad_in, sd, rest, rest_excess, emap)[1]
     ns = next((f for f in findings if f.name == local), None)
     if ns is not None and CANDIDATES[findings[0].name].sets_noise_level:
         # a local structured error goes before noise descriptions of it (a noise effect

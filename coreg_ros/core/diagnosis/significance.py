@@ -191,7 +191,9 @@ def _simplest(sel, names: tuple, start) -> tuple:
             continue
         full = sel.score(names, start)
         alt = sel.score(other, full[0].state)
-        if float(full[1].ll.sum()) - float(alt[1].ll.sum()) < margin:
+        h, _ = _fold_kind(sel, name, full)
+        h0, _ = _fold_kind(sel, name, alt)
+        if float(h.ll.sum()) - float(h0.ll.sum()) < margin:
             names = other
     return names
 
