@@ -220,6 +220,11 @@ BEHIND_SHARE = 0.3
 #: The time effect whose linearisation screens every time effect (a time offset's parameter
 #: is its first one).
 SCREEN_TIME_EFFECT = 'clock_drift'
+#: A structured rival that gains alike is preferred to a noise effect when it leaves at most
+#: this share of the noise effect's held-out excess at the stated noise
+#: (``_structure_before_noise``): a half, far from the small differences between two
+#: descriptions of the same excess.
+STRUCTURE_SHARE = 0.5
 
 
 def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> dict:
@@ -298,6 +303,35 @@ def compatible(accepted: tuple, name: str) -> bool:
     return sum(e.sets_noise_level for e in effects) < 2
 
 
+def _stated_excess(sel: Selector, cand: Candidate) -> float:
+    """Held-out χ²/dof at the stated noise minus one, left by a candidate's model."""
+    return float(np.mean(cand.heldout.quad_stated)) / sel.data.m - 1.0
+
+
+def _structure_before_noise(sel: Selector, best: Candidate, passing: list) -> Candidate:
+    """
+    Prefer a structured rival that does as well to a noise effect that explains by widening.
+
+    A noise effect (jitter, a larger noise) fits any error of the mean in likelihood by making
+    the noise as large as the error; a structured effect that predicts the error leaves the
+    held-out errors at the stated noise. When both gain alike (within the not-separable
+    ratio), the one that leaves at most ``STRUCTURE_SHARE`` of the noise effect's held-out
+    excess at the stated noise is the explanation (a clock set back: its step beside the
+    few samples whose order it broke, rather than 65 ms of jitter). True jitter or noise is
+    not reduced at the stated noise by any structure, so it keeps its place.
+    """
+    if CANDIDATES[best.name].kind != 'noise':
+        return best
+    excess = _stated_excess(sel, best)
+    if not excess > 0.0:
+        return best
+    rivals = [c for c in passing if CANDIDATES[c.name].kind == 'structured'
+              and CANDIDATES[c.name].acts_on in ('time', 'mean')
+              and c.gain >= sel.opts.not_separable_ratio * best.gain
+              and _stated_excess(sel, c) <= STRUCTURE_SHARE * excess]
+    return max(rivals, key=lambda c: c.gain) if rivals else best
+
+
 def nested(a: str, b: str) -> bool:
     """Whether one of the two effects is a special case of the other (``simpler``)."""
     return CANDIDATES[a].simpler == b or CANDIDATES[b].simpler == a
@@ -362,6 +396,7 @@ def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str
     alt = next((c for c in passing if c.name == simpler), None)
     if alt is not None and best.gain - alt.gain < margin:
         best = alt
+    best = _structure_before_noise(sel, best, passing)
     not_sep = []
     for other in passing:
         if other is best or nested(other.name, best.name):
