@@ -5,7 +5,9 @@ The selection adds effects one at a time; an effect accepted early may have stoo
 found later (outliers taken for a noise level before the offset behind them was seen). So
 every accepted effect is re-tested in the final model (``retest``): dropped from it, it must
 lose held-out log-likelihood by the practical threshold, in (almost) every block, with the
-others present; the one that fails by most goes, and the rest are tested again.
+others present; the one that fails by most goes, and the rest are tested again. Outliers must
+also set aside pairs that lie beyond the stated noise (``OUTLIER_STATED_P``): pairs off only a
+noise level the model shrank are not glitches.
 
 An effect that passes is still only *found* when it matters at the stated noise
 (``practical``):
@@ -34,6 +36,7 @@ from coreg_ros.core.diagnosis.gap import position_rotation_rows
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.selection import blocks_judged
 import numpy as np
+from scipy import stats
 
 #: Smallest relative fall of the held-out RMS (stated noise) of a channel a structured effect
 #: claims: an error of RMS a under noise σ lowers it by a²/2σ², so 0.5 % is a ≈ σ/10.
@@ -47,6 +50,10 @@ NOISE_FLOOR = 0.1
 NOISE_SHARE = 0.1
 #: Outliers count when at least this share of the pairs are (one glitch in a thousand).
 OUTLIER_FLOOR = 0.001
+#: ... and when the pairs they set aside lie, on average, beyond the χ²/dof the stated noise
+#: gives one pair in a hundred (an outlier is off the stated noise, not off a shrunk one).
+OUTLIER_STATED_P = 0.01
+OUTLIERS = 'outliers'
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -159,6 +166,15 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
     # without an outlier model every pair is counted (the outliers are its gap)
     counted0 = counted if h0t.p_in.min() < 1.0 else np.ones_like(counted)
     ex_without = float(np.mean(h0t.quad_stated[counted0]) / m) - 1.0
+    set_aside = ~(ht.p_in > 0.5)
+    if name == OUTLIERS and set_aside.any():
+        # an outlier is far off at the stated noise, not only off a noise the model shrank
+        # (a recording inside its stated noise split into a tight half and the rest)
+        stated = float(np.mean(ht.quad_stated[set_aside]) / m)
+        floor = float(stats.chi2.ppf(1.0 - OUTLIER_STATED_P, m) / m)
+        if stated < floor:
+            reasons.append(f'the pairs it sets aside lie at χ²/dof {stated:.2f} at the stated '
+                           f'noise, inside it (an outlier lies beyond {floor:.2f})')
     share = 0.0
     if CANDIDATES[name].kind == 'structured' and base_excess > 1e-9:
         share = float(np.clip((ex_without - ex_full) / base_excess, 0.0, 1.0))
@@ -330,7 +346,7 @@ def practical(reading, names: tuple, tests: dict) -> tuple:
                 reasons.append(f'it lowers the held-out RMS at the stated noise by '
                                f'{max(gains) * 100:.2f} % at most (minimum '
                                f'{MIN_RMS_GAIN * 100:g} %)')
-        elif name == 'outliers':
+        elif name == OUTLIERS:
             size, floor = reading.var.eps, OUTLIER_FLOOR
             if size < floor:
                 reasons.append(f'{size * 100:.3f} % of the pairs (floor {floor * 100:g} %)')
