@@ -56,3 +56,14 @@ def test_a_restricted_rig_is_diagnosed_and_held_directions_are_no_effect(rig, sp
     else:
         assert names == ['time_offset']
         assert r['effects'][0]['estimate']['tau_s'] == pytest.approx(tau, rel=0.1)
+
+
+def test_a_recording_well_inside_its_stated_noise_gets_no_outliers_or_structure():
+    # noise 0.2-0.4 of the stated (the simulated ETH control reads 0.29): no pair lies off the
+    # stated noise, so none is an outlier, and nothing structured is there to find
+    rng = np.random.default_rng(2670)
+    factor = float(rng.uniform(0.2, 0.4))
+    rec, r = _diagnosed(int(rng.integers(1000)), [f'noise_scale={factor:.3f}'])
+    names = [e['name'] for e in r['effects']]
+    assert names == ['noise_scale']
+    assert r['effects'][0]['estimate']['factor'] == pytest.approx(factor, rel=0.2)
