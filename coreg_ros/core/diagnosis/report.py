@@ -103,6 +103,9 @@ class DiagnosisReport(Record):
         The offset the coarse search moved the pairing by, s.
     pairing : Pairing, optional
         How the streams were paired (from the streams).
+    noise : dict, optional
+        With ``noise: auto``: the noise estimated with the calibration, which the diagnosis
+        took as its floor, beside the stated (``noise_verdict.estimate_dict``).
     cause : causes.Cause, optional
         A mistake a cheap check names (units, swapped devices, ...): the answer, instead of
         any effect.
@@ -133,5 +136,6 @@ class DiagnosisReport(Record):
     stamps: Optional[StampReport] = optional()
     coarse_offset_s: Optional[float] = optional()
     pairing: Optional[Pairing] = optional()
+    noise: Optional[dict] = optional()
     cause: Optional[Cause] = optional()
     unexplained: Optional[Unexplained] = optional()
