@@ -13,6 +13,7 @@ from dataclasses import replace
 import time
 from typing import Optional
 
+from coreg_ros.core.memory import check_memory
 from coreg_ros.sim.draws import (  # noqa: F401 - the validation's draws, importable from here
     draw_case,
     draw_effect_cases,
@@ -29,6 +30,10 @@ EXPECTED = {'shared_clock': 'time_offset', 'outlier_bursts': 'outliers',
 #: Effects that change only the noise model.
 NOISE_TRUTHS = ('noise_scale', 'distance_noise', 'timestamp_jitter', 'anisotropic_noise',
                 'noise_step')
+#: Bytes a validation holds per case (its drawn case and its result, Python objects):
+#: measured 11 kB (``validate(4, 0)``, the results copied under tracemalloc), about twice
+#: that at the peak while the JSON is written.
+BYTES_PER_CASE = 25_000
 #: The estimate's key compared with the truth's value, per effect (None: no size).
 SIZE_KEYS = {'time_offset': 'tau_s', 'clock_drift': 'ppm', 'timestamp_jitter': 'sigma_s',
              'field_distortion': 'max_mm', 'distance_noise': 'exponent', 'scale': 'scale',
@@ -331,6 +336,8 @@ def validate(cases: int, seed: int, progress=None, options=None, workers: int = 
     """
     from coreg_ros.parallel import CaseFailure, run_cases
 
+    check_memory(cases, BYTES_PER_CASE, f'a validation of {cases} cases', '--cases',
+                 unit='cases')
     rng = np.random.default_rng(seed)
     drawn = [draw_case(rng, duration=duration or DURATION) for _ in range(cases)]
     for d, full in (noise or {}).items():
