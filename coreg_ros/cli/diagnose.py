@@ -47,7 +47,7 @@ class Progress:
 
 # ----------------------------------------------------------------------------------- diagnose
 
-def diagnose_bag(bag, settings, progress=None):
+def diagnose_bag(bag, settings, progress=None, frames=None):
     """
     Read one recording and diagnose it as ``coreg diagnose --json`` does.
 
@@ -59,6 +59,8 @@ def diagnose_bag(bag, settings, progress=None):
         Topics, model and stated noise (``coreg diagnose``'s options).
     progress : callable, optional
         ``progress(fraction, text)`` of the diagnosis.
+    frames : tuple, optional
+        (frame_base_a, frame_base_b), to recognise swapped devices (``config_frames``).
 
     Returns
     -------
@@ -75,7 +77,7 @@ def diagnose_bag(bag, settings, progress=None):
     with one_blas_thread():  # small products: BLAS threads only spin (coreg_ros.threads)
         diag = diagnose_streams(streams[settings.topic_a],
                                 [streams[t] for t in settings.topic_b], settings,
-                                progress=progress)
+                                progress=progress, frames=frames)
     document = diag.report.as_dict()
     document['settings'] = settings.as_dict()
     document['bag'] = str(bag)
@@ -84,7 +86,7 @@ def diagnose_bag(bag, settings, progress=None):
 
 def cmd_diagnose(args) -> int:
     """Diagnose the gap between a recording and the model with the stated noise."""
-    from coreg_ros.cli.options import settings_from_args
+    from coreg_ros.cli.options import config_frames, settings_from_args
     from coreg_ros.core.diagnosis.text import format_diagnosis
     from coreg_ros.files.atomic import write_json
     from coreg_ros.files.output_paths import check_output_dir, check_output_file
@@ -93,7 +95,7 @@ def cmd_diagnose(args) -> int:
     check_output_dir(args.report, '--report')
     settings = settings_from_args(args)
     progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
-    diag, document = diagnose_bag(args.bag, settings, progress)
+    diag, document = diagnose_bag(args.bag, settings, progress, config_frames(args))
     report = diag.report
     print(f'{PROG} diagnose: {args.bag} ({report.n_pairs} pairs, '
           f'{report.duration_s:.1f} s, model {report.model})')
@@ -109,6 +111,10 @@ def cmd_diagnose(args) -> int:
         from coreg_ros.report.html import write_report
         path = write_report(diag, args.report, title=f'coreg diagnose: {args.bag}')
         print(f'report written to {path}')
+    if report.cause is not None:
+        # a mistake in the recording as given: the answer, and not a success
+        print(f'{PROG} diagnose: error: {report.cause.text}', file=sys.stderr)
+        return 1
     return 0
 
 

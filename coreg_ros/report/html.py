@@ -42,8 +42,12 @@ def _save(fig, path: Path) -> str:
     return path.name
 
 
-def _plot_time(plt, d, before, after, out):
+def _plot_time(plt, d, before, after, out, window=None):
     fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True)
+    if window is not None:
+        # the window in time whose held-out errors stand out (structure.time_window)
+        for ax in axes:
+            ax.axvspan(window.from_s, window.to_s, color='orange', alpha=0.2, lw=0)
     step = max(1, d.n // 4000)
     names = ['x', 'y', 'z', 'rot x', 'rot y', 'rot z']
     for ax, r, label in ((axes[0], before, 'before (base model)'),
@@ -200,6 +204,36 @@ def _plot_before_after(plt, report, out):
     return _save(fig, out / 'before_after.png')
 
 
+def _what_else(report) -> list:
+    """HTML of what is not an effect found: a cheap cause, small effects, unexplained structure."""
+    parts = []
+    if report.cause is not None:
+        parts.append(f'<h2>Cause: {html.escape(report.cause.check.replace("_", " "))}</h2>'
+                     f'<p>{html.escape(report.cause.text)}</p>')
+    if report.not_significant:
+        parts.append('<h2>Not significant (supported by the held-out data, too small to matter '
+                     'at the stated noise)</h2><ul>')
+        parts += [f'<li>{html.escape(s.name)}: {html.escape(s.text)}</li>'
+                  for s in report.not_significant]
+        parts.append('</ul>')
+    u = report.unexplained
+    if u is not None:
+        items = [('excess left at the stated noise', f'{u.excess:.2f}'),
+                 ('channel', u.channel),
+                 ('when', u.when.text if u.when is not None else None),
+                 ('where', u.where),
+                 ('tied to', ', '.join(f'{k} (ρ {v:+.2f})' for k, v in u.tied_to.items())
+                  if u.tied_to else None),
+                 ('not white', f'autocorrelation up to {u.not_white:.2f}'
+                  if u.not_white is not None else None)]
+        parts.append('<h2>Unexplained structure (no effect of the library explains it)</h2>'
+                     '<table border="1" cellpadding="4" style="border-collapse:collapse">')
+        parts += [f'<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>'
+                  for k, v in items if v]
+        parts.append('</table>')
+    return parts
+
+
 def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
     """
     Write ``index.html`` and its PNGs into ``out_dir`` (created if needed).
@@ -226,7 +260,8 @@ def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
     report = diag.report
     before, after, quad_before = _standardized(diag)
     figures = [
-        ('Normalized residuals over time (±3σ)', _plot_time(plt, d, before, after, out)),
+        ('Normalized residuals over time (±3σ; shaded: the window that stands out)',
+         _plot_time(plt, d, before, after, out, report.excess_left.window)),
         ('QQ plot of the standardized residuals', _plot_qq(plt, before, after, out)),
         ('Residual-velocity cross-correlation', _plot_xcorr(plt, report.location, out)),
         ('Residual against speed and against distance',
@@ -256,14 +291,16 @@ def write_report(diag, out_dir, title: str = 'coreg diagnosis') -> Path:
                          f'<td>{e.held_out_gain:.1f}</td>'
                          f'<td>{e.blocks_improved}/{e.blocks}</td></tr>')
         parts.append('</table>')
+    parts += _what_else(report)
     for caption, name in figures:
         if name:
             parts.append(f'<h2>{html.escape(caption)}</h2><img src="{name}" alt="{caption}">')
     document = report.as_dict()
     parts.append('<h2>JSON</h2><pre>'
                  + html.escape(json.dumps({k: document[k] for k in (
-                     'gap_detected', 'effects', 'not_separable', 'gap_before', 'gap_after',
-                     'noise_excess', 'verdict') if k in document}, indent=1))
+                     'gap_detected', 'cause', 'effects', 'not_significant', 'unexplained',
+                     'not_separable', 'gap_before', 'gap_after', 'noise_excess', 'verdict')
+                     if k in document}, indent=1))
                  + '</pre></body></html>')
     path = out / 'index.html'
     path.write_text('\n'.join(parts), encoding='utf-8')

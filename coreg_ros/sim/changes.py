@@ -30,7 +30,7 @@ The direction of a step is random (drawn from the seed given to ``apply_changes`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 import re
 from typing import Optional
 
@@ -181,14 +181,30 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
 
     """
     rng = np.random.default_rng(0) if rng is None else rng
-    at = int(rec.start_ns) + int(round(change.time_s * 1e9))
-    streams = dict(rec.streams)
+    streams, desc = changed_streams(dict(rec.streams), rec.topics_b, rec.truth, rec.motion,
+                                    rec.start_ns, change, rng)
+    truth = replace(rec.truth, effects=tuple(rec.truth.effects) + (desc,))
+    return replace(rec, streams=streams, truth=truth)
+
+
+def changed_streams(streams: dict, topics_b, truth, motion, start_ns: int, change: Change,
+                    rng: np.random.Generator) -> tuple:
+    """
+    Apply one change to B's streams (``apply_change`` on a recording's parts).
+
+    Returns
+    -------
+    streams : dict
+    desc : dict
+        The change's description (``apply_change``).
+
+    """
+    at = int(start_ns) + int(round(change.time_s * 1e9))
     desc = {'name': change.name, 'time_s': float(change.time_s), 'start_ns': at}
-    truth = rec.truth
     if change.name == 'noise_step':
         sigma_pos, sigma_rot = (float(v) * np.sqrt(change.noise_factor ** 2 - 1.0)
                                 for v in truth.sigma_b)
-        for topic in rec.topics_b:
+        for topic in topics_b:
             s = streams[topic]
             after = s.stamps >= at
             n = int(after.sum())
@@ -201,19 +217,17 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
             streams[topic] = replace(s, position=pos, quat_wxyz=q)
         desc['noise_factor'] = float(change.noise_factor)
     elif change.name == 'clock_step':
-        shift = np.int64(int(round(change.clock_s * 1e9)))
-        for topic in rec.topics_b:
+        shift = int(round(change.clock_s * 1e9))
+        for topic in topics_b:
             s = streams[topic]
-            stamps = s.stamps.copy()
-            stamps[stamps >= at] += shift
-            streams[topic] = replace(s, stamps=stamps)
+            streams[topic] = replace(s, stamps=step_stamps(s.stamps, at, shift))
         desc['clock_s'] = float(change.clock_s)
     else:
         dp, dtheta = _resolved(change, rng)
         desc['translation_m'] = dp.tolist()
         desc['rotation_rad'] = dtheta.tolist()
         R_d = quat.to_matrix(quat.exp(dtheta))
-        for topic_index, topic in enumerate(rec.topics_b):
+        for topic_index, topic in enumerate(topics_b):
             s = streams[topic]
             after = s.stamps >= at
             if not after.any():
@@ -226,10 +240,10 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
                 if truth.model == 'full_pose':
                     q[after] = quat.canonical(quat.multiply(quat.exp(dtheta), q[after]))
             else:
-                if rec.motion is None:
+                if motion is None:
                     raise ConfigError("a T1 step needs the recording's motion (A's true pose)")
-                t = (s.stamps[after] - np.int64(rec.start_ns)).astype(float) * 1e-9
-                _, q_a = rec.motion.pose(t)
+                t = (s.stamps[after] - np.int64(start_ns)).astype(float) * 1e-9
+                _, q_a = motion.pose(t)
                 marker = truth.markers[topic_index]
                 moved = truth.p1 + dp + R_d @ (marker - truth.p1)
                 R0Ra = quat.to_matrix(truth.q0) @ quat.to_matrix(q_a)
@@ -240,8 +254,62 @@ def apply_change(rec, change: Change, rng: Optional[np.random.Generator] = None)
                                           quat.multiply(quat.exp(dtheta), truth.q1))
                     q[after] = quat.canonical(quat.multiply(q[after], right))
             streams[topic] = replace(s, position=pos, quat_wxyz=q)
-    truth = replace(truth, effects=tuple(truth.effects) + (desc,))
-    return replace(rec, streams=streams, truth=truth)
+    return streams, desc
+
+
+def step_stamps(stamps: np.ndarray, at_ns: int, shift_ns: int) -> np.ndarray:
+    """Return the stamps with ``shift_ns`` added to those at or after ``at_ns`` (a clock step)."""
+    out = np.asarray(stamps, dtype=np.int64).copy()
+    out[out >= at_ns] += np.int64(shift_ns)
+    return out
+
+
+#: Unit of a ``StepEffect``'s value, per name.
+STEP_UNITS = {'t0_step': 'mm T0 moves (and 0.05 deg per mm), at a random instant',
+              't1_step': 'mm T1 (the marker) moves (and 0.05 deg per mm), at a random instant',
+              'noise_step': "factor on B's noise from a random instant on"}
+#: Rotation that comes with a pose step's translation, rad per m (a 2 mm bump turns 0.1°).
+STEP_ROTATION_PER_M = np.radians(0.05) / 1e-3
+
+
+@dataclass(frozen=True)
+class StepEffect:
+    """
+    A change as an effect of the simulator (``coreg simulate --effect t0_step=2``).
+
+    ``t0_step`` and ``t1_step``: T0 (or T1) moves by ``value`` mm (and turns
+    ``STEP_ROTATION_PER_M`` with it) in a random direction; ``noise_step``: B's noise grows
+    ``value`` times. At a random instant in 25-75 % of the recording (``at``: a share), as
+    ``apply_change`` does it. Applied to the recorded samples, after the other effects.
+    """
+
+    name: str
+    value: float
+    at: Optional[float] = None
+    stage = 'measured'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __call__(self, streams: dict, context, rng) -> dict:
+        """Apply the change to B's streams."""
+        first = streams[context.topics_b[0]]
+        share = rng.uniform(0.25, 0.75) if self.at is None else float(self.at)
+        span = (int(first.stamps[-1]) - int(first.stamps[0])) * 1e-9
+        when = (int(first.stamps[0]) - int(context.start_ns)) * 1e-9 + share * span
+        if self.name == 'noise_step':
+            change = Change(self.name, when, noise_factor=self.value)
+        else:
+            size = self.value * 1e-3
+            change = Change(self.name, when, translation_m=size,
+                            rotation_rad=size * STEP_ROTATION_PER_M)
+        out, desc = changed_streams(dict(streams), context.topics_b, context.truth,
+                                    context.motion, context.start_ns, change, rng)
+        self._found.update({k: v for k, v in desc.items() if k != 'name'})
+        return out
+
+    def as_dict(self) -> dict:
+        """Describe the change: its size, instant and direction."""
+        return {'name': self.name, 'value': self.value, 'unit': STEP_UNITS[self.name],
+                'stage': self.stage, **self._found}
 
 
 def apply_changes(rec, changes, seed: Optional[int] = None):

@@ -14,142 +14,36 @@ import time
 from typing import Optional
 
 from coreg_ros.core.memory import check_memory
+from coreg_ros.sim.draws import (  # noqa: F401 - the validation's draws, importable from here
+    draw_case,
+    draw_effect_cases,
+    DURATION,
+    SIZE_RANGES,
+    SIZES,
+)
 import numpy as np
 
-#: Realistic sizes per effect (docs/design.md §5) split into small / medium / large ranges, in the
-#: unit of the simulator's ``NAME=VALUE`` (coreg_ros.sim.injected).
-SIZE_RANGES = {
-    'time_offset': ((0.001, 0.003), (0.003, 0.015), (0.015, 0.050)),
-    'clock_drift': ((1.0, 10.0), (10.0, 100.0), (100.0, 500.0)),
-    'timestamp_jitter': ((0.001, 0.003), (0.003, 0.010), (0.010, 0.025)),
-    'field_distortion': ((1.0, 2.0), (2.0, 5.0), (5.0, 10.0)),
-    'distance_noise': ((1.0, 2.0), (2.0, 4.0), (4.0, 8.0)),
-    'scale': ((0.0005, 0.002), (0.002, 0.007), (0.007, 0.02)),
-    'link_flex': ((0.1, 0.5), (0.5, 1.5), (1.5, 3.0)),
-    'outliers': ((0.005, 0.01), (0.01, 0.025), (0.025, 0.05)),
-    'backlash': ((0.05, 0.2), (0.2, 0.5), (0.5, 1.0)),
-    'noise_scale': ((1.1, 1.3), (1.3, 2.0), (2.0, 3.0)),
-    'non_stationary': ((1.0, 2.0), (2.0, 5.0), (5.0, 10.0)),
-    'shared_clock': ((0.001, 0.003), (0.003, 0.015), (0.015, 0.050)),
-}
-#: The answer that names each simulated effect right (one host clock: a constant offset).
-EXPECTED = {'shared_clock': 'time_offset'}
+#: The answer that names each simulated effect right (one host clock: a constant offset;
+#: outliers in bursts are outliers, their runs said).
+EXPECTED = {'shared_clock': 'time_offset', 'outlier_bursts': 'outliers',
+            't0_step': 'pose_step', 't1_step': 'pose_step'}
 #: Effects that change only the noise model.
-NOISE_TRUTHS = ('noise_scale', 'distance_noise', 'timestamp_jitter')
+NOISE_TRUTHS = ('noise_scale', 'distance_noise', 'timestamp_jitter', 'anisotropic_noise',
+                'noise_step')
 #: Bytes a validation holds per case (its drawn case and its result, Python objects):
 #: measured 11 kB (``validate(4, 0)``, the results copied under tracemalloc), about twice
 #: that at the peak while the JSON is written.
 BYTES_PER_CASE = 25_000
-#: Share of cases with a second effect at once, and of large offsets (0.1-2 s).
-TWO_SHARE = 0.15
-LARGE_OFFSET_SHARE = 0.25
 #: The estimate's key compared with the truth's value, per effect (None: no size).
 SIZE_KEYS = {'time_offset': 'tau_s', 'clock_drift': 'ppm', 'timestamp_jitter': 'sigma_s',
              'field_distortion': 'max_mm', 'distance_noise': 'exponent', 'scale': 'scale',
              'link_flex': 'sag_mm', 'outliers': 'fraction', 'backlash': 'width_mm',
-             'noise_scale': 'factor', 'shared_clock': 'tau_s', 'non_stationary': 'max_mm'}
-SIZES = ('small', 'medium', 'large')
-#: Share of clean recordings among the validation cases.
-CLEAN_SHARE = 0.25
-#: Range of the recordings' durations, s (B at 50 Hz: 2000-6000 pairs).
-DURATION = (40.0, 120.0)
-
-
-def _draw_effect(rng: np.random.Generator, names: tuple) -> dict:
-    """One effect: name, size class, value, constructor arguments, spec text."""
-    name = names[int(rng.integers(len(names)))]
-    size = SIZES[int(rng.integers(3))]
-    lo, hi = SIZE_RANGES[name][SIZES.index(size)]
-    value = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-    kwargs = {}
-    if name == 'noise_scale' and rng.random() < 0.4:
-        value = 1.0 / value if value < 2.0 else 0.5 + 0.1 * rng.random()
-    if name == 'time_offset' and size == 'large' and rng.random() < LARGE_OFFSET_SHARE:
-        value = float(np.exp(rng.uniform(np.log(0.1), np.log(2.0))))
-    if name in ('time_offset', 'clock_drift', 'shared_clock') and rng.random() < 0.3:
-        value = -value
-    if name == 'timestamp_jitter':
-        # drops of 1-25 % and, in a third of the cases, gaps of seconds
-        kwargs = {'drop_fraction': float(rng.uniform(0.01, 0.25)),
-                  'gaps': int(rng.integers(1, 3)) if rng.random() < 0.33 else 0,
-                  'gap_s': float(rng.uniform(1.0, 4.0))}
-    if name == 'scale':
-        signs = rng.choice([-1.0, 1.0], size=3)
-        mags = value * rng.uniform(0.5, 1.0, size=3)
-        mags[int(rng.integers(3))] = value
-        value = (signs * mags).tolist()
-        spec = f'scale={",".join(f"{v:.6g}" for v in value)}'
-    else:
-        spec = f'{name}={value:.6g}'
-    return {'effect': name, 'size': size, 'value': value, 'spec': spec, 'kwargs': kwargs}
-
-
-def draw_case(rng: np.random.Generator, clean_share: float = CLEAN_SHARE,
-              duration: Optional[tuple] = None) -> dict:
-    """
-    Draw one validation case: effect(s) (or none), size class, value, recording settings.
-
-    Returns
-    -------
-    dict
-        ``effect`` (name or None), ``size`` ('small', 'medium', 'large' or None), ``value``
-        (float or list), ``spec`` (the ``NAME=VALUE`` text), ``kwargs`` (further arguments of
-        the simulator's effect), ``second`` (a second effect at once, or None), ``model``,
-        ``duration``, ``sigma_a``, ``sigma_b``, ``seed``.
-
-    """
-    from coreg_ros.sim.injected import ALL_EFFECT_NAMES
-
-    case = {'seed': int(rng.integers(0, 2 ** 31 - 1)),
-            'model': 'full_pose' if rng.random() < 0.75 else 'position_only',
-            'duration': float(rng.uniform(*(duration or DURATION))),
-            'sigma_a': [float(rng.uniform(0.05, 0.3) * 1e-3), float(rng.uniform(0.2, 1.0) * 1e-3)],
-            'sigma_b': [float(rng.uniform(0.2, 1.0) * 1e-3), float(rng.uniform(1.0, 4.0) * 1e-3)],
-            'second': None}
-    if rng.random() < clean_share:
-        case.update(effect=None, size=None, value=None, spec=None, kwargs={})
-        return case
-    case.update(_draw_effect(rng, ALL_EFFECT_NAMES))
-    if rng.random() < TWO_SHARE:
-        # two effects at once: a structured one beside a different kind of error
-        others = tuple(n for n in ('time_offset', 'scale', 'outliers', 'noise_scale',
-                                   'non_stationary', 'field_distortion', 'link_flex')
-                       if n != case['effect'] and EXPECTED.get(case['effect']) != n)
-        second = _draw_effect(rng, others)
-        second['size'] = 'large' if second['size'] == 'small' else second['size']
-        lo, hi = SIZE_RANGES[second['effect']][SIZES.index(second['size'])]
-        if second['effect'] != 'scale':
-            v = float(np.sign(second['value']) * np.exp(rng.uniform(np.log(lo), np.log(hi))))
-            if second['effect'] == 'noise_scale':
-                v = abs(v)
-            second.update(value=v, spec=f'{second["effect"]}={v:.6g}')
-        case['second'] = second
-    return case
-
-
-def draw_effect_cases(rng: np.random.Generator, name: str, n: int,
-                      sizes: tuple = ('medium', 'large'),
-                      duration: Optional[tuple] = None) -> list:
-    """
-    Draw ``n`` cases of the one effect ``name`` (alone) at the given size classes.
-
-    The recordings' settings are drawn as in ``draw_case``; for studying one effect's size
-    accuracy on fresh random draws (never on the fixed cases of a validation seed).
-    """
-    out = []
-    for _ in range(n):
-        case = draw_case(rng, clean_share=0.0, duration=duration)
-        eff = _draw_effect(rng, (name,))
-        size = sizes[int(rng.integers(len(sizes)))]
-        lo, hi = SIZE_RANGES[name][SIZES.index(size)]
-        value = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-        if name in ('time_offset', 'clock_drift', 'shared_clock') and eff['value'] < 0:
-            value = -value
-        eff.update(size=size, value=value, spec=f'{name}={value:.6g}')
-        case.update(eff)
-        case['second'] = None
-        out.append(case)
-    return out
+             'noise_scale': 'factor', 'shared_clock': 'tau_s', 'non_stationary': 'max_mm',
+             'outlier_bursts': 'fraction', 'clock_step': 'step_s',
+             'anisotropic_noise': 'factors', 't0_step': 't0_mm', 't1_step': 't1_mm',
+             'noise_step': 'factor'}
+#: Answers beside the effects: no effect but structure by its signature, or a cheap cause.
+UNEXPLAINED, CAUSE = 'unexplained', 'cause'
 
 
 def _make_effects(case: dict) -> list:
@@ -176,7 +70,9 @@ def _size_ratio(name: str, estimate: Optional[dict], value) -> Optional[float]:
         t = np.asarray(value if isinstance(value, list) else [value] * 3, dtype=float)
         return float(np.linalg.norm(est) / max(np.linalg.norm(t), 1e-12))
     v = float(value)
-    if name == 'noise_scale':
+    if name == 'anisotropic_noise':
+        est = est[0]  # the factor along the axis it grew along: the largest
+    if name in ('noise_scale', 'anisotropic_noise', 'noise_step'):
         # the size of a wrong noise model is how far the factor is from one, in log
         return float(np.log(est) / np.log(v)) if abs(np.log(v)) > 1e-9 else None
     return float(est / v) if v != 0 else None
@@ -195,7 +91,8 @@ def run_case(case: dict, options=None) -> dict:
         *case[f'noise_{d}']) for d in 'ab'}
     rec = simulate_recording(case['seed'], case['duration'], case['model'],
                              sigma_a=tuple(case['sigma_a']), sigma_b=tuple(case['sigma_b']),
-                             effects=effects, noise_a=full['a'], noise_b=full['b'])
+                             effects=effects, motion=case.get('motion', 'diverse'),
+                             noise_a=full['a'], noise_b=full['b'])
     # the diagnosis sees the recording and the stated noise only, never the truth
     settings = Settings(model=case['model'], sigma_a=tuple(case['sigma_a']),
                         sigma_b=tuple(case['sigma_b']), noise_a=full['a'], noise_b=full['b'])
@@ -213,7 +110,8 @@ def run_case(case: dict, options=None) -> dict:
         s = case['second']['effect']
         accepted.add(EXPECTED.get(s, s))
     in_not_sep = truth is not None and any(expected in p for p in r['not_separable'])
-    first = named[0] if named else 'none'
+    first = named[0] if named else ('unexplained' if r.get('unexplained')
+                                    else 'cause' if r.get('cause') else 'none')
     outcome = 'not_separable' if in_not_sep and first not in accepted else first
     ratio = None
     if truth is not None and expected in named:
@@ -228,6 +126,9 @@ def run_case(case: dict, options=None) -> dict:
                seconds=elapsed, n_pairs=r['n_pairs'], gap_before=r['gap_before'],
                gap_after=r['gap_after'],
                estimate=r['effects'][0]['estimate'] if r['effects'] else None,
+               unexplained=(r['unexplained']['text'] if r.get('unexplained') else None),
+               cause=r['cause']['text'] if r.get('cause') else None,
+               not_significant=[e['name'] for e in r.get('not_significant', [])],
                truth_description=[dict(e) for e in rec.truth.effects])
     return out
 
@@ -268,15 +169,26 @@ def summarize_validation(results: list) -> dict:
     from coreg_ros.sim.injected import ALL_EFFECT_NAMES
 
     rows = ['none', *ALL_EFFECT_NAMES]
-    cols = ['none', *EFFECT_NAMES, 'non_stationary', 'not_separable']
+    cols = ['none', *EFFECT_NAMES, 'non_stationary', 'not_separable', UNEXPLAINED, CAUSE]
     matrix = {r: dict.fromkeys(cols, 0) for r in rows}
     for res in results:
         truth = res['effect'] or 'none'
         outcome = res['outcome'] if res['outcome'] in cols else 'none'
         matrix[truth][outcome] += 1
+    # rigs that cannot move in every direction are scored apart: an effect the motion cannot
+    # show is not expected there
+    n_cases = len(results)
+    rigs = [r for r in results if r.get('motion', 'diverse') != 'diverse']
+    results = [r for r in results if r.get('motion', 'diverse') == 'diverse']
     clean = [r for r in results if r['effect'] is None]
-    false_alarm = (float(np.mean([bool(r['named']) for r in clean])) if clean else None)
+
+    def alarm(r):
+        return bool(r['named'] or r.get('unexplained') or r.get('cause'))
+
+    false_alarm = (float(np.mean([alarm(r) for r in clean])) if clean else None)
     gap_flag = (float(np.mean([bool(r['gap_detected']) for r in clean])) if clean else None)
+    rig_clean = [r for r in rigs if r['effect'] is None]
+    rig_effects = [r for r in rigs if r['effect'] is not None]
     by_size = {}
     for size in SIZES:
         sel = [r for r in results if r['size'] == size]
@@ -318,7 +230,7 @@ def summarize_validation(results: list) -> dict:
                     d[key + '_factor_up'] = float(np.exp(d[key]))
         detection[name] = d
     return {
-        'cases': len(results),
+        'cases': n_cases,
         'confusion_matrix': {'rows_truth': rows, 'columns_answer': cols,
                              'counts': [[matrix[r][c] for c in cols] for r in rows]},
         'false_alarm_rate_clean': false_alarm,
@@ -336,6 +248,11 @@ def summarize_validation(results: list) -> dict:
         'two_effect_cases': len(two),
         'two_effects_both_named': int(sum(bool(r['both_named']) for r in two)),
         'two_effects_first_correct': int(sum(bool(r['correct']) for r in two)),
+        'restricted_rigs': {'clean_cases': len(rig_clean),
+                            'false_alarms': int(sum(alarm(r) for r in rig_clean)),
+                            'effect_cases': len(rig_effects),
+                            'named_correctly': int(sum(bool(r['correct'])
+                                                       for r in rig_effects))},
         'size_accuracy_medium_large': sizes,
         'detection_size': detection,
         'median_seconds_per_case': float(np.median([r['seconds'] for r in results]))
@@ -350,7 +267,10 @@ def format_validation(summary: dict) -> str:
              'timestamp_jitter': 'jitt', 'field_distortion': 'field', 'distance_noise': 'dist',
              'scale': 'scale', 'link_flex': 'flex', 'outliers': 'outl', 'backlash': 'blash',
              'noise_scale': 'nscl', 'not_separable': 'n.sep', 'non_stationary': 'nstat',
-             'shared_clock': 'shclk'}
+             'shared_clock': 'shclk', 'clock_step': 'cstep', 'anisotropic_noise': 'aniso',
+             'outlier_bursts': 'burst', UNEXPLAINED: 'unexp', CAUSE: 'cause',
+             'pose_step': 'pstep', 'noise_step': 'nstep', 't0_step': 't0st',
+             't1_step': 't1st'}
     head = 'truth \\ answer'.ljust(18) + ''.join(short[c].rjust(6) for c in cm['columns_answer'])
     lines = [head]
     for r, counts in zip(cm['rows_truth'], cm['counts'], strict=True):
@@ -371,10 +291,19 @@ def format_validation(summary: dict) -> str:
                  f'{pct(summary["medium_large_named_correctly_share"])}; gap after within 20 % '
                  f'of the noise floor: {pct(summary["medium_large_gap_after_within_20pct_share"])}'
                  f'; correct but with extra effects: {summary["correct_with_extra_effects"]}')
+    two = max(summary['two_effect_cases'], 1)
     lines.append(f'noise effects answered with a structured effect: '
                  f'{summary["noise_reported_as_structured"]} of {summary["noise_cases"]}; two '
-                 f'effects at once: first correct {summary["two_effects_first_correct"]}, both '
-                 f'named {summary["two_effects_both_named"]} of {summary["two_effect_cases"]}')
+                 f'effects at once: first correct {summary["two_effects_first_correct"]} '
+                 f'({summary["two_effects_first_correct"] / two * 100:.1f} %), both named '
+                 f'{summary["two_effects_both_named"]} '
+                 f'({summary["two_effects_both_named"] / two * 100:.1f} %) of '
+                 f'{summary["two_effect_cases"]}')
+    rig = summary.get('restricted_rigs')
+    if rig:
+        lines.append(f'restricted rigs (scored apart): false alarms {rig["false_alarms"]} of '
+                     f'{rig["clean_cases"]} clean; effects named first {rig["named_correctly"]}'
+                     f' of {rig["effect_cases"]} (some cannot show in the motion)')
     lines.append('size estimate / truth, medium and large (median, share within 20 %):')
     for name, d in summary['size_accuracy_medium_large'].items():
         lines.append(f'  {name:18s} {d["median_ratio"]:.3f}  {d["within_20pct"] * 100:5.1f} % '

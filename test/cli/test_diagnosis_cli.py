@@ -64,9 +64,12 @@ def test_validate_tiny(tmp_path):
     s = out['summary']
     assert s['cases'] == 2
     cm = s['confusion_matrix']
-    # truths: none, the ten effects, non_stationary, shared_clock; answers add
-    # non_stationary and not_separable
-    assert len(cm['counts']) == 13 and len(cm['counts'][0]) == 13
+    # truths: none and every simulated effect; answers: none, every candidate,
+    # non_stationary, not_separable, unexplained structure and a cheap cause
+    from coreg_ros.core.diagnosis import EFFECT_NAMES as ANSWERS
+    from coreg_ros.sim.injected import ALL_EFFECT_NAMES
+    assert len(cm['counts']) == 1 + len(ALL_EFFECT_NAMES)
+    assert len(cm['counts'][0]) == len(ANSWERS) + 5
     assert sum(map(sum, cm['counts'])) == 2
     for r in out['results']:
         assert r['effect'] is None or r['spec']

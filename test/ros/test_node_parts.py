@@ -49,7 +49,7 @@ def _assert_same(streams, rec):
 
 
 def _info(k: int) -> dict:
-    """The message info rclpy gives a two-argument callback: the k-th message of a publisher."""
+    """Return the message info rclpy gives a two-argument callback for a publisher's k-th."""
     return {'publication_sequence_number': k + 1, 'source_timestamp': 0}
 
 
@@ -66,8 +66,8 @@ def test_sample_store_journals_what_it_takes_and_a_new_one_resumes_it(tmp_path):
             if k % (len(s) // 4) == 0:
                 first.flush_journal()
     s = rec.streams[A]
-    first.callback(A)(make_pose_stamped(int(s.stamps[-1]), s.frame_id, s.position[-1],
-                                        s.quat_wxyz[-1]), _info(len(s)))  # sent twice: refused, counted
+    again = make_pose_stamped(int(s.stamps[-1]), s.frame_id, s.position[-1], s.quat_wxyz[-1])
+    first.callback(A)(again, _info(len(s)))  # sent twice: refused, counted
     assert first.buffers[A].rejected['duplicate_stamp'] == 1
     first.flush_journal()
     journal = first.journal.folder

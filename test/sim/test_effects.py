@@ -35,7 +35,8 @@ EXAMPLES = {
     'time_offset': '0.02', 'clock_drift': '300', 'timestamp_jitter': '0.01',
     'field_distortion': '5', 'distance_noise': '4', 'scale': '0.01', 'link_flex': '2',
     'outliers': '0.02', 'backlash': '0.5', 'noise_scale': '2', 'non_stationary': '3',
-    'shared_clock': '0.02',
+    'shared_clock': '0.02', 'outlier_bursts': '0.05', 'clock_step': '0.03',
+    'anisotropic_noise': '3', 't0_step': '2', 't1_step': '1', 'noise_step': '2',
 }
 
 

@@ -33,6 +33,7 @@ from coreg_ros.core.calibration.auto_noise import noise_floor
 from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.calibration.noise_verdict import estimate_dict
 from coreg_ros.core.diagnosis import gap as gp
+from coreg_ros.core.diagnosis.causes import fit_cause
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.effects.base import FitReading
 from coreg_ros.core.diagnosis.effects.clock import TimeOffsetCandidate
@@ -49,8 +50,15 @@ from coreg_ros.core.diagnosis.options import Options, Progress
 from coreg_ros.core.diagnosis.report import CalibrationChange, DiagnosisReport, StatedNoise
 from coreg_ros.core.diagnosis.residuals import base_errors, detect_locate
 from coreg_ros.core.diagnosis.selection import select_effects, Selection, Selector
+from coreg_ros.core.diagnosis.significance import practical, retest
+from coreg_ros.core.diagnosis.steps import (
+    locate_clock_step,
+    locate_noise_step,
+    locate_pose_step,
+)
 from coreg_ros.core.diagnosis.summary import gap_measures, transforms
 from coreg_ros.core.diagnosis.text import floor_named
+from coreg_ros.core.errors import CoregError
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
@@ -160,43 +168,68 @@ def _base_fit(pairs: Pairs, settings: Settings, stream_a, cov_a, cov_b, n_folds:
 def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) -> Diagnosis:
     progress(0.0, 'calibrating')
     K = opts.n_folds
-    data, folds, base = _base_fit(pairs, settings, stream_a, cov_a, cov_b, K)
+    cause = context.get('cause')
+    try:
+        data, folds, base = _base_fit(pairs, settings, stream_a, cov_a, cov_b, K)
+    except CoregError as e:
+        if cause is None:
+            raise
+        raise e.with_message(f'{cause.text} ({e})') from e
     progress(0.05, 'detecting')
     errors = base_errors(data, base)
     detection, location = detect_locate(data, base, errors)
+    if cause is None and 'streams' in context:
+        quad = np.sum(errors[2] ** 2 / (1.0 + errors[3]), axis=1)
+        cause = fit_cause(*context['streams'], settings, quad, data.m, detection.p_value)
     # the base residuals guide data-dependent bases (the field source's position)
     data.cache['base_errors'] = errors[0]
     stride = int(np.ceil(data.n / opts.max_select_pairs))
     sel = Selector(data, np.arange(0, data.n, stride), opts, progress)
-    found = select_effects(sel, base.state)
     shift = float(context.get('coarse_shift_s', 0.0))
-
-    progress(0.85, 'final fit on all pairs')
+    if cause is None:
+        # the instants of the changes in time, located once (steps.py)
+        data.cache['clock_step'] = locate_clock_step(data, base.state, sel.idx)
+        data.cache['pose_step'] = locate_pose_step(data, base.state, sel.idx)
+        quad = np.sum(errors[2] ** 2 / (1.0 + errors[3]), axis=1)
+        data.cache['noise_step'] = locate_noise_step(data, quad, sel.idx)
+    if cause is None:
+        found = select_effects(sel, base.state)
+        progress(0.8, 're-testing the effects together')
+        base_h = sel.score((), base.state)[1]
+        base_excess = float(np.mean(base_h.quad_stated) / data.m) - 1.0
+        kept, tests = retest(sel, found.accepted, found.ref[0].state, base_excess)
+    else:
+        # a mistake is the answer: no effect is fitted to it
+        found = Selection((), [], [], [], [], (base, None, None))
+        kept, tests, shift = (), {}, 0.0
     # the coarse search moved the pairing: that offset is an effect found, refined here
-    forced = shift != 0.0 and not any(CANDIDATES[a].acts_on == 'time' for a in found.accepted)
-    accepted = ((TimeOffsetCandidate.name,) if forced else ()) + found.accepted
-    final = found.ref[0]
-    if forced or stride > 1:
-        final = Model(data, accepted).fit(final.state, None, folds, K)
+    forced = shift != 0.0 and not any(CANDIDATES[a].acts_on == 'time' for a in kept)
+    progress(0.85, 'final fit on all pairs')
+    final, reading, kept, small = _final_fit(data, sel, base, kept, tests, forced, folds, K,
+                                             stride, found.ref[0].state)
+    accepted = ((TimeOffsetCandidate.name,) if forced else ()) + kept
     # the gap before is the recording paired at the offset the user gave, if it was moved
     given_offset = (partial(_gap_at_given_offset, *context['before'], stream_a, cov_a, cov_b,
                             opts) if 'before' in context else None)
     gap_before, gap_after, before, after, counted = _gaps(
         data, base, final, accepted, folds, errors[1], opts, given_offset)
     n_res = len(sel.idx) * data.m
-    findings = _accepted_findings(FitReading.of(final), found, forced, shift, n_res)
+    findings = _accepted_findings(reading, found, kept, tests, forced, shift, n_res)
     stamps = context.get('stamps')
-    if stamps is not None:
+    if stamps is not None and cause is None:
         findings = with_stamps(stamps, findings)
-    excess_left, findings = structure_checks(data, final, after, counted, findings, gap_after)
+    excess_left, findings, unexplained = structure_checks(
+        data, final, after, counted, findings, gap_after, errors[1], look_local=cause is None)
     excess = noise_excess(data, after, counted, findings, gap_after)
-    gap_detected = bool(detection.gap or findings or (stamps is not None and stamps.issues))
+    gap_detected = bool(detection.gap or findings or cause is not None
+                        or (stamps is not None and stamps.issues))
+    not_separable = [p for p in found.not_separable if p[0] in kept]
     report = DiagnosisReport(
-        gap_detected=gap_detected, effects=findings, not_separable=found.not_separable,
+        gap_detected=gap_detected, effects=findings, not_separable=not_separable,
         gap_before=gap_before, gap_after=gap_after, noise_excess=excess,
-        excess_left=excess_left, location=location,
-        verdict=verdict(gap_detected, findings, found.not_separable, gap_before, gap_after,
-                        detection, location, excess, stamps),
+        excess_left=excess_left, location=location, not_significant=small,
+        verdict=verdict(gap_detected, findings, not_separable, gap_before, gap_after,
+                        detection, location, excess, stamps, cause, unexplained),
         detection=detection,
         candidates=[[c.score(n_res) for c in sorted(cs, key=lambda c: -c.gain)]
                     for cs in found.rounds],
@@ -204,7 +237,7 @@ def _diagnose(pairs, settings, stream_a, opts, progress, cov_a, cov_b, context) 
         model=data.spec.name, n_pairs=int(data.n), n_pairs_selection=int(len(sel.idx)),
         duration_s=float(data.t[-1] - data.t[0]) if data.n > 1 else 0.0,
         stated_noise=StatedNoise(list(data.sigma_a), list(data.sigma_b)),
-        stamps=stamps, coarse_offset_s=shift or None)
+        stamps=stamps, coarse_offset_s=shift or None, cause=cause, unexplained=unexplained)
     progress(1.0, 'done')
     return Diagnosis(report=report, data=data, base=base, final=final, before=before,
                      after=after, rounds=found.rounds)
@@ -294,17 +327,56 @@ def _gap_at_given_offset(pairs: Pairs, settings: Settings, stream_a, cov_a, cov_
                                np.ones(data.n, dtype=bool)))
 
 
-def _accepted_findings(reading: FitReading, found: Selection, forced: bool, shift: float,
-                       n_res: int) -> list:
+def _final_fit(data: DiagData, sel: Selector, base: Fit, kept: tuple, tests: dict,
+               forced: bool, folds: np.ndarray, K: int, stride: int, start) -> tuple:
     """
-    Size the accepted effects in the final fit and name them as findings.
+    Fit the re-tested effects on all pairs; set aside those too small to matter; refit.
+
+    ``base`` is the base model on all pairs (the final fit when nothing is found), ``start``
+    a state of the selection's model (the models' warm start).
+
+    Returns
+    -------
+    final : Fit
+    reading : FitReading
+        Of ``final``.
+    kept : tuple of str
+        The effects found, ordered by the share of the gap they explain (``practical``).
+    not_significant : list of significance.NotSignificant
+
+    """
+    small_all = []
+    while True:
+        names = ((TimeOffsetCandidate.name,) if forced else ()) + kept
+        if not names:
+            return base, FitReading.of(base), (), small_all
+        # the selection's fit (cached): the fit itself on few pairs, else the warm start
+        sub = sel.score(kept, start)[0]
+        final = (Model(data, names).fit(sub.state, None, folds, K) if forced or stride > 1
+                 else sub)
+        reading = FitReading.of(final)
+        order, small = practical(reading, kept, tests)
+        small_all += small
+        if not small:
+            return final, reading, order, small_all
+        kept = tuple(n for n in kept if n in order)
+
+
+def _accepted_findings(reading: FitReading, found: Selection, kept: tuple, tests: dict,
+                       forced: bool, shift: float, n_res: int) -> list:
+    """
+    Size the effects found in the final fit and name them as findings.
 
     Parameters
     ----------
     reading : FitReading
         The final fit.
     found : Selection
-        What the selection accepted.
+        What the selection accepted (each effect's not-separable rivals, drift checks).
+    kept : tuple of str
+        The effects found, in the report's order.
+    tests : dict of str to significance.EffectTest
+        Each effect re-tested with the others present (its held-out gain there).
     forced : bool
         A time offset the coarse search found goes first (the selection named no clock).
     shift : float
@@ -321,14 +393,22 @@ def _accepted_findings(reading: FitReading, found: Selection, forced: bool, shif
     if forced:
         findings.append(Finding.of(replace(sized(TimeOffsetCandidate.name), coarse_s=shift),
                                    source=COARSE_SEARCH))
-    for cand, not_sep in found.chosen:
-        trend_checked = CANDIDATES[cand.name].trend_checked and found.drift_checks
+    rivals = {cand.name: not_sep for cand, not_sep in found.chosen}
+    for name in kept:
+        test = tests[name]
+        not_sep = rivals.get(name)
+        trend_checked = CANDIDATES[name].trend_checked and found.drift_checks
+        spatial = next((c.spatial_gain for c, _ in found.chosen if c.name == name), None)
+        rms = {k: v for k, v in (('position', test.rms_gain_position),
+                                 ('rotation', test.rms_gain_rotation)) if v is not None}
         findings.append(Finding.of(
-            sized(cand.name), held_out_gain=float(cand.gain),
-            held_out_gain_per_residual=float(cand.gain / n_res),
-            blocks_improved=int(np.sum(cand.fold_gains > 0)), blocks=int(len(cand.fold_gains)),
-            spatial_held_out_gain=(None if cand.spatial_gain is None
-                                   else float(cand.spatial_gain)),
+            sized(name), held_out_gain=float(test.held_out_gain),
+            held_out_gain_per_residual=float(test.held_out_gain / n_res),
+            blocks_improved=test.blocks_improved, blocks=test.blocks,
+            spatial_held_out_gain=None if spatial is None else float(spatial),
             not_separable_with=list(not_sep) if not_sep else None,
-            per_block_offsets=found.drift_checks[-1] if trend_checked else None))
+            per_block_offsets=found.drift_checks[-1] if trend_checked else None,
+            share_of_gap_explained=(test.share_of_gap if CANDIDATES[name].kind == 'structured'
+                                    else None),
+            held_out_rms_gain=rms or None))
     return findings

@@ -15,6 +15,7 @@ from typing import Optional
 
 from coreg_ros.core.diagnosis.data import grid_cells, time_folds
 from coreg_ros.core.diagnosis.record import Record
+from coreg_ros.core.diagnosis.timeline import flagged_runs, FlaggedRuns, run_bounds
 import numpy as np
 from scipy import stats
 
@@ -122,8 +123,10 @@ class FlaggedPairs(Record):
     share : float
         Their share of all pairs.
     p_time, p_workspace : float
-        p-values of the homogeneity of the flagged share over time blocks and cells.
+        p-values of the homogeneity of the flagged runs over time blocks and cells.
     where : str
+    runs : timeline.FlaggedRuns
+        The flagged pairs grouped in time: changes, bursts.
 
     """
 
@@ -135,6 +138,7 @@ class FlaggedPairs(Record):
     p_time: float
     p_workspace: float
     where: str
+    runs: FlaggedRuns
 
 
 @dataclass(frozen=True)
@@ -231,34 +235,7 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
     conc_t = bool(hot_t and share(ct['blocks']) >= 0.5 and hot_t_mask.mean() <= 0.5)
     by_place = 0.0
     if conc_t:
-        # a stationary local error shows in time too when the motion visits its place at
-        # some times only: predict the hot blocks' excess from the same cells at other times
-        from scipy.spatial import cKDTree
-
-        ex, ps = excess[sel], pts[sel]
-        cold = ~hot_t_mask
-        pred = np.zeros(int(hot_t_mask.sum()))
-        seen = np.zeros(int(hot_t_mask.sum()), dtype=bool)
-        if cold.sum() >= 20:
-            # the nearest pairs recorded at other times, close by: same place, other time
-            radius = 0.1 * float(np.max(np.ptp(ps, axis=0)))
-            tree = cKDTree(ps[cold])
-            dist, nn = tree.query(ps[hot_t_mask], k=10, distance_upper_bound=radius)
-            ok = np.isfinite(dist)
-            seen = ok.sum(axis=1) >= 5
-            vals = np.where(ok, ex[cold][np.minimum(nn, cold.sum() - 1)], 0.0)
-            pred = np.where(seen, vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1), 0.0)
-        if seen.mean() < 0.5:
-            # the motion never came back to these places: time and place cannot be told
-            # apart, so nothing is claimed about time
-            pred = np.full(len(pred), np.inf)
-        else:
-            pred = pred[seen]
-            hot_idx = np.flatnonzero(hot_t_mask)[seen]
-            hot_t_mask = np.zeros_like(hot_t_mask)
-            hot_t_mask[hot_idx] = True
-        e_hot = float(ex[hot_t_mask].mean()) if hot_t_mask.any() else 0.0
-        by_place = float(min(pred.mean() / e_hot, 1e3)) if e_hot > 0 else 1.0
+        by_place = explained_by_place(excess[sel], pts[sel], hot_t_mask)
         conc_t = by_place < 0.5
     conc_c = bool(hot_c and share(cc['blocks']) >= 0.5 and hot_c_mask.mean() <= 0.5)
     parts = []
@@ -274,14 +251,59 @@ def excess_map(data, quad_stated: np.ndarray, counted: np.ndarray,
                      text='; '.join(parts))
 
 
+def explained_by_place(ex: np.ndarray, pts: np.ndarray, hot: np.ndarray) -> float:
+    """
+    How much of the excess at some times the same places show at other times (a share).
+
+    A stationary local error shows in time too when the motion visits its place at some times
+    only: the hot pairs' excess is predicted from the ten nearest pairs recorded at other
+    times within a tenth of the workspace (same place, other time).
+
+    Parameters
+    ----------
+    ex : ndarray, shape (N,)
+        Excess per pair.
+    pts : ndarray, shape (N, 3)
+        Where each pair is, m.
+    hot : ndarray of bool, shape (N,)
+        The pairs at the times in question.
+
+    Returns
+    -------
+    float
+        The predicted excess over the hot pairs' own (inf when the motion never came back to
+        those places: time and place cannot be told apart).
+
+    """
+    from scipy.spatial import cKDTree
+
+    cold = ~hot
+    pred = np.zeros(int(hot.sum()))
+    seen = np.zeros(int(hot.sum()), dtype=bool)
+    if cold.sum() >= 20:
+        radius = 0.1 * float(np.max(np.ptp(pts, axis=0)))
+        tree = cKDTree(pts[cold])
+        dist, nn = tree.query(pts[hot], k=10, distance_upper_bound=radius)
+        ok = np.isfinite(dist)
+        seen = ok.sum(axis=1) >= 5
+        vals = np.where(ok, ex[cold][np.minimum(nn, cold.sum() - 1)], 0.0)
+        pred = np.where(seen, vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1), 0.0)
+    if not seen.any() or seen.mean() < 0.5:
+        return float('inf')
+    e_hot = float(ex[hot][seen].mean())
+    return float(min(pred[seen].mean() / e_hot, 1e3)) if e_hot > 0 else 1.0
+
+
 def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -> FlaggedPairs:
     """
     Whether flagged pairs cluster in time or in the workspace (then: structure, not glitches).
 
-    Glitches strike at random: the flagged count per time block and per workspace cell is
-    then binomial with the overall share. A chi-square test of that homogeneity (and a
-    practical size: some block holds at least three times the share it would) says the
-    flagged pairs are not outliers but a structured or non-stationary error there.
+    The flagged pairs are grouped into runs in time first (``timeline.flagged_runs``): a run
+    that lasts seconds is a change; shorter runs are glitch episodes, each counted once.
+    Glitches strike at random: the runs per time block and per workspace cell are then
+    binomial with the overall rate. A chi-square test of that homogeneity (and a practical
+    size: some block holds at least three times the runs it would) says the flagged pairs
+    are not outliers but a structured or non-stationary error there.
 
     Parameters
     ----------
@@ -302,12 +324,20 @@ def flagged_clustering(data, flagged: np.ndarray, n_blocks: int = TIME_BLOCKS) -
     p_value = {'time': 1.0, 'workspace': 1.0}
     found = {'time': False, 'workspace': False}
     where = []
-    if k >= 8:
-        p_value, found, where = _clusters(data, flagged, n_blocks)
+    runs = flagged_runs(data.t, flagged)
+    if runs.changes:
+        found['time'] = True
+        where.append('time ' + ', '.join(f'{a:.0f}-{b:.0f} s' for a, b in runs.changes[:4])
+                     + ' (lasting, not a burst)')
+    elif runs.runs >= 8:
+        first, _ = run_bounds(flagged, runs.merge_gap)
+        episodes = np.zeros(n, dtype=bool)
+        episodes[first] = True
+        p_value, found, where = _clusters(data, episodes, n_blocks)
     return FlaggedPairs(clustered=found['time'] or found['workspace'], in_time=found['time'],
                         in_workspace=found['workspace'], count=k, share=float(k / max(n, 1)),
                         p_time=p_value['time'], p_workspace=p_value['workspace'],
-                        where='; '.join(where))
+                        where='; '.join(where), runs=runs)
 
 
 def _clusters(data, flagged: np.ndarray, n_blocks: int) -> tuple:

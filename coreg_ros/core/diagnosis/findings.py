@@ -13,6 +13,7 @@ from typing import Optional
 
 from coreg_ros.core.diagnosis import excess as ex
 from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.diagnosis.causes import Cause
 from coreg_ros.core.diagnosis.detect import Detection
 from coreg_ros.core.diagnosis.effects.finding import Finding
 from coreg_ros.core.diagnosis.effects.local import (
@@ -25,7 +26,9 @@ from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import keyed, optional, Record
+from coreg_ros.core.diagnosis.residuals import base_errors
 from coreg_ros.core.diagnosis.stamps import jitter_finding, StampReport
+from coreg_ros.core.diagnosis.structure import leftover, TimeWindow, Unexplained
 import numpy as np
 
 
@@ -40,11 +43,14 @@ class ExcessLeft(Record):
         Where it lies, under the final model's noise (key ``map``).
     flagged_pairs : excess.FlaggedPairs, optional
         Whether the pairs the outlier model set aside cluster (with an outlier model).
+    window : structure.TimeWindow, optional
+        The window in time whose held-out errors stand out (``structure.time_window``).
 
     """
 
     excess_map: ex.ExcessMap = keyed('map')
     flagged_pairs: Optional[ex.FlaggedPairs] = optional()
+    window: Optional[TimeWindow] = optional()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -115,22 +121,23 @@ def with_stamps(stamps: StampReport, findings: list) -> list:
     return [found] + findings
 
 
-def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter
-                     ) -> tuple:
+def structure_checks(data, final, after, counted, findings: list, gap_after: GapAfter,
+                     sd: np.ndarray, look_local: bool = True) -> tuple:
     """
     Outliers versus structure, and an excess left in some blocks or cells only.
 
     Flagged pairs that cluster in time or in the workspace are a structured or
     non-stationary error there, not glitches: the ``outliers`` finding is renamed
     ``non_stationary`` (kind structured) and says where. An outlier share at the model's cap
-    is said, never hidden. An excess left after the accepted effects that is concentrated in
-    some time blocks or workspace cells adds a ``non_stationary`` finding: no stationary
-    effect explains it.
+    is said, never hidden. A structured error left in one window of time that comes and goes
+    (``structure.leftover``) adds a ``non_stationary`` finding: no stationary effect explains
+    it. What else is left is the ``Unexplained`` structure, by its signature.
 
     Returns
     -------
     excess_left : ExcessLeft
     findings : list of Finding
+    unexplained : structure.Unexplained or None
 
     """
     flagged = ~counted
@@ -142,35 +149,53 @@ def structure_checks(data, final, after, counted, findings: list, gap_after: Gap
         size = ex.local_error_size(data, after.e, hot)
         return estimate if size is None else estimate.sized(size)
 
-    hot_t = ex.hot_time_mask(data, emap)
+    stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
+    local = NonStationaryCandidate.name
+    window, unexplained = None, None
+    if look_local:
+        e_in = base_errors(data, final)[0]
+        quad_in = vm.loglik(final.state.var, final.stats, with_parts=True)[2]
+        window, unexplained = leftover(data, e_in, quad_in, sd, counted, stated_excess, emap)
+    comes_and_goes = (window is not None and window.structured and window.kind == 'window'
+                      and stated_excess > 0.02)
+    inside = np.zeros(data.n, dtype=bool)
+    if comes_and_goes:
+        inside = (data.t >= window.from_s) & (data.t <= window.to_s)
     found = next((f for f in findings if f.name == OutliersCandidate.name), None)
     cl = None
     if found is not None:
         cl = ex.flagged_clustering(data, flagged)
         at_cap = final.state.var.eps >= vm.MAX_OUTLIER_SHARE * 0.98
-        if cl.clustered or at_cap:
+        # flagged pairs mostly inside a window that comes and goes are where it acts
+        in_window = comes_and_goes and float(np.mean(inside[flagged])) >= 0.5
+        if cl.clustered or in_window:
+            where = cl.where if cl.clustered else (f'time {window.from_s:.0f}-'
+                                                   f'{window.to_s:.0f} s')
             # the flagged pairs are where it acts (the excess map counts them out)
-            estimate = sized(ClusteredOutliers.of(cl.count, cl.share, cl.where, at_cap),
-                             flagged)
+            estimate = sized(ClusteredOutliers.of(cl.count, cl.share, where, at_cap),
+                             flagged | inside)
             named = replace(found, name=estimate.name, kind=estimate.kind, estimate=estimate,
                             renamed_from=found.name)
         else:
-            named = replace(found, estimate=found.estimate.capped(at_cap))
+            named = replace(found, estimate=found.estimate.capped(at_cap).in_runs(cl.runs))
         findings = _replaced(findings, found, named)
-    ex_after = float(np.mean(after.quad[counted]) / data.m) - 1.0
-    stated_excess = gap_after.stated.counted.chi2_per_dof_at_stated_noise - 1.0
-    local = NonStationaryCandidate.name
-    if (emap.concentrated_in_time and ex_after > 0.02 and stated_excess > 0.02
-            and not any(f.name == local for f in findings)):
-        estimate = LocalExcess.of(emap.text, emap.share_in_time_blocks, emap.share_in_cells,
-                                  ex_after)
-        findings = findings + [Finding.of(sized(estimate, hot_t))]
+    if comes_and_goes and not any(f.name == local for f in findings):
+        # a structured error that comes and goes: the library's non-stationary error
+        estimate = LocalExcess.of(f'time {window.from_s:.0f}-{window.to_s:.0f} s',
+                                  emap.share_in_time_blocks, emap.share_in_cells,
+                                  float(np.mean(quad_in[inside & counted]) / data.m) - 1.0)
+        findings = findings + [Finding.of(sized(estimate, inside))]
+    if comes_and_goes and unexplained is not None:
+        # what is left beside the window, at the stated noise
+        rest = counted & ~inside
+        rest_excess = float(np.mean(after.quad_stated[rest]) / data.m) - 1.0
+        unexplained = leftover(data, e_in, quad_in, sd, rest, rest_excess, emap)[1]
     ns = next((f for f in findings if f.name == local), None)
     if ns is not None and CANDIDATES[findings[0].name].sets_noise_level:
         # a local structured error goes before noise descriptions of it (a noise effect
         # never explains the gap)
         findings = [ns] + [f for f in findings if f is not ns]
-    return ExcessLeft(excess_map=emap, flagged_pairs=cl), findings
+    return ExcessLeft(excess_map=emap, flagged_pairs=cl, window=window), findings, unexplained
 
 
 def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
@@ -200,7 +225,8 @@ def noise_excess(data, after, counted, findings: list, gap_after: GapAfter
 def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: GapAfter,
             detection: Detection, location: Location,
             noise_excess: Optional[NoiseExcess] = None,
-            stamps: Optional[StampReport] = None) -> str:
+            stamps: Optional[StampReport] = None, cause: Optional[Cause] = None,
+            unexplained: Optional[Unexplained] = None) -> str:
     """
     One sentence: no gap, timing issues, a gap nothing explains, noise, or the gap explained.
 
@@ -220,12 +246,19 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         ``noise_excess`` of the final fit.
     stamps : StampReport, optional
         What the stamps say (from the streams).
+    cause : causes.Cause, optional
+        A mistake a cheap check names: the answer.
+    unexplained : structure.Unexplained, optional
+        What no effect of the library explains, by its signature.
 
     Returns
     -------
     str
 
     """
+    if cause is not None:
+        return (f'the recording as given cannot be diagnosed ({cause.check.replace("_", " ")})'
+                f': {cause.text}; no effect is looked for until it is fixed')
     if not gap:
         return (f'no gap: the recording fits the model with the stated noise '
                 f'(chi2/dof {detection.chi2_per_dof:.3f}, p = {detection.p_value:.2g})')
@@ -233,6 +266,9 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
         return ('timing issues in the stamps, residuals fit the model: '
                 + '; '.join(f'{d.device}: {d.text}' for d in stamps.devices))
     if not effects:
+        if unexplained is not None:
+            return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}): no effect of the '
+                    f'library explains it; {unexplained.text}')
         return (f'gap detected (chi2/dof {detection.chi2_per_dof:.2f}) but none of the '
                 f'candidate effects explains it; largest in {location.largest}')
     parts = []
@@ -271,4 +307,5 @@ def verdict(gap: bool, effects: list, not_sep: list, before: GapBefore, after: G
                 f'there is no excess to explain: {numbers}')
     if share < 0.05:
         verb = 'effects found but the gap did not shrink:'
-    return f'{verb} {"; ".join(parts)} ({share * 100:.0f} % of the excess): {numbers}'
+    left = f'; {unexplained.text}' if unexplained is not None else ''
+    return f'{verb} {"; ".join(parts)} ({share * 100:.0f} % of the excess): {numbers}{left}'

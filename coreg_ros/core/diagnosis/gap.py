@@ -142,7 +142,8 @@ class GapAfter(Record):
     rms_moved: bool
 
 
-def _rows(data) -> tuple[list, Optional[list]]:
+def position_rotation_rows(data) -> tuple[list, Optional[list]]:
+    """Return the rows of the output error that are positions (m), and rotation (None if none)."""
     k = data.spec.n_markers
     if data.spec.has_q1:
         return [0, 1, 2], [3, 4, 5]
@@ -173,7 +174,7 @@ def stated_measures(data, quad_stated: np.ndarray, e: np.ndarray, sd: np.ndarray
 
     """
     m = data.m
-    pos, rot = _rows(data)
+    pos, rot = position_rotation_rows(data)
     if not counted.any():
         counted = np.ones_like(counted)
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.calibration.observability import WEAK_SHARE
 from coreg_ros.core.diagnosis import variance as vm
 import numpy as np
 
@@ -116,7 +117,7 @@ def predict_blocks(fit, folds: np.ndarray, n_folds: int) -> Heldout:
         zc = st.z + dz
         # raw error correction e + J δ: z = T e, so δe = T⁻¹ δz
         e_out[pos:pos + c] = e + np.linalg.solve(T, dz[:, :, None])[:, :, 0]
-        stc = vm.PairStats(zc, st.lam, st.u, st.log_g)
+        stc = st.with_z(zc)
         quad0[pos:pos + c] = np.sum(zc ** 2 / (1.0 + st.lam), axis=1)
         for k in np.unique(fo):
             sel = fo == k
@@ -130,13 +131,39 @@ def predict_blocks(fit, folds: np.ndarray, n_folds: int) -> Heldout:
                    p_in=p_in, e=e_out, var_k=var_k)
 
 
-def solve_psd(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve a symmetric PSD system, with a tiny ridge and pseudo-inverse fallback."""
-    d = np.diag(A)
-    ridge = 1e-10 * np.maximum(d, 1e-300) + 1e-300
+def solve_psd(A: np.ndarray, b: np.ndarray, weak: float = WEAK_SHARE) -> np.ndarray:
+    """
+    Solve a symmetric PSD system along the directions it determines; leave the others still.
+
+    ``A`` is scaled to unit diagonal; its eigen-directions whose eigenvalue is at most
+    ``weak`` times the largest carry no information worth the name (a rig that cannot turn
+    about some axis, an effect whose term the calibration absorbs there: only the noise of A's
+    orientations lends them some, ``calibration.observability``) and get no step. A step
+    along them would only amplify noise: held-out blocks predicted along a direction no block
+    determines would make any extension of the model look better than the base.
+
+    Parameters
+    ----------
+    A : ndarray, shape (p, p)
+        Symmetric positive semi-definite.
+    b : ndarray, shape (p,)
+        The right-hand side.
+    weak : float
+        Share of the largest scaled eigenvalue at or below which a direction is undetermined
+        (the calibration's ``WEAK_SHARE``).
+
+    Returns
+    -------
+    ndarray, shape (p,)
+        The solution in the determined subspace (minimum norm in the scaled coordinates).
+
+    """
+    d = np.sqrt(np.clip(np.diag(A), 0.0, None))
+    scale = np.where(d > 0, d, 1.0)
     try:
-        L = np.linalg.cholesky(A + np.diag(ridge))
-        y = np.linalg.solve(L, b)
-        return np.linalg.solve(L.T, y)
+        w, V = np.linalg.eigh(A / np.outer(scale, scale))
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(A, b, rcond=1e-12)[0]
+    keep = w > weak * max(float(w[-1]), 0.0)
+    Vk = V[:, keep]
+    return (Vk @ ((Vk.T @ (b / scale)) / w[keep])) / scale

@@ -14,12 +14,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.diagnosis.causes import Cause
 from coreg_ros.core.diagnosis.detect import Detection
 from coreg_ros.core.diagnosis.findings import ExcessLeft, NoiseExcess
 from coreg_ros.core.diagnosis.gap import GapAfter, GapBefore
 from coreg_ros.core.diagnosis.locate import Location
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.stamps import StampReport
+from coreg_ros.core.diagnosis.structure import Unexplained
 from coreg_ros.core.diagnosis.summary import Transforms
 
 
@@ -81,6 +83,9 @@ class DiagnosisReport(Record):
     excess_left : ExcessLeft
     location : Location
         Where the base fit's excess lies.
+    not_significant : list of significance.NotSignificant
+        Effects the held-out data support that are too small to matter at the stated noise,
+        with their sizes (never among ``effects``).
     verdict : str
         The answer in one sentence.
     detection : Detection
@@ -101,6 +106,12 @@ class DiagnosisReport(Record):
     noise : dict, optional
         With ``noise: auto``: the noise estimated with the calibration, which the diagnosis
         took as its floor, beside the stated (``noise_verdict.estimate_dict``).
+    cause : causes.Cause, optional
+        A mistake a cheap check names (units, swapped devices, ...): the answer, instead of
+        any effect.
+    unexplained : structure.Unexplained, optional
+        Held-out structure no effect of the library explains, by its signature (when, where,
+        which channel, tied to what), instead of the nearest name.
 
     """
 
@@ -112,6 +123,7 @@ class DiagnosisReport(Record):
     noise_excess: Optional[NoiseExcess]
     excess_left: ExcessLeft
     location: Location
+    not_significant: list
     verdict: str
     detection: Detection
     candidates: list
@@ -125,3 +137,5 @@ class DiagnosisReport(Record):
     coarse_offset_s: Optional[float] = optional()
     pairing: Optional[Pairing] = optional()
     noise: Optional[dict] = optional()
+    cause: Optional[Cause] = optional()
+    unexplained: Optional[Unexplained] = optional()

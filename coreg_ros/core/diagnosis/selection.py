@@ -157,6 +157,22 @@ class Selector:
         return max(self.opts.min_gain, per * self.n_res)
 
 
+def blocks_judged(sel: Selector, name: str, labels: np.ndarray) -> np.ndarray:
+    """
+    Return the blocks (bool, K) an effect is judged on.
+
+    Those with pairs; for a change in time (``changes_at``) only those with pairs from its
+    instant on.
+    """
+    judged = np.bincount(labels, minlength=sel.K) > 0
+    key = CANDIDATES[name].changes_at
+    found = sel.data.cache.get(key) if key else None
+    if found is not None and labels is sel.tf:
+        after = sel.data.t[sel.idx] >= float(found.at_s)
+        judged &= np.bincount(labels[after], minlength=sel.K) > 0
+    return judged
+
+
 def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round_no: int
                     ) -> Candidate:
     """Fit ``accepted + (name,)``, score its held-out gain over ``ref`` and test it."""
@@ -182,10 +198,11 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     if gain < thr:
         reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
     labels = sel.sf if kind == 'workspace' else sel.tf
-    blocks = int(np.sum(np.bincount(labels, minlength=sel.K) > 0))
-    if np.sum(fold_gains > 0) < blocks - 1:
-        reasons.append(f'improves only {int(np.sum(fold_gains > 0))} of {blocks} {kind} '
-                       f'blocks')
+    judged = blocks_judged(sel, name, labels)
+    blocks = int(judged.sum())
+    improved = int(np.sum(fold_gains[judged] > 0))
+    if improved < max(blocks - 1, 1):
+        reasons.append(f'improves only {improved} of {blocks} {kind} blocks')
     cand.passes = not reasons
     cand.reason = '; '.join(reasons) if reasons else 'passes'
     return cand
@@ -203,6 +220,11 @@ BEHIND_SHARE = 0.3
 #: The time effect whose linearisation screens every time effect (a time offset's parameter
 #: is its first one).
 SCREEN_TIME_EFFECT = 'clock_drift'
+#: A structured rival that gains alike is preferred to a noise effect when it leaves at most
+#: this share of the noise effect's held-out excess at the stated noise
+#: (``_structure_before_noise``): a half, far from the small differences between two
+#: descriptions of the same excess.
+STRUCTURE_SHARE = 0.5
 
 
 def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> dict:
@@ -281,6 +303,35 @@ def compatible(accepted: tuple, name: str) -> bool:
     return sum(e.sets_noise_level for e in effects) < 2
 
 
+def _stated_excess(sel: Selector, cand: Candidate) -> float:
+    """Held-out χ²/dof at the stated noise minus one, left by a candidate's model."""
+    return float(np.mean(cand.heldout.quad_stated)) / sel.data.m - 1.0
+
+
+def _structure_before_noise(sel: Selector, best: Candidate, passing: list) -> Candidate:
+    """
+    Prefer a structured rival that does as well to a noise effect that explains by widening.
+
+    A noise effect (jitter, a larger noise) fits any error of the mean in likelihood by making
+    the noise as large as the error; a structured effect that predicts the error leaves the
+    held-out errors at the stated noise. When both gain alike (within the not-separable
+    ratio), the one that leaves at most ``STRUCTURE_SHARE`` of the noise effect's held-out
+    excess at the stated noise is the explanation (a clock set back: its step beside the
+    few samples whose order it broke, rather than 65 ms of jitter). True jitter or noise is
+    not reduced at the stated noise by any structure, so it keeps its place.
+    """
+    if CANDIDATES[best.name].kind != 'noise':
+        return best
+    excess = _stated_excess(sel, best)
+    if not excess > 0.0:
+        return best
+    rivals = [c for c in passing if CANDIDATES[c.name].kind == 'structured'
+              and CANDIDATES[c.name].acts_on in ('time', 'mean')
+              and c.gain >= sel.opts.not_separable_ratio * best.gain
+              and _stated_excess(sel, c) <= STRUCTURE_SHARE * excess]
+    return max(rivals, key=lambda c: c.gain) if rivals else best
+
+
 def nested(a: str, b: str) -> bool:
     """Whether one of the two effects is a special case of the other (``simpler``)."""
     return CANDIDATES[a].simpler == b or CANDIDATES[b].simpler == a
@@ -298,11 +349,24 @@ def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str
     # neither the pick nor its not-separable rival, and is not refitted
     todo = sorted(todo, key=lambda n: -predicted.get(n, np.inf))
     best_gain = 0.0
+    # the best-predicted candidate of each way of acting is refitted whenever it could matter:
+    # a reference whose outlier model sets aside what the candidate would explain (an offset
+    # under glitches) weighs its one-step prediction down, the refit finds it
+    leaders = set()
+    for how in ('time', 'mean', 'variance'):
+        ranked = [n for n in todo if CANDIDATES[n].acts_on == how
+                  and predicted.get(n, np.inf) >= SCREEN_SHARE * thr]
+        # with the simpler one it extends (a drift the per-block check refuses leaves the
+        # constant offset)
+        leaders.update(ranked[:1] + [CANDIDATES[n].simpler for n in ranked[:1]
+                                     if CANDIDATES[n].simpler in ranked])
     for i, name in enumerate(todo):
         sel.progress(lo + (hi - lo) * i / max(len(todo), 1), f'round {round_no + 1}: {name}')
         pred = predicted.get(name)
         reason = ''
-        if pred is not None and pred < SCREEN_SHARE * thr:
+        if name in leaders:
+            pass
+        elif pred is not None and pred < SCREEN_SHARE * thr:
             # the refit cannot gain the practical size: its in-sample gain bounds the
             # held-out one, and the one-step prediction from the reference is that gain
             reason = (f'screened: predicted in-sample gain {pred:.1f} nats, below '
@@ -332,6 +396,7 @@ def select_round(sel: Selector, accepted: tuple, ref: tuple, names: Sequence[str
     alt = next((c for c in passing if c.name == simpler), None)
     if alt is not None and best.gain - alt.gain < margin:
         best = alt
+    best = _structure_before_noise(sel, best, passing)
     not_sep = []
     for other in passing:
         if other is best or nested(other.name, best.name):
@@ -423,10 +488,6 @@ def select_effects(sel: Selector, start) -> Selection:
                 not_sep = []
         if best is None:
             break
-        if r == 0:
-            # later rounds only revisit what improved on the base model on its own: an
-            # effect that helps nothing alone is not looked for behind another one
-            names = [c.name for c in cands if c.passes or c.behind]
         accepted = accepted + (best.name,)
         chosen.append((best, not_sep))
         for other in not_sep:

@@ -13,8 +13,9 @@ from dataclasses import replace
 from typing import Optional, Union
 
 from coreg_ros.core.calibration.calibrate import calibrate
-from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.calibration.pairing import pair_for, validated_streams
 from coreg_ros.core.clock.timing import coarse_offsets
+from coreg_ros.core.diagnosis.causes import stream_cause
 from coreg_ros.core.diagnosis.engine import diagnose, Diagnosis
 from coreg_ros.core.diagnosis.options import Options, Progress
 from coreg_ros.core.diagnosis.report import Pairing
@@ -31,7 +32,8 @@ COARSE_GAIN = 0.5
 
 def diagnose_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
                      settings: Settings, options: Optional[Options] = None,
-                     progress: Optional[Progress] = None) -> Diagnosis:
+                     progress: Optional[Progress] = None,
+                     frames: Optional[Sequence[str]] = None) -> Diagnosis:
     """
     Read the stamps, search the clock offset coarsely, pair as ``coreg calibrate``, diagnose.
 
@@ -40,13 +42,24 @@ def diagnose_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence
     candidate is more than ``COARSE_MIN_S`` from the given offset and pairing there fits
     clearly better, the diagnosis pairs there, names the offset and measures the gap before
     at the given offset.
+
+    The cheap causes are checked first (``causes.stream_cause``; ``frames``, the configured
+    base frames of A and B, for swapped devices): a mistake they name is the answer.
+
+    Raises
+    ------
+    UnobservableError
+        Device A's tool did not move (nothing can be estimated).
+
     """
     bs = list(streams_b) if isinstance(streams_b, (list, tuple)) else [streams_b]
-    context = {'stamps': stamps_report(stream_a, bs)}
     check_settings(settings)
     pairs, paired = pair_for(stream_a, bs, settings)
+    cause = stream_cause(*validated_streams(stream_a, bs, settings.model == 'full_pose'),
+                         settings, frames)
+    context = {'stamps': stamps_report(stream_a, bs), 'cause': cause, 'streams': (stream_a, bs)}
     use_settings = settings
-    shift = coarse_shift(stream_a, bs, settings, pairs)
+    shift = 0.0 if cause is not None else coarse_shift(stream_a, bs, settings, pairs)
     if shift:
         moved = settings.updated(time_offset=settings.time_offset + shift)
         context['before'] = (pairs, settings)

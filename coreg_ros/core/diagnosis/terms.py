@@ -19,8 +19,10 @@ The classes here only build the extra terms; which effect uses which term is its
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.observability import tangent_matrix
 from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.rigid import rigid_columns
 from coreg_ros.core.so3 import skew
@@ -46,6 +48,8 @@ class Context:
         ∂e/∂(p_A, δ_A).
     vel : ndarray, shape (n, 3)
         A's velocity, m/s, A's base frame.
+    j_phi : ndarray, shape (n, m, P), optional
+        ∂e/∂φ (chart coordinates).
 
     """
 
@@ -56,6 +60,7 @@ class Context:
     f_pos: np.ndarray
     j_x: np.ndarray
     vel: np.ndarray
+    j_phi: Optional[np.ndarray] = None
 
 
 def _quadratic(u: np.ndarray) -> np.ndarray:
@@ -363,3 +368,59 @@ class DriftShift(TimeShift):
         """Shift by the offset at the start plus the drift since."""
         u = t / max(duration, 1e-9)
         return theta[0] + theta[1] * u, np.stack([np.ones_like(u), u], axis=1)
+
+
+class StepShift(TimeShift):
+    """
+    A clock that steps at one instant: ``s = τ + Δ·1[t ≥ t_s]``, θ = (τ, Δ), s.
+
+    The instant t_s is located once per recording before the effects are scored
+    (``steps.locate_clock_step``, kept in ``data.cache['clock_step']``); the fit starts at the
+    scan's one-step estimate of θ.
+    """
+
+    name = 'clock_step'
+    n = 2
+
+    def setup(self, data: DiagData) -> None:
+        """Read the located instant (the middle of the recording if none was located)."""
+        found = data.cache.get('clock_step')
+        self.at = float(found.at_s) if found is not None else 0.5 * float(data.t[-1])
+        self.theta0 = (np.asarray(found.theta, dtype=float) if found is not None
+                       else np.zeros(2))
+
+    def start(self) -> np.ndarray:
+        """Return the fit's starting θ: the scan's estimate."""
+        return self.theta0.copy()
+
+    def shift(self, theta, t, duration):
+        """Shift by τ, and by Δ more from the instant on."""
+        after = (t >= self.at).astype(float)
+        return theta[0] + theta[1] * after, np.stack([np.ones_like(t), after], axis=1)
+
+
+class PoseStep(MeanEffect):
+    """
+    T0 or T1 that moves once: from an instant on, the calibration is ψ + Δψ.
+
+    ``δe = 1[t ≥ t_s] J_ψ Δψ``, θ = Δψ in the tangent coordinates ψ of the calibration
+    (``calibration.observability.tangent_matrix``: T0's translation in B's base frame, m, its
+    rotation about B's base axes, rad, the marker position(s) in A's tool frame, m, T1's
+    rotation about A's tool axes, rad). The instant is located once per recording
+    (``steps.locate_pose_step``, ``data.cache['pose_step']``).
+    """
+
+    name = 'pose_step'
+
+    def setup(self, data):
+        """Read the located instant (the middle of the recording if none was located)."""
+        found = data.cache.get('pose_step')
+        self.at = float(found.at_s) if found is not None else 0.5 * float(data.t[-1])
+        self.n = data.spec.n_params
+
+    def apply(self, ctx, theta):
+        """Step the calibration from the instant on."""
+        after = (ctx.data.t[ctx.idx] >= self.at).astype(float)
+        to_tangent = np.linalg.inv(tangent_matrix(ctx.params))
+        J = np.matmul(ctx.j_phi, to_tangent) * after[:, None, None]
+        return J @ theta, J

@@ -26,6 +26,8 @@ def format_diagnosis(report: DiagnosisReport) -> str:
 def _lines(report: DiagnosisReport) -> str:
     """Return the summary in the words of the stated noise (``format_diagnosis``)."""
     lines = [f'verdict: {report.verdict}']
+    if report.cause is not None:
+        lines.append(f'cause ({report.cause.check}): {report.cause.text}')
     det = report.detection
     flags = ', '.join(det.flags.raised) or 'none'
     lines.append(f'detect: chi2/dof {det.chi2_per_dof:.3f} (p = {det.p_value:.3g}), '
@@ -51,9 +53,13 @@ def _lines(report: DiagnosisReport) -> str:
                          f'blocks)')
     else:
         lines.append('effects: none')
+    for small in report.not_significant:
+        lines.append(f'  not significant: {small.name} [{small.kind}]: {small.text}')
     if report.not_separable:
         lines.append('not separable with this motion: '
                      + '; '.join(' vs '.join(p) for p in report.not_separable))
+    if report.unexplained is not None:
+        lines.append(report.unexplained.text)
     lines += _gap_lines(report)
     ne = report.noise_excess
     if ne is not None:

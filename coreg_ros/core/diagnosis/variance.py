@@ -19,20 +19,24 @@ with the matrix determinant lemma and Sherman-Morrison.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Optional
 
+from coreg_ros.core.diagnosis import noise_shape as ns
 import numpy as np
 from scipy import optimize
 
 _LOG2PI = float(np.log(2.0 * np.pi))
-#: Largest share of outliers: beyond it the errors are a wrong noise model, not glitches.
-MAX_OUTLIER_SHARE = 0.2
+#: Largest share of outliers: beyond half the pairs the "outliers" are the data and the
+#: model is wrong (``calibrate`` refuses such a recording as a whole).
+MAX_OUTLIER_SHARE = 0.5
 
 _BOUNDS = {
     'log_s2': (-6.0, 6.0), 'log_c': (-6.0, 6.0),
     # EM noise grows with the distance from the source: the exponent is not negative
     'k': (0.0, 8.0),
     'log_beta': (np.log(1e-5 ** 2), np.log(0.5 ** 2)),
-    'logit_eps': (-12.0, float(np.log(0.2 / 0.8))), 'log_lam': (np.log(5.0), np.log(1e5)),
+    'logit_eps': (-12.0, 0.0), 'log_lam': (np.log(5.0), np.log(1e5)),
+    'log_f': (-6.0, 6.0),
 }
 
 
@@ -52,6 +56,11 @@ class VarState:
     logit_eps, log_lam : float
         Outliers: share ε = 1 / (1 + exp(-logit)) (-inf for none) and the scale λ of their
         standard deviation.
+    shape : tuple
+        The shape S of B's position noise in B's base frame (``noise_shape``): its six
+        upper-triangular values; empty for the stated (S = I).
+    log_f : float
+        log of the factor on B's noise variance from a located instant on (a noise step).
 
     """
 
@@ -62,10 +71,13 @@ class VarState:
     logit_eps: float = -np.inf
     log_lam: float = float(np.log(30.0))
     free: tuple = field(default=())
+    shape: tuple = ()
+    log_f: float = 0.0
 
     def with_values(self, names, values) -> VarState:
-        """Return a copy with the named parameters set."""
-        return replace(self, **{n: float(v) for n, v in zip(names, values, strict=True)})
+        """Return a copy with the named parameters set (``shape``: a tuple of six, or ())."""
+        return replace(self, **{n: (tuple(float(x) for x in v) if n == 'shape' else float(v))
+                                for n, v in zip(names, values, strict=True)})
 
     @property
     def eps(self) -> float:
@@ -93,6 +105,13 @@ class PairStats:
         Output rate ḟ in those coordinates (for jitter), 1/s.
     log_g : ndarray, shape (n,)
         log(r / r0), the marker's distance from B's base relative to the median.
+    V : ndarray, shape (n, m, m), optional
+        The rotation from B's whitened output to these coordinates (z = Vᵀ W e), for a noise
+        shape (``noise_shape``); None when no model needs it.
+    markers : int
+        Markers (position blocks) per pair.
+    step : ndarray, shape (n,), optional
+        1 for the pairs after a located noise step, else 0 (None: no step).
 
     """
 
@@ -100,10 +119,26 @@ class PairStats:
     lam: np.ndarray
     u: np.ndarray
     log_g: np.ndarray
+    V: Optional[np.ndarray] = None
+    markers: int = 1
+    step: Optional[np.ndarray] = None
 
     def take(self, idx) -> PairStats:
         """Stats of the pairs idx."""
-        return PairStats(self.z[idx], self.lam[idx], self.u[idx], self.log_g[idx])
+        return PairStats(self.z[idx], self.lam[idx], self.u[idx], self.log_g[idx],
+                         None if self.V is None else self.V[idx], self.markers,
+                         None if self.step is None else self.step[idx])
+
+    def b_log_factor(self, var: VarState) -> np.ndarray:
+        """Return log of the factor on B's noise variance per pair: distance, noise step."""
+        out = var.log_c + 2.0 * var.k * self.log_g
+        if self.step is not None and var.log_f != 0.0:
+            out = out + var.log_f * self.step
+        return out
+
+    def with_z(self, z: np.ndarray) -> PairStats:
+        """Return the same pairs with other errors z (held-out predictions)."""
+        return replace(self, z=z)
 
 
 def components(var: VarState, st: PairStats):
@@ -119,7 +154,9 @@ def components(var: VarState, st: PairStats):
         β / (1 + β Σ u²/D).
 
     """
-    a = np.exp(var.log_c + 2.0 * var.k * st.log_g)[:, None]
+    if var.shape:
+        return _shaped_components(var, st)
+    a = np.exp(st.b_log_factor(var))[:, None]
     D = np.exp(var.log_s2) * (a + st.lam)
     quad = np.sum(st.z ** 2 / D, axis=1)
     logdet = np.sum(np.log(D), axis=1)
@@ -133,6 +170,22 @@ def components(var: VarState, st: PairStats):
     else:
         c = np.zeros(len(quad))
     return quad, logdet, D, c
+
+
+def shaped_covariances(var: VarState, st: PairStats) -> np.ndarray:
+    """Each pair's error covariance (n, m, m) under a noise shape (``noise_shape``)."""
+    if st.V is None:
+        raise ValueError("a noise shape needs the pairs' rotations (PairStats.V)")
+    M = ns.whitened_block(ns.shape_matrix(var.shape), st.z.shape[1], st.markers)
+    g = np.exp(st.b_log_factor(var))
+    return ns.covariances(M, st.V, st.lam, float(np.exp(var.log_s2)), g, var.beta, st.u)
+
+
+def _shaped_components(var: VarState, st: PairStats):
+    """``components`` under a noise shape: full covariances, D their diagonal, no rank one."""
+    C = shaped_covariances(var, st)
+    quad, logdet, _ = ns.quadratic_logdet(C, st.z)
+    return quad, logdet, np.diagonal(C, axis1=1, axis2=2).copy(), np.zeros(len(quad))
 
 
 def loglik(var: VarState, st: PairStats, with_parts: bool = False):
@@ -165,6 +218,18 @@ def loglik(var: VarState, st: PairStats, with_parts: bool = False):
     if with_parts:
         return ll, p_in, quad
     return ll
+
+
+def total_variance(var: VarState, st: PairStats) -> np.ndarray:
+    """
+    Total variance of each pair's decorrelated error under the noise model, inliers (n,).
+
+    The trace of ``Cov(z)``: the diagonal variances and the jitter's rank-one part.
+    """
+    _, _, D, _ = components(var, st)
+    if var.shape:
+        return np.sum(D, axis=1)  # the full covariance's trace: the jitter is in it
+    return np.sum(D, axis=1) + var.beta * np.sum(st.u ** 2, axis=1)
 
 
 def inflation(var: VarState, st: PairStats) -> float:
@@ -232,6 +297,8 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
     """
     if not names:
         return var
+    if 'shape' in names:
+        return _fit_with_shape(st, var, names, step)
     start = var
     for name in names:
         if not np.isfinite(getattr(start, name)):
@@ -280,6 +347,22 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
     return start.with_values(names, np.clip(x, lo, hi))
 
 
+def _fit_with_shape(st: PairStats, var: VarState, names: tuple, step: float) -> VarState:
+    """Fit a noise shape by EM, alternated with the other named parameters (held in turn)."""
+    others = tuple(n for n in names if n != 'shape')
+    if not var.shape:
+        var = var.with_values(['shape'], [(1.0, 1.0, 1.0, 0.0, 0.0, 0.0)])
+    for _ in range(3 if others else 1):
+        _, p_in, _ = loglik(var, st, with_parts=True)
+        S = ns.fit_shape(st.z, st.V, st.lam, p_in, float(np.exp(var.log_s2)),
+                         np.exp(st.b_log_factor(var)), var.beta, st.u,
+                         ns.shape_matrix(var.shape), st.markers)
+        var = var.with_values(['shape'], [ns.shape_params(S)])
+        if others:
+            var = fit_variance(st, var, others, step)
+    return var
+
+
 def _outliers_em(st: PairStats, var: VarState, iterations: int = 60) -> VarState:
     """Share and scale of the outliers by expectation-maximisation (inlier noise fixed)."""
     m = st.z.shape[1]
@@ -301,7 +384,19 @@ def _outliers_em(st: PairStats, var: VarState, iterations: int = 60) -> VarState
 
 
 def variance_covariance(st: PairStats, var: VarState, names: tuple) -> np.ndarray:
-    """Covariance of the fitted variance parameters: inverse Hessian of -log L (numerical)."""
+    """
+    Covariance of the fitted variance parameters: inverse Hessian of -log L (numerical).
+
+    A noise shape's six values are left out (NaN): its size is read from its axes
+    (``effects.noise.AnisotropicNoiseCandidate``).
+    """
+    if 'shape' in names:
+        out = np.full((len(names), len(names)), np.nan)
+        rest = [i for i, n in enumerate(names) if n != 'shape']
+        if rest:
+            sub_names = tuple(names[i] for i in rest)
+            out[np.ix_(rest, rest)] = variance_covariance(st, var, sub_names)
+        return out
     k = len(names)
     x0 = np.array([getattr(var, n) for n in names], dtype=float)
 

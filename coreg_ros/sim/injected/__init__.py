@@ -34,6 +34,15 @@ non_stationary      mm         clean     a dipole disturbance during one window 
                                          most
 shared_clock        s          measured  A and B stamped on receipt by one host clock: B's
                                          latency exceeds A's by VALUE, no drift
+outlier_bursts      fraction   measured  that fraction of B's samples jump as outliers do,
+                                         in runs of 2-6 samples at random times
+clock_step          s          measured  B's stamps + VALUE from a random instant (25-75 %
+                                         of the recording) on: the offset steps
+anisotropic_noise   factor     noise     B's position noise × VALUE along one direction of
+                                         B's base frame (an axis, or a random direction)
+t0_step, t1_step    mm         measured  T0 (T1) moves by VALUE (and turns 0.05° per mm)
+                                         at a random instant (``sim.changes``)
+noise_step          factor     measured  B's noise × VALUE from a random instant on
 =================== ========== ========= ====================================================
 
 ``as_dict()`` gives ``name``, ``value`` (as parsed), ``unit``, ``stage`` and the effect's
@@ -59,15 +68,18 @@ from coreg_ros.sim.injected.field import (
 )
 from coreg_ros.sim.injected.link import Backlash, LinkFlex, play_operator
 from coreg_ros.sim.injected.noise import (
+    AnisotropicNoise,
     DistanceNoise,
     NoiseScale,
     OUTLIER_ANGLE,
     OUTLIER_JUMP,
+    OutlierBursts,
     Outliers,
 )
 from coreg_ros.sim.injected.registry import make_effect, parse_effect
 from coreg_ros.sim.injected.timing import (
     ClockDrift,
+    ClockStep,
     JITTER_DROP_FRACTION,
     SharedClock,
     TimeOffset,
@@ -75,9 +87,10 @@ from coreg_ros.sim.injected.timing import (
 )
 
 __all__ = [
-    'ALL_EFFECT_NAMES', 'Backlash', 'ClockDrift', 'DISTORTION_ROTATION_PER_MM', 'DistanceNoise',
-    'EFFECT_NAMES', 'EFFECT_UNITS', 'EXTRA_EFFECT_NAMES', 'FieldDistortion',
-    'JITTER_DROP_FRACTION', 'LinkFlex', 'NoiseScale', 'NonStationary', 'OUTLIER_ANGLE',
-    'OUTLIER_JUMP', 'Outliers', 'Scale', 'SharedClock', 'TimeOffset', 'TimestampJitter',
-    'make_effect', 'parse_effect', 'play_operator',
+    'ALL_EFFECT_NAMES', 'AnisotropicNoise', 'Backlash', 'ClockDrift', 'ClockStep',
+    'DISTORTION_ROTATION_PER_MM', 'DistanceNoise', 'EFFECT_NAMES', 'EFFECT_UNITS',
+    'EXTRA_EFFECT_NAMES', 'FieldDistortion', 'JITTER_DROP_FRACTION', 'LinkFlex', 'NoiseScale',
+    'NonStationary', 'OUTLIER_ANGLE', 'OUTLIER_JUMP', 'OutlierBursts', 'Outliers', 'Scale',
+    'SharedClock', 'TimeOffset', 'TimestampJitter', 'make_effect', 'parse_effect',
+    'play_operator'
 ]

@@ -7,6 +7,7 @@ from dataclasses import replace
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError
 from coreg_ros.core.types import PoseStream
+from coreg_ros.sim.changes import STEP_UNITS
 from coreg_ros.sim.injection import EffectContext
 import numpy as np
 
@@ -15,7 +16,8 @@ EFFECT_NAMES = ('time_offset', 'clock_drift', 'timestamp_jitter', 'field_distort
                 'distance_noise', 'scale', 'link_flex', 'outliers', 'backlash', 'noise_scale')
 #: Further cases real rigs show (issue 11): a distortion that comes and goes, and both
 #: devices stamped by one host clock (a constant offset, no drift).
-EXTRA_EFFECT_NAMES = ('non_stationary', 'shared_clock')
+EXTRA_EFFECT_NAMES = ('non_stationary', 'shared_clock', 'outlier_bursts', 'clock_step',
+                      'anisotropic_noise', 't0_step', 't1_step', 'noise_step')
 #: Every name ``parse_effect`` accepts.
 ALL_EFFECT_NAMES = EFFECT_NAMES + EXTRA_EFFECT_NAMES
 
@@ -26,6 +28,10 @@ EFFECT_UNITS = {
     'scale': 'fraction, one or three comma-separated', 'link_flex': 'mm of sag',
     'outliers': 'fraction of B samples', 'backlash': 'mm', 'noise_scale': 'factor',
     'non_stationary': 'mm at most, during a window', 'shared_clock': 's of B latency over A',
+    'outlier_bursts': 'fraction of B samples, in runs of 2-6',
+    'clock_step': 's added to B stamps from a random instant on',
+    'anisotropic_noise': "factor on B's position noise along one axis of B's base",
+    **STEP_UNITS,
 }
 
 

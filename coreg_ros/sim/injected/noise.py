@@ -8,6 +8,7 @@ Errors of the samples themselves: noise larger than stated or growing with dista
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.sim.injected.common import EFFECT_UNITS, full_pose, scale_noise
@@ -53,6 +54,47 @@ class DistanceNoise:
 
 
 @dataclass(frozen=True)
+class AnisotropicNoise:
+    """
+    B's position noise ``factor`` × larger along one direction of B's base frame.
+
+    The noise of each B sample (and marker) about its clean value is stretched along
+    ``axis`` (a unit vector in B's base frame; drawn when None: one of B's axes in two cases
+    of three, a random direction in the third): n ↦ n + (factor - 1)(n·a)a. B's rotation
+    noise and A's noise stay as stated (an optical tracker's depth, an EM field axis).
+    """
+
+    factor: float
+    axis: Optional[tuple] = None
+    stage = 'noise'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
+        """Stretch the position noise of every B topic along the axis."""
+        if self.axis is not None:
+            a = np.asarray(self.axis, dtype=float)
+        elif rng.random() < 2.0 / 3.0:
+            a = np.eye(3)[int(rng.integers(3))]
+        else:
+            a = rng.standard_normal(3)
+        a = a / np.linalg.norm(a)
+        out = dict(streams)
+        for t in context.topics_b:
+            clean, noisy = context.clean_streams[t], streams[t]
+            n = noisy.position - clean.position
+            out[t] = replace(noisy, position=clean.position + n
+                             + (self.factor - 1.0) * (n @ a)[:, None] * a)
+        self._found['axis'] = a.tolist()
+        return out
+
+    def as_dict(self) -> dict:
+        """Describe the effect: ``factor`` and the axis in B's base frame."""
+        return {'name': 'anisotropic_noise', 'value': self.factor,
+                'unit': EFFECT_UNITS['anisotropic_noise'], 'stage': self.stage,
+                'factor': self.factor, **self._found}
+
+
+@dataclass(frozen=True)
 class NoiseScale:
     """
     The true noise of both devices is ``factor`` × the stated one (position and rotation).
@@ -89,12 +131,18 @@ class Outliers:
     fraction: float
     stage = 'measured'
     _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    name = 'outliers'
+
+    def _chosen(self, n: int, count: int, rng) -> np.ndarray:
+        """Return the samples to corrupt (``count`` of ``n``, at random)."""
+        return np.sort(rng.choice(n, size=count, replace=False)) if count else np.array([], int)
 
     def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
         """Corrupt the chosen B samples."""
         n = len(streams[context.topics_b[0]])
         count = int(round(self.fraction * n))
-        idx = np.sort(rng.choice(n, size=count, replace=False)) if count else np.array([], int)
+        idx = self._chosen(n, count, rng)
+        count = len(idx)
         out = dict(streams)
         for j, t in enumerate(context.topics_b):
             s = streams[t]
@@ -114,6 +162,38 @@ class Outliers:
 
     def as_dict(self) -> dict:
         """Describe the effect: ``fraction``, the count and the jump sizes."""
-        return {'name': 'outliers', 'value': self.fraction, 'unit': EFFECT_UNITS['outliers'],
+        return {'name': self.name, 'value': self.fraction, 'unit': EFFECT_UNITS[self.name],
                 'stage': self.stage, 'fraction': self.fraction, 'jump_m': list(OUTLIER_JUMP),
                 'angle_rad': [float(a) for a in OUTLIER_ANGLE], **self._found}
+
+
+@dataclass(frozen=True)
+class OutlierBursts(Outliers):
+    """
+    Outliers that come in bursts: ``fraction`` of B's samples, in runs of ``runs`` samples.
+
+    Each run (its length drawn uniformly from ``runs``, inclusive) starts at a random sample,
+    runs apart (a tracker losing a marker for a few frames, a reflection crossing the view);
+    every sample of a run jumps as ``Outliers``' do, each by its own jump.
+    """
+
+    runs: tuple = (2, 6)
+    name = 'outlier_bursts'
+
+    def _chosen(self, n: int, count: int, rng) -> np.ndarray:
+        """Return ``count`` samples in runs at random, not overlapping nor touching."""
+        lo, hi = int(self.runs[0]), int(self.runs[1])
+        taken = np.zeros(n, dtype=bool)
+        lengths = []
+        for _ in range(100 * max(count, 1)):
+            if taken.sum() >= count:
+                break
+            length = min(int(rng.integers(lo, hi + 1)), count - int(taken.sum()))
+            start = int(rng.integers(0, max(n - length, 1)))
+            if taken[max(start - 1, 0):start + length + 1].any():
+                continue
+            taken[start:start + length] = True
+            lengths.append(length)
+        self._found['run_lengths'] = [int(v) for v in (min(lengths), max(lengths))] if (
+            lengths) else []
+        return np.flatnonzero(taken)

@@ -2,14 +2,28 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Union
 
 from coreg_ros.core.errors import ConfigError
+from coreg_ros.sim.changes import StepEffect
 from coreg_ros.sim.injected.common import ALL_EFFECT_NAMES, EFFECT_UNITS
 from coreg_ros.sim.injected.field import FieldDistortion, NonStationary, Scale
 from coreg_ros.sim.injected.link import Backlash, LinkFlex
-from coreg_ros.sim.injected.noise import DistanceNoise, NoiseScale, Outliers
-from coreg_ros.sim.injected.timing import ClockDrift, SharedClock, TimeOffset, TimestampJitter
+from coreg_ros.sim.injected.noise import (
+    AnisotropicNoise,
+    DistanceNoise,
+    NoiseScale,
+    OutlierBursts,
+    Outliers,
+)
+from coreg_ros.sim.injected.timing import (
+    ClockDrift,
+    ClockStep,
+    SharedClock,
+    TimeOffset,
+    TimestampJitter,
+)
 import numpy as np
 
 _CLASSES = {
@@ -17,6 +31,10 @@ _CLASSES = {
     'field_distortion': FieldDistortion, 'distance_noise': DistanceNoise, 'scale': Scale,
     'link_flex': LinkFlex, 'outliers': Outliers, 'backlash': Backlash,
     'noise_scale': NoiseScale, 'non_stationary': NonStationary, 'shared_clock': SharedClock,
+    'outlier_bursts': OutlierBursts, 'clock_step': ClockStep,
+    'anisotropic_noise': AnisotropicNoise,
+    't0_step': partial(StepEffect, 't0_step'), 't1_step': partial(StepEffect, 't1_step'),
+    'noise_step': partial(StepEffect, 'noise_step'),
 }
 
 # accepted range of VALUE per effect: (low, high, low inclusive), for the error message
@@ -27,6 +45,9 @@ _RANGES = {
     'link_flex': (0.0, 100.0, True), 'outliers': (0.0, 1.0, True),
     'backlash': (0.0, 100.0, True), 'noise_scale': (0.0, 100.0, False),
     'non_stationary': (0.0, 1000.0, True), 'shared_clock': (-10.0, 10.0, True),
+    'outlier_bursts': (0.0, 0.5, True), 'clock_step': (-10.0, 10.0, True),
+    'anisotropic_noise': (0.0, 100.0, False), 't0_step': (0.0, 1000.0, True),
+    't1_step': (0.0, 1000.0, True), 'noise_step': (1.0, 100.0, True),
 }
 
 
@@ -101,5 +122,6 @@ _EXAMPLES = {
     'time_offset': '0.012', 'clock_drift': '100', 'timestamp_jitter': '0.005',
     'field_distortion': '5', 'distance_noise': '2', 'scale': '0.005', 'link_flex': '1',
     'outliers': '0.02', 'backlash': '0.3', 'noise_scale': '2', 'non_stationary': '3',
-    'shared_clock': '0.02',
+    'shared_clock': '0.02', 'outlier_bursts': '0.05', 'clock_step': '0.03',
+    'anisotropic_noise': '3', 't0_step': '2', 't1_step': '1', 'noise_step': '2',
 }

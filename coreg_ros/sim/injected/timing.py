@@ -7,7 +7,9 @@ They act on the recorded stamps (stage ``'measured'``); the poses stay as measur
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Optional
 
+from coreg_ros.sim.changes import step_stamps
 from coreg_ros.sim.injected.common import EFFECT_UNITS
 from coreg_ros.sim.injection import EffectContext
 import numpy as np
@@ -175,3 +177,44 @@ class SharedClock:
                 'unit': EFFECT_UNITS['shared_clock'], 'stage': self.stage,
                 'latency_s': self.latency_s, 'host_jitter_s': self.host_jitter_s,
                 **self._found}
+
+
+@dataclass(frozen=True)
+class ClockStep:
+    """
+    B's clock jumps by ``step_s`` once: stamps at or after the instant grow by it.
+
+    The instant is ``at`` (a share of the recording, drawn in 0.25-0.75 when None). A clock
+    set back makes some stamps repeat earlier ones: B's samples are then sorted by stamp (a
+    sample keeps its pose and its wrong stamp) and a repeated stamp is dropped, as
+    ``TimestampJitter`` does. B's offset is ``step_s`` larger after the instant.
+    """
+
+    step_s: float
+    at: Optional[float] = None
+    stage = 'measured'
+    _found: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __call__(self, streams: dict, context: EffectContext, rng) -> dict:
+        """Step the stamps of every B topic at the instant."""
+        first = streams[context.topics_b[0]]
+        share = rng.uniform(0.25, 0.75) if self.at is None else float(self.at)
+        t0, t1 = int(first.stamps[0]), int(first.stamps[-1])
+        at = t0 + int(round(share * (t1 - t0)))
+        stamps = step_stamps(first.stamps, at, int(round(self.step_s * 1e9)))
+        idx = np.argsort(stamps, kind='stable')
+        unique = np.ones(idx.size, dtype=bool)
+        unique[1:] = np.diff(stamps[idx]) > 0
+        idx = idx[unique]
+        out = dict(streams)
+        for t in context.topics_b:
+            s = streams[t]
+            out[t] = replace(s, stamps=step_stamps(s.stamps, at, int(round(self.step_s * 1e9)))
+                             ).take(idx)
+        self._found.update(at_s=(at - t0) * 1e-9, at_ns=at)
+        return out
+
+    def as_dict(self) -> dict:
+        """Describe the effect: ``step_s`` and the instant (s from B's first sample)."""
+        return {'name': 'clock_step', 'value': self.step_s, 'unit': EFFECT_UNITS['clock_step'],
+                'stage': self.stage, 'step_s': self.step_s, **self._found}

@@ -30,7 +30,13 @@ def _recording(effect, seed=4, duration=40.0, model='full_pose'):
 
 
 def test_effect_names_match_the_simulator():
-    assert tuple(EFFECT_NAMES) == tuple(SIM_EFFECT_NAMES)
+    from coreg_ros.sim.injected import ALL_EFFECT_NAMES
+    from coreg_ros.sim.validation import EXPECTED
+
+    # the ten of docs/design.md first, in their order; every simulated effect has its answer
+    assert tuple(EFFECT_NAMES[:3]) == tuple(SIM_EFFECT_NAMES[:2]) + ('clock_step',)
+    assert set(SIM_EFFECT_NAMES) <= set(EFFECT_NAMES)
+    assert {EXPECTED.get(n, n) for n in ALL_EFFECT_NAMES} <= set(CANDIDATES)
 
 
 def test_clean_recording_has_no_gap_and_exact_keys():

@@ -96,7 +96,9 @@ def test_flagged_pairs_in_one_time_block_are_structure_not_outliers():
     burst = np.zeros(data.n, dtype=bool)
     burst[(data.t > 10) & (data.t < 13)] = True
     cl = ex.flagged_clustering(data, burst)
-    assert cl.clustered and cl.in_time and '8-12 s' in cl.where + '12-16 s'
+    # one run lasting seconds: a change, not a burst of glitches (timeline.flagged_runs)
+    assert cl.clustered and cl.in_time and '10-13 s' in cl.where and 'lasting' in cl.where
+    assert cl.runs.changes and not cl.runs.bursts
 
 
 def test_a_local_error_is_sized_where_it_acts_with_the_noise_taken_off():

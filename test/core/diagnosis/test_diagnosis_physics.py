@@ -1,5 +1,7 @@
 """Physical models real rigs need and non-stationary gaps (issue 11, items 3-5)."""
 
+import re
+
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
@@ -57,7 +59,10 @@ def test_non_stationary_distortion_says_when_and_that_nothing_stationary_explain
     assert ('no stationary effect explains it' in text
             or 'structured/non-stationary error here' in text)
     assert 'outliers' not in [e['name'] for e in r['effects']]
-    assert '20-24 s' in row['estimate']['where'] or '24-28 s' in row['estimate']['where']
+    # when: the window whose held-out errors stand out (structure.time_window) lies in the
+    # one the disturbance acts in (20-28 s); the sensor may pass near it for part of it only
+    start, end = map(float, re.search(r'time (\d+)-(\d+) s', row['estimate']['where']).groups())
+    assert 19.0 <= start < end <= 29.0
     # how large and when: the largest error it causes, within its window (20-28 s)
     assert row['estimate']['max_mm'] == pytest.approx(5.0, rel=0.2)
     lo, hi = row['estimate']['window_s']

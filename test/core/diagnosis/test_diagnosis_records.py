@@ -99,11 +99,12 @@ def test_every_effect_says_whose_it_is():
     # issue 23, item 5: the effect's device, as the simulator injects it (sim.injected)
     whose = {'time_offset': 'B', 'clock_drift': 'B', 'field_distortion': 'B',
              'distance_noise': 'B', 'scale': 'B', 'backlash': 'A', 'link_flex': 'link',
-             'noise_scale': 'A and B'}
+             'noise_scale': 'A and B', 'clock_step': 'B', 'anisotropic_noise': 'B',
+             'noise_step': 'B'}
     for name, device in whose.items():
         assert CANDIDATES[name].device == device, name
     # what the residuals alone cannot place says so (the stamps name their device)
-    for name in ('outliers', 'timestamp_jitter', 'non_stationary'):
+    for name in ('outliers', 'timestamp_jitter', 'non_stationary', 'pose_step'):
         assert CANDIDATES[name].device == 'A or B', name
 
 

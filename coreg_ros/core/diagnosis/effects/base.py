@@ -52,6 +52,10 @@ class CandidateEffect(Record):
         Whose effect it is (issue 23, item 5): ``'A'``, ``'B'`` (the device calibrated against
         A: a rig's device of that calibration), ``'A and B'`` (both), ``'A or B'`` (the data
         cannot tell which) or ``'link'`` (what joins the devices' tracked bodies).
+    changes_at : str or None
+        A change at one instant: the key of ``data.cache`` where the instant is located
+        (``steps``); it is judged on the time blocks from that instant on (before it, it
+        changes nothing).
 
     """
 
@@ -66,6 +70,7 @@ class CandidateEffect(Record):
     sets_noise_level = False
     trend_checked = False
     device = 'A or B'
+    changes_at: Optional[str] = None
 
     @classmethod
     def size(cls, reading: FitReading) -> CandidateEffect:

@@ -47,6 +47,12 @@ class Finding(Record):
         Candidates that explain the same with the recorded motion.
     per_block_offsets : DriftCheck, optional
         The offsets fitted per time block that a clock drift must trend with.
+    share_of_gap_explained : float, optional
+        The held-out excess at the stated noise it takes off with the others present, as a
+        share of the excess before any effect (``significance.retest``).
+    held_out_rms_gain : dict, optional
+        The relative fall of the held-out RMS at the stated noise it makes, per channel
+        (``position``, ``rotation``), with the others present.
     renamed_from : str, optional
         The candidate it was found as (``from``: outliers that cluster are non-stationary).
     source : str, optional
@@ -65,6 +71,8 @@ class Finding(Record):
     spatial_held_out_gain: Optional[float] = optional()
     not_separable_with: Optional[list] = optional()
     per_block_offsets: Optional[Record] = optional()
+    share_of_gap_explained: Optional[float] = optional()
+    held_out_rms_gain: Optional[dict] = optional()
     renamed_from: Optional[str] = optional('from')
     source: Optional[str] = apart()
 

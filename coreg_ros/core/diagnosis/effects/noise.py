@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Optional
 
+from coreg_ros.core.diagnosis import noise_shape as ns
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.effects.base import CandidateEffect, ms_text
 from coreg_ros.core.diagnosis.record import optional
@@ -157,6 +158,9 @@ class OutliersCandidate(CandidateEffect):
     at_cap : bool, optional
         The share is at the model's cap (``variance.MAX_OUTLIER_SHARE``): a wrong noise
         model, not glitches.
+    run_median, run_max : int, optional
+        Outliers in a row (median, largest), when they come in bursts
+        (``timeline.FlaggedRuns``).
 
     """
 
@@ -170,6 +174,8 @@ class OutliersCandidate(CandidateEffect):
     scale: float
     text: str
     at_cap: Optional[bool] = optional()
+    run_median: Optional[int] = optional()
+    run_max: Optional[int] = optional()
 
     @classmethod
     def size(cls, reading):
@@ -189,3 +195,62 @@ class OutliersCandidate(CandidateEffect):
             text += (f' (at the cap of {vm.MAX_OUTLIER_SHARE * 100:.0f} %: more pairs lie '
                      'outside the stated noise; these are not glitches)')
         return replace(self, at_cap=bool(at_cap), text=text)
+
+    def in_runs(self, runs) -> OutliersCandidate:
+        """Say that the outliers come in bursts (``timeline.FlaggedRuns``), when they do."""
+        if not runs.bursts:
+            return self
+        return replace(self, run_median=runs.median_length, run_max=runs.max_length,
+                       text=f'{self.text}, in bursts of up to {runs.max_length} samples '
+                            f'(median {runs.median_length}) at random times')
+
+
+@dataclass(frozen=True, kw_only=True)
+class AnisotropicNoiseCandidate(CandidateEffect):
+    """
+    B's position noise larger along some axes of B's base frame: covariance σ² S (``noise_shape``).
+
+    Attributes
+    ----------
+    factors : list of float
+        σ's factor along S's principal axes, largest first (√ of S's eigenvalues).
+    sigma : float
+        Standard uncertainty of each factor (relative, from the pairs' count: σ_f ≈ f/√(2n)).
+    axes : list of list of float
+        The principal axes in B's base frame (unit vectors, rows; largest factor first).
+    ratio : float
+        Largest over smallest factor.
+    text : str
+
+    """
+
+    name = 'anisotropic_noise'
+    device = 'B'
+    kind = 'noise'
+    acts_on = 'variance'
+    var_params = ('shape',)
+    simpler = 'noise_scale'
+    sets_noise_level = True
+
+    factors: list
+    sigma: float
+    axes: list
+    ratio: float
+    text: str
+
+    @classmethod
+    def size(cls, reading):
+        """Read S's principal axes and factors from the fit."""
+        S = ns.shape_matrix(reading.var.shape) if reading.var.shape else np.eye(3)
+        w, U = np.linalg.eigh(0.5 * (S + S.T))
+        order = np.argsort(w)[::-1]
+        f = np.sqrt(np.clip(w[order], 0.0, None))
+        axes = U[:, order].T
+        axes *= np.where(axes[np.arange(3), np.abs(axes).argmax(axis=1)] < 0, -1.0, 1.0)[:, None]
+        n = len(reading.fit.stats.z) * max(reading.fit.stats.markers, 1)
+        s = float(f[0] / np.sqrt(2.0 * max(n, 1)))
+        ratio = float(f[0] / max(f[-1], 1e-12))
+        return cls(factors=f.tolist(), sigma=s, axes=axes.tolist(), ratio=ratio,
+                   text=(f'σ × {f[0]:.2f} along [' + ', '.join(f'{v:+.2f}' for v in axes[0])
+                         + f"] of B's base, × {f[1]:.2f} and × {f[2]:.2f} across "
+                         f'(± {s:.2f})'))

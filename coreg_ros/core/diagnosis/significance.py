@@ -1,0 +1,380 @@
+"""
+Practical significance: each named effect re-tested beside the others, sized against the noise.
+
+The selection adds effects one at a time; an effect accepted early may have stood in for one
+found later (outliers taken for a noise level before the offset behind them was seen). So
+every accepted effect is re-tested in the final model (``retest``): dropped from it, it must
+lose held-out log-likelihood by the practical threshold, in (almost) every block, with the
+others present; the one that fails by most goes, and the rest are tested again. Outliers must
+also set aside pairs that lie beyond the stated noise (``OUTLIER_STATED_P``): pairs off only a
+noise level the model shrank are not glitches.
+
+An effect that passes is still only *found* when it matters at the stated noise
+(``practical``):
+
+- a structured effect must lower the held-out RMS of a channel it claims (position or
+  rotation), at the stated noise, by at least ``MIN_RMS_GAIN`` of it (the RMS falls by
+  a²/2σ² for an error of RMS a under noise σ: 0.5 % is an error of a tenth of the noise), and
+  it must move some pair by at least ``SIZE_FLOOR`` of that pair's stated noise;
+- a noise effect must change the noise's σ by at least ``NOISE_FLOOR`` (10 %) on at least
+  ``NOISE_SHARE`` of the pairs;
+- outliers must be at least ``OUTLIER_FLOOR`` of the pairs.
+
+Below that it is listed as ``not_significant``, with its size, never as found. The named
+effects are ordered by the share of the gap (the held-out excess at the stated noise) each
+explains, dropped from the final model; noise effects, which explain none of it, after them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from coreg_ros.core.diagnosis import variance as vm
+from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
+from coreg_ros.core.diagnosis.gap import position_rotation_rows
+from coreg_ros.core.diagnosis.record import optional, Record
+from coreg_ros.core.diagnosis.selection import blocks_judged
+import numpy as np
+from scipy import stats
+
+#: Smallest relative fall of the held-out RMS (stated noise) of a channel a structured effect
+#: claims: an error of RMS a under noise σ lowers it by a²/2σ², so 0.5 % is a ≈ σ/10.
+MIN_RMS_GAIN = 0.005
+#: Smallest displacement of the largest-moved pair, as a share of that pair's stated noise:
+#: an offset that moves no pair by more than a tenth of the noise changes nothing a user acts on.
+SIZE_FLOOR = 0.1
+#: A noise effect changes σ by at least this much (relative) ...
+NOISE_FLOOR = 0.1
+#: ... on at least this share of the pairs.
+NOISE_SHARE = 0.1
+#: Outliers count when at least this share of the pairs are (one glitch in a thousand).
+OUTLIER_FLOOR = 0.001
+#: ... and when the pairs they set aside lie, on average, beyond the χ²/dof the stated noise
+#: gives one pair in a hundred (an outlier is off the stated noise, not off a shrunk one).
+OUTLIER_STATED_P = 0.01
+OUTLIERS = 'outliers'
+
+
+@dataclass(frozen=True, kw_only=True)
+class EffectTest(Record):
+    """
+    An accepted effect re-tested in the final model (the model without it against the model).
+
+    Attributes
+    ----------
+    name : str
+    held_out_gain : float
+        Held-out log-likelihood lost without it, the others present, nats.
+    blocks_improved, blocks : int
+        Blocks where it gains, of all (time blocks, or workspace cells for spatial effects).
+    share_of_gap : float
+        The held-out excess at the stated noise (χ²/dof minus one) it takes off, as a share of
+        the excess before any effect (0 for noise effects, which take none off).
+    rms_gain_position, rms_gain_rotation : float, optional
+        Relative fall of the held-out position (rotation) RMS at the stated noise.
+    passes : bool
+        It keeps a practical held-out gain with the others present.
+    reason : str
+
+    """
+
+    name: str
+    held_out_gain: float
+    blocks_improved: int
+    blocks: int
+    share_of_gap: float
+    rms_gain_position: Optional[float] = optional()
+    rms_gain_rotation: Optional[float] = optional()
+    passes: bool
+    reason: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class NotSignificant(Record):
+    """
+    An effect the held-out data support but too small to matter at the stated noise.
+
+    Attributes
+    ----------
+    name, kind : str
+    estimate : Record
+        Its size with uncertainty (an instance of the effect's class).
+    practical_size : float
+        Structured: the largest pair displacement over that pair's stated noise; noise: the
+        relative change of σ on the pairs it changes most (``NOISE_SHARE``); outliers: the
+        share of the pairs.
+    floor : float
+        What ``practical_size`` must reach.
+    text : str
+
+    """
+
+    name: str
+    kind: str
+    estimate: Record
+    practical_size: float
+    floor: float
+    text: str
+
+
+def _rms(e: np.ndarray, rows: Optional[list], sel: np.ndarray, angle: bool) -> Optional[float]:
+    if rows is None or not sel.any():
+        return None
+    v = float(np.sqrt(np.mean(e[sel][:, rows] ** 2)))
+    return 2.0 * v if angle else v
+
+
+def _fold_kind(sel, name: str, scored: tuple):
+    """Return the held-out predictions and blocks an effect is judged on: cells if spatial."""
+    fit, h, hs = scored
+    if CANDIDATES[name].spatial:
+        if hs is None:
+            hs = sel.spatial_heldout(scored)
+        return hs, sel.sf
+    return h, sel.tf
+
+
+def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> EffectTest:
+    """Test ``name`` in the model ``names`` against the model without it."""
+    rest = tuple(n for n in names if n != name)
+    without = sel.score(rest, full[0].state)
+    h, labels = _fold_kind(sel, name, full)
+    h0, _ = _fold_kind(sel, name, without)
+    fold_gains = h.fold_sums(h.ll) - h0.fold_sums(h0.ll)
+    gain = float(fold_gains.sum())
+    judged = blocks_judged(sel, name, labels)
+    blocks = int(judged.sum())
+    improved = int(np.sum(fold_gains[judged] > 0))
+    thr = sel.threshold(0)
+    reasons = []
+    if gain < thr:
+        reasons.append(f'with the others present its held-out gain is {gain:.1f} nats, below '
+                       f'the practical {thr:.1f}')
+    if improved < max(blocks - 1, 1):
+        reasons.append(f'with the others present it improves only {improved} of {blocks} '
+                       f'blocks')
+    # the stated-noise measures on the time blocks, over the pairs the full model counts
+    ht, h0t = full[1], without[1]
+    counted = ht.p_in > 0.5
+    if not counted.any():
+        counted = np.ones_like(counted)
+    data = sel.data
+    m = data.m
+    pos, rot = position_rotation_rows(data)
+    ex_full = float(np.mean(ht.quad_stated[counted]) / m) - 1.0
+    # without an outlier model every pair is counted (the outliers are its gap)
+    counted0 = counted if h0t.p_in.min() < 1.0 else np.ones_like(counted)
+    ex_without = float(np.mean(h0t.quad_stated[counted0]) / m) - 1.0
+    set_aside = ~(ht.p_in > 0.5)
+    if name == OUTLIERS and set_aside.any():
+        # an outlier is far off at the stated noise, not only off a noise the model shrank
+        # (a recording inside its stated noise split into a tight half and the rest)
+        stated = float(np.mean(ht.quad_stated[set_aside]) / m)
+        floor = float(stats.chi2.ppf(1.0 - OUTLIER_STATED_P, m) / m)
+        if stated < floor:
+            reasons.append(f'the pairs it sets aside lie at χ²/dof {stated:.2f} at the stated '
+                           f'noise, inside it (an outlier lies beyond {floor:.2f})')
+    share = 0.0
+    if CANDIDATES[name].kind == 'structured' and base_excess > 1e-9:
+        share = float(np.clip((ex_without - ex_full) / base_excess, 0.0, 1.0))
+    gains = {}
+    for key, rows, angle in (('position', pos, False), ('rotation', rot, True)):
+        a, b = _rms(ht.e, rows, counted, angle), _rms(h0t.e, rows, counted, angle)
+        gains[key] = None if a is None or not b else float(1.0 - a / b)
+    return EffectTest(name=name, held_out_gain=gain, blocks_improved=improved, blocks=blocks,
+                      share_of_gap=share, rms_gain_position=gains['position'],
+                      rms_gain_rotation=gains['rotation'], passes=not reasons,
+                      reason='; '.join(reasons) if reasons else 'passes')
+
+
+def _simplest(sel, names: tuple, start) -> tuple:
+    """
+    Replace each effect by the simpler one it extends when that does as well beside the others.
+
+    A clock step whose step is small, a field that is only a scale: the simpler model loses
+    less than the nested margin of held-out log-likelihood (``Options.nested_share`` of the
+    practical threshold), so the simpler is named.
+    """
+    margin = max(sel.opts.min_gain, sel.opts.nested_share * sel.threshold(0))
+    for name in names:
+        simpler = CANDIDATES[name].simpler
+        if simpler is None or simpler in names:
+            continue
+        other = tuple(simpler if n == name else n for n in names)
+        if any(CANDIDATES[a].acts_on == 'time' for a in other if a != simpler) and (
+                CANDIDATES[simpler].acts_on == 'time'):
+            continue
+        full = sel.score(names, start)
+        alt = sel.score(other, full[0].state)
+        h, _ = _fold_kind(sel, name, full)
+        h0, _ = _fold_kind(sel, name, alt)
+        if float(h.ll.sum()) - float(h0.ll.sum()) < margin:
+            names = other
+    return names
+
+
+def retest(sel, accepted: tuple, start, base_excess: float) -> tuple:
+    """
+    Re-test every accepted effect in the final model; drop those the others explain.
+
+    Parameters
+    ----------
+    sel : selection.Selector
+        The selection pairs, their blocks and the cache of fits.
+    accepted : tuple of str
+        The effects the selection accepted.
+    start : fit.State
+        A state of the accepted model (warm start of the models without one effect).
+    base_excess : float
+        The held-out excess (χ²/dof at the stated noise minus one) of the base model on the
+        selection pairs.
+
+    Returns
+    -------
+    kept : tuple of str
+        The effects that keep a practical gain with the others present.
+    tests : dict of str to EffectTest
+        The last test of every accepted effect (the dropped ones' says why).
+
+    """
+    names = _simplest(sel, tuple(accepted), start)
+    tests: dict = {}
+    while names:
+        full = sel.score(names, start)
+        now = {n: _drop_one(sel, names, n, full, base_excess) for n in names}
+        tests.update(now)
+        failing = [t for t in now.values() if not t.passes]
+        if not failing:
+            break
+        worst = min(failing, key=lambda t: t.held_out_gain)
+        names = tuple(n for n in names if n != worst.name)
+    return names, tests
+
+
+def displacement(fit, name: str) -> float:
+    """
+    Largest displacement of any pair by a time or mean effect, over that pair's stated noise.
+
+    The final fit's errors with the effect's parameters against those with them zeroed (the
+    rest held): per pair and marker the position displacement over the pair's stated position
+    σ (RMS over the axes), and the rotation (full pose) over its stated σ.
+    """
+    model, state = fit.model, fit.state
+    zero = state.copy()
+    zero.theta[name] = np.zeros_like(state.theta[name])
+    pos, rot = position_rotation_rows(model.data)
+    worst = 0.0
+    for ch in model.chunks(np.arange(model.data.n)):
+        a = model.evaluate(state, ch, jac=False)
+        b = model.evaluate(zero, ch, jac=False)
+        d = a.e - b.e
+        for rows in [pos[i:i + 3] for i in range(0, len(pos), 3)] + ([rot] if rot else []):
+            norm = np.linalg.norm(d[:, rows], axis=1)
+            sd = np.sqrt(np.mean(a.sd[:, rows] ** 2, axis=1))
+            worst = max(worst, float(np.max(norm / np.maximum(sd, 1e-300))))
+    return worst
+
+
+def noise_change(fit, name: str) -> float:
+    """
+    Return the relative change of σ a noise effect makes, on the pairs it changes most.
+
+    Per pair, σ's factor is the square root of the ratio of the error's total variance with
+    the effect's parameters to that without them (the others kept); the ``1 - NOISE_SHARE``
+    quantile of ``|log factor|`` is returned as a relative change (``exp(q) - 1``).
+    """
+    var = fit.state.var
+    params = CANDIDATES[name].var_params
+    off = var.with_values(params, [getattr(vm.VarState(), p) for p in params])
+    st = fit.stats
+    total = vm.total_variance(var, st)
+    without = vm.total_variance(off, st)
+    q = float(np.quantile(np.abs(0.5 * np.log(total / np.maximum(without, 1e-300))),
+                          1.0 - NOISE_SHARE))
+    return float(np.expm1(q))
+
+
+def _noise_feature(reading, name: str) -> Optional[float]:
+    """
+    Return the relative size of what sets a noise effect apart from a noise level, or None.
+
+    Distance noise: σ at the farthest pair over σ at the median distance, less one; a noise
+    shape: its largest axis factor over its smallest, less one.
+    """
+    if name not in ('distance_noise', 'anisotropic_noise'):
+        return None
+    est = CANDIDATES[name].size(reading)
+    ratio = est.edge_to_centre if name == 'distance_noise' else est.ratio
+    return float(abs(ratio - 1.0))
+
+
+def practical(reading, names: tuple, tests: dict) -> tuple:
+    """
+    Split the re-tested effects into those that matter at the stated noise and the others.
+
+    Parameters
+    ----------
+    reading : effects.base.FitReading
+        The final fit on all pairs, with every effect of ``names``.
+    names : tuple of str
+        The effects that passed ``retest``.
+    tests : dict of str to EffectTest
+        Their tests (the held-out RMS gains).
+
+    Returns
+    -------
+    kept : tuple of str
+        Ordered by the share of the gap explained (structured), then noise effects by gain.
+    not_significant : list of NotSignificant
+
+    """
+    kept, small = [], []
+    for name in names:
+        effect = CANDIDATES[name]
+        test = tests.get(name)
+        reasons = []
+        if effect.acts_on in ('time', 'mean'):
+            size, floor = displacement(reading.fit, name), SIZE_FLOOR
+            if size < floor:
+                reasons.append(f'it moves no pair by more than {size:.3f} of its stated noise '
+                               f'(floor {floor:g})')
+            gains = [g for g in (None if test is None else test.rms_gain_position,
+                                 None if test is None else test.rms_gain_rotation)
+                     if g is not None]
+            if test is not None and gains and max(gains) < MIN_RMS_GAIN:
+                reasons.append(f'it lowers the held-out RMS at the stated noise by '
+                               f'{max(gains) * 100:.2f} % at most (minimum '
+                               f'{MIN_RMS_GAIN * 100:g} %)')
+        elif name == OUTLIERS:
+            size, floor = reading.var.eps, OUTLIER_FLOOR
+            if size < floor:
+                reasons.append(f'{size * 100:.3f} % of the pairs (floor {floor * 100:g} %)')
+        else:
+            size, floor = noise_change(reading.fit, name), NOISE_FLOOR
+            feature = _noise_feature(reading, name)
+            if size < floor:
+                reasons.append(f'it changes the noise by {size * 100:.1f} % on '
+                               f'{NOISE_SHARE * 100:.0f} % of the pairs (floor '
+                               f'{floor * 100:g} %)')
+            elif feature is not None and feature < floor:
+                # a noise level, not the effect's own form: the level is noise_scale's
+                size = feature
+                reasons.append(f'what sets it apart from a noise level changes σ by only '
+                               f'{feature * 100:.1f} % (floor {floor * 100:g} %)')
+        if reasons:
+            estimate = effect.size(reading)
+            small.append(NotSignificant(
+                name=name, kind=effect.kind, estimate=estimate, practical_size=float(size),
+                floor=float(floor), text=f'{estimate.text}: not significant, '
+                                         + '; '.join(reasons)))
+        else:
+            kept.append(name)
+
+    def order(n):
+        t = tests.get(n)
+        structured = CANDIDATES[n].kind == 'structured'
+        return (0 if structured else 1, -(t.share_of_gap if t and structured else 0.0),
+                -(t.held_out_gain if t else 0.0))
+
+    return tuple(sorted(kept, key=order)), small
