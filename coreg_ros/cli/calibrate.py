@@ -82,11 +82,15 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     from coreg_ros.core.calibration.pipeline import calibrate_streams
     from coreg_ros.files.bag.posebag import read_pose_bag
     from coreg_ros.files.results import result_to_dict
+    from coreg_ros.threads import one_blas_thread
 
     streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
     stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
-    result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames,
-                                       direction_check=direction_check)
+    # small products over many pairs: BLAS threads only spin (coreg_ros.threads); at 2M pairs
+    # they took 2.5x the CPU time, and one thread gives the numbers bench/fingerprint.py checks
+    with one_blas_thread():
+        result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames,
+                                           direction_check=direction_check)
     check = result.direction_check
     data = result_to_dict(result)
     data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
