@@ -34,16 +34,24 @@ class Trajectory:
     """
 
     def __init__(self, t: np.ndarray, position: np.ndarray, quat_wxyz: np.ndarray):
-        order = np.argsort(t, kind='stable')
-        t = np.asarray(t, dtype=float)[order]
-        keep = np.concatenate([[True], np.diff(t) > 0])
-        self.t = t[keep]
-        self.position = np.asarray(position, dtype=float)[order][keep]
-        q = np.asarray(quat_wxyz, dtype=float)[order][keep].copy()
+        t = np.asarray(t, dtype=float)
+        position = np.asarray(position, dtype=float)
+        q = np.asarray(quat_wxyz, dtype=float)
+        if not np.all(np.diff(t) > 0):  # out of order or repeated: sorted, the first kept
+            order = np.argsort(t, kind='stable')
+            t = t[order]
+            keep = np.concatenate([[True], np.diff(t) > 0])
+            t, position, q = t[keep], position[order][keep], q[order][keep]
+        # samples already in order are held, not copied (a long recording's A is 2M samples)
+        self.t, self.position = t, position
         # continuous sign along the trajectory, so that neighbours interpolate the short way
         dots = np.einsum('ij,ij->i', q[1:], q[:-1])
-        flips = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
-        self.quat = q * flips[:, None]
+        if np.any(dots < 0.0):
+            flips = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
+            q = q * flips[:, None]
+        self.quat = q
+        self._step: Optional[float] = None
+        self._segments: dict = {}
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -84,7 +92,7 @@ class Trajectory:
         v = (p1 - p0) / (2.0 * half)
         w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
         if max_gap is not None:
-            gaps = np.concatenate([[0], np.cumsum(np.diff(self.t) > max_gap)])
+            gaps = self._segment_ids(max_gap)
             lo = np.searchsorted(self.t, t - half, side='right') - 1
             hi = np.searchsorted(self.t, t + half, side='left')
             known = (lo >= 0) & (hi < len(self))
@@ -92,3 +100,17 @@ class Trajectory:
             v[~known] = 0.0
             w[~known] = 0.0
         return v, w
+
+    def median_step(self) -> float:
+        """Median interval between the samples, s (computed once)."""
+        if self._step is None:
+            self._step = float(np.median(np.diff(self.t)))
+        return self._step
+
+    def _segment_ids(self, max_gap: float) -> np.ndarray:
+        """Per sample, how many gaps longer than ``max_gap`` (s) precede it (computed once)."""
+        ids = self._segments.get(max_gap)
+        if ids is None:
+            ids = np.concatenate([[0], np.cumsum(np.diff(self.t) > max_gap)])
+            self._segments[max_gap] = ids
+        return ids
