@@ -43,13 +43,13 @@ class Trajectory:
             keep = np.concatenate([[True], np.diff(t) > 0])
             t, position, q = t[keep], position[order][keep], q[order][keep]
         # samples already in order are held, not copied (a long recording's A is 2M samples)
-        self.t, self.position = t, position
-        # continuous sign along the trajectory, so that neighbours interpolate the short way
+        self.t, self.position, self.quat = t, position, q
+        # continuous sign along the trajectory, so that neighbours interpolate the short way:
+        # the signs are kept (8 bytes a sample) and applied to the samples a query reads
         dots = np.einsum('ij,ij->i', q[1:], q[:-1])
+        self._sign: Optional[np.ndarray] = None
         if np.any(dots < 0.0):
-            flips = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
-            q = q * flips[:, None]
-        self.quat = q
+            self._sign = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
         self._step: Optional[float] = None
         self._segments: dict = {}
 
@@ -68,7 +68,11 @@ class Trajectory:
         span = self.t[k + 1] - self.t[k]
         a = ((t - self.t[k]) / span)[:, None]
         pos = self.position[k] + a * (self.position[k + 1] - self.position[k])
-        q = self.quat[k] + a * (self.quat[k + 1] - self.quat[k])
+        q_lo, q_hi = self.quat[k], self.quat[k + 1]
+        if self._sign is not None:
+            q_lo *= self._sign[k, None]
+            q_hi *= self._sign[k + 1, None]
+        q = q_lo + a * (q_hi - q_lo)
         q /= np.linalg.norm(q, axis=1, keepdims=True)
         return pos, quat.canonical(q)
 
