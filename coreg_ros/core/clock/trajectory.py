@@ -63,21 +63,39 @@ class Trajectory:
         Orientation by normalised lerp between neighbours (equal to slerp to O(θ³) for the
         small angles between successive samples).
         """
-        t = np.asarray(t, dtype=float)
-        k = np.clip(np.searchsorted(self.t, t, side='right') - 1, 0, len(self) - 2)
-        span = self.t[k + 1] - self.t[k]
-        a = ((t - self.t[k]) / span)[:, None]
-        pos = self.position[k] + a * (self.position[k + 1] - self.position[k])
-        q_lo, q_hi = self.quat[k], self.quat[k + 1]
-        if self._sign is not None:
-            q_lo *= self._sign[k, None]
-            q_hi *= self._sign[k + 1, None]
-        q = q_lo + a * (q_hi - q_lo)
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
-        return pos, quat.canonical(q)
+        pos, q, _ = self._interpolated(np.asarray(t, dtype=float))
+        return pos, q
+
+    def _interpolated(self, t: np.ndarray, position: bool = True, orientation: bool = True
+                      ) -> tuple[Optional[np.ndarray], Optional[np.ndarray], np.ndarray]:
+        """
+        Return ``pose(t)``'s parts asked (None for the others) and each time's bracket.
+
+        The bracket is the index of the last sample at or before the time (-1: none).
+        """
+        before = np.searchsorted(self.t, t, side='right') - 1
+        k = np.clip(before, 0, len(self) - 2)
+        k1 = k + 1
+        # np.take: several times faster than fancy indexing on rows, the same numbers
+        t_lo = np.take(self.t, k)
+        span = np.take(self.t, k1) - t_lo
+        a = ((t - t_lo) / span)[:, None]
+        pos = q = None
+        if position:
+            p_lo = np.take(self.position, k, axis=0)
+            pos = p_lo + a * (np.take(self.position, k1, axis=0) - p_lo)
+        if orientation:
+            q_lo, q_hi = np.take(self.quat, k, axis=0), np.take(self.quat, k1, axis=0)
+            if self._sign is not None:
+                q_lo *= np.take(self._sign, k)[:, None]
+                q_hi *= np.take(self._sign, k1)[:, None]
+            q = q_lo + a * (q_hi - q_lo)
+            q /= np.linalg.norm(q, axis=1, keepdims=True)
+            q = quat.canonical(q)
+        return pos, q, before
 
     def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW,
-                 max_gap: Optional[float] = None):
+                 max_gap: Optional[float] = None, linear: bool = True, angular: bool = True):
         """
         Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
 
@@ -85,24 +103,28 @@ class Trajectory:
         as the input perturbation of the models does. With ``max_gap`` (s), a window
         ``[t-h, t+h]`` that reaches past either end or spans a gap between samples longer
         than ``max_gap`` gives zero: no velocity is known there (interpolating across a
-        tracking dropout or between recorded still poses would invent one).
+        tracking dropout or between recorded still poses would invent one). ``linear`` or
+        ``angular`` False: that part is not computed (None), as the coarse offset search,
+        which needs one speed, asks.
         """
         t = np.asarray(t, dtype=float)
         if len(self) > 1:
-            step = float(np.median(np.diff(self.t)))
-            half = max(half, 1.5 * step)
-        p1, q1 = self.pose(t + half)
-        p0, q0 = self.pose(t - half)
-        v = (p1 - p0) / (2.0 * half)
-        w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
+            half = max(half, 1.5 * self.median_step())
+        p1, q1, _ = self._interpolated(t + half, linear, angular)
+        p0, q0, lo = self._interpolated(t - half, linear, angular)
+        v = w = None
+        if linear:
+            v = (p1 - p0) / (2.0 * half)
+        if angular:
+            w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
         if max_gap is not None:
             gaps = self._segment_ids(max_gap)
-            lo = np.searchsorted(self.t, t - half, side='right') - 1
             hi = np.searchsorted(self.t, t + half, side='left')
             known = (lo >= 0) & (hi < len(self))
             known[known] &= gaps[hi[known]] == gaps[lo[known]]
-            v[~known] = 0.0
-            w[~known] = 0.0
+            for x in (v, w):
+                if x is not None:
+                    x[~known] = 0.0
         return v, w
 
     def median_step(self) -> float:
