@@ -169,11 +169,14 @@ def _calibrate(storage: str, seconds: float, rate: float, tmp: Path,
         if run['returncode']:
             raise RuntimeError(f'coreg calibrate failed: {run["stderr_tail"]}')
     after = runs['after']
+    out = subprocess.run([sys.executable, str(ROOT / 'bench' / 'calibrate_phases.py'), *args[1:]],
+                         capture_output=True, text=True, env=now_env, cwd=ROOT, check=True)
+    phases = json.loads(out.stdout.strip().splitlines()[-1])
     row = {'storage': storage, 'seconds': seconds, 'rate_hz': rate, 'messages': messages,
            'bag_bytes': size, 'simulate_wall_s': gen['wall_s'], 'read_bulk_s': t_read,
            'load_average': os.getloadavg()[0],
            'goal_met': after['wall_s'] <= GOAL_CALIBRATE_S
-           and after['peak_rss_bytes'] <= GOAL_PEAK_BYTES}
+           and after['peak_rss_bytes'] <= GOAL_PEAK_BYTES, 'profile': phases}
     for key, run in runs.items():
         row[f'calibrate_{key}_s'] = run['wall_s']
         row[f'calibrate_{key}_cpu_s'] = run['cpu_s']
@@ -281,7 +284,23 @@ def table(result: dict) -> str:
                 f'{cell("after")} | {ratio} | {rss("before")} | {rss("commit")} | '
                 f'{rss("after")} | {"met" if r.get("goal_met") else "missed"} | '
                 f'{r.get("load_average", float("nan")):.1f} |')
+        lines += ['', 'Where the time and memory go now (`python bench/calibrate_phases.py BAG`, '
+                      'CPU s per phase, inner phases inside outer ones; peak RSS by phase):', '']
+        for r in result['calibrate']:
+            lines.append(f'- {r["storage"]}: ' + _profile_text(r.get('profile')))
     return '\n'.join(lines)
+
+
+def _profile_text(profile: Optional[dict]) -> str:
+    """One line of ``calibrate_phases``' result: CPU per phase, the three highest RSS peaks."""
+    if not profile:
+        return 'not measured'
+    cpu = ', '.join(f'{name} {p["cpu_s"]:.2f} s ({p["calls"]}×)'
+                    for name, p in profile['phases'].items())
+    peaks = '; '.join(f'{v / 2**30:.2f} GiB in {k}'
+                      for k, v in list(profile['peak_rss_by_phase'].items())[:3])
+    return f'total {profile["total_cpu_s"]:.2f} s: {cpu}. Peaks: {peaks}'
+
 
 
 def main() -> None:
