@@ -16,6 +16,8 @@ import numpy as np
 
 #: Half-width of the finite-difference window for velocities, s (at least two A samples).
 VELOCITY_HALF_WINDOW = 0.04
+#: Times whose velocities are computed at once (bounds the temporaries; cache-sized).
+VELOCITY_CHUNK = 1 << 16
 
 
 class Trajectory:
@@ -110,13 +112,25 @@ class Trajectory:
         t = np.asarray(t, dtype=float)
         if len(self) > 1:
             half = max(half, 1.5 * self.median_step())
-        p1, q1, _ = self._interpolated(t + half, linear, angular)
-        p0, q0, lo = self._interpolated(t - half, linear, angular)
-        v = w = None
-        if linear:
-            v = (p1 - p0) / (2.0 * half)
-        if angular:
-            w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
+        v = np.empty((t.shape[0], 3)) if linear else None
+        w = np.empty((t.shape[0], 3)) if angular else None
+        # in chunks: each time's velocity is its own, and a 2M-pair recording's temporaries
+        # (two poses a time) would otherwise take ~600 MB at the peak of the offset search
+        for start in range(0, t.shape[0], VELOCITY_CHUNK):
+            sl = slice(start, start + VELOCITY_CHUNK)
+            self._velocity_into(t[sl], half, max_gap, None if v is None else v[sl],
+                                None if w is None else w[sl])
+        return v, w
+
+    def _velocity_into(self, t: np.ndarray, half: float, max_gap: Optional[float],
+                       v: Optional[np.ndarray], w: Optional[np.ndarray]) -> None:
+        """Write ``velocity``'s linear part into v and its angular part into w (None: skip)."""
+        p1, q1, _ = self._interpolated(t + half, v is not None, w is not None)
+        p0, q0, lo = self._interpolated(t - half, v is not None, w is not None)
+        if v is not None:
+            v[:] = (p1 - p0) / (2.0 * half)
+        if w is not None:
+            w[:] = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
         if max_gap is not None:
             gaps = self._segment_ids(max_gap)
             hi = np.searchsorted(self.t, t + half, side='left')
@@ -125,7 +139,6 @@ class Trajectory:
             for x in (v, w):
                 if x is not None:
                     x[~known] = 0.0
-        return v, w
 
     def median_step(self) -> float:
         """Median interval between the samples, s (computed once)."""
