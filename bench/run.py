@@ -143,6 +143,13 @@ def targets_table(rows: list, results: dict) -> tuple:
                                'pass' if m['passed'] else 'FAIL: ' + '; '.join(
                                    c['check'] for c in m['checks'] if not c['passed']),
                                m['passed']))
+    nz = results.get('noise')
+    if isinstance(nz, dict) and isinstance(nz.get('speed'), dict):
+        from bench import noise_bench
+        for method, v in nz['speed']['methods'].items():
+            checks.append((f'calibrate {nz["speed"]["pairs"]:,} pairs, {method.upper()}: noise '
+                           f'auto / stated (whole call)', f'≤ {noise_bench.SPEED_GOAL:g}×',
+                           f'{v["ratio"]:.2f}×', v['ratio'] <= noise_bench.SPEED_GOAL))
     st = results.get('time_offset')
     if isinstance(st, dict):
         before = st.get('before')
@@ -213,7 +220,9 @@ suite runs the same checks at a reduced size) or on real recordings:
 - the watchdog (`bench/watchdog_bench.py`): false alarms on long stable streams, detection
   delay and attribution of changes;
 - the fuzz (`bench/fuzz.py`): careless and adversarial inputs to every command and the node;
-- the real recordings (`bench/real_recordings.py`), as a user would run them."""
+- the real recordings (`bench/real_recordings.py`), as a user would run them;
+- each device's noise (`bench/noise_bench.py`): measured on still recordings, estimated with
+  the calibration (`--noise auto`), and both on the real recordings (also docs/noise.md)."""
 
 
 def validation_sections(results: dict, args) -> list:
@@ -256,6 +265,10 @@ def validation_sections(results: dict, args) -> list:
     out += ['## Real recordings', '',
             real_recordings.table(real) if isinstance(real, dict) else f'not measured: {real}',
             '']
+    from bench import noise_bench
+    nz = results.get('noise')
+    out += ['## Noise you do not have to know (measured still, estimated moving)', '',
+            noise_bench.table(nz) if isinstance(nz, dict) else f'not measured: {nz}', '']
     return out
 
 
@@ -303,6 +316,9 @@ def main(argv=None) -> int:
     parser.add_argument('--fuzz-n', type=int, default=60, help='fuzz inputs per kind (0: skip)')
     parser.add_argument('--watchdog-hours', type=float, default=72.0,
                         help='stable hours simulated for the watchdog false-alarm rate (0: skip)')
+    parser.add_argument('--no-noise', action='store_true',
+                        help='skip the noise benchmark (noise auto speed, still and auto Monte '
+                             'Carlo, the noise of the real recordings)')
     parser.add_argument('--real-data', help='folder holding eth_hand_eye (default: '
                                             'COREG_REAL_DATA or ../shared/data/real)')
     parser.add_argument('--docs', type=Path, default=ROOT / 'docs',
@@ -346,6 +362,11 @@ def main(argv=None) -> int:
                  with_scipy=not args.no_scipy, scipy_cap=args.scipy_cap)
         scale.append(('calibrate_speed', 'Whole calibrate() at 100k and 1M pairs',
                       calibrate_speed_bench))
+    if not args.no_calibrate_speed:
+        from bench import restricted_bench
+        _section(results, 'restricted', restricted_bench.run)
+        scale.append(('restricted', 'Restricted rigs: calibrate() against a full-rank '
+                      'recording of the same size', restricted_bench))
     if args.bag_messages > 0:
         from bench import bag_bench
         _section(results, 'bags', bag_bench.run, n=args.bag_messages,
@@ -380,6 +401,9 @@ def main(argv=None) -> int:
         _section(results, 'watchdog', watchdog_bench.run, args.watchdog_hours)
     from bench import real_recordings
     _section(results, 'real', real_recordings.run, args.real_data)
+    if not args.no_noise:
+        from bench import noise_bench
+        _section(results, 'noise', noise_bench.run, data=args.real_data)
     results['total_seconds'] = time.perf_counter() - started
 
     speed = ['## Estimators (full pose, default noise; ours vs scipy.optimize.least_squares)',
@@ -422,6 +446,9 @@ def main(argv=None) -> int:
             '# Validation\n\n' + run_line + '\n\n' + VALIDATION_INTRO + '\n\n'
             + '\n'.join(evidence))
         log(f'written {args.docs / "benchmarks.md"} and {args.docs / "validation.md"}')
+        if isinstance(results.get('noise'), dict):
+            from bench import noise_bench
+            noise_bench.write_docs(results['noise'], args.docs / 'noise.md', run_line)
     return 0
 
 

@@ -22,7 +22,7 @@ _HOMES = {
     'calibrate': 'coreg_ros.api',
     'model_of': 'coreg_ros.api',
     'calibrate_streams': 'coreg_ros.core.calibration.pipeline',
-    'calibrate_pairs': ('coreg_ros.core.calibration.calibrate', 'calibrate'),
+    'calibrate_pairs': 'coreg_ros.core.calibration.auto_noise',
     'pair_streams': 'coreg_ros.core.calibration.pairing',
     'Settings': 'coreg_ros.core.settings',
     'PoseStream': 'coreg_ros.core.types',
@@ -33,6 +33,7 @@ _HOMES = {
     'TimeOffset': 'coreg_ros.core.types',
     'STATUS': 'coreg_ros.core.types',
     'Prior': 'coreg_ros.core.estimator.priors',
+    'DeviceNoise': 'coreg_ros.core.noise_model',
     # uncertainty (Hoff & Vincent 2000)
     'compose': 'coreg_ros.core.uncertainty',
     'chain': 'coreg_ros.core.uncertainty',

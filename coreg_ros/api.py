@@ -55,11 +55,32 @@ def _stamps(stamps, n: int, name: str) -> np.ndarray:
     return s.astype(np.int64)
 
 
+def _with_noise(settings: Settings, noise) -> Settings:
+    """Return the settings with ``calibrate``'s ``noise`` argument applied (one-line errors)."""
+    from collections.abc import Mapping
+    from dataclasses import replace
+    from pathlib import Path
+
+    from coreg_ros.core.noise_model import DeviceNoise
+    from coreg_ros.core.settings import NOISE_MODES
+
+    if isinstance(noise, str) and noise in NOISE_MODES:
+        return settings.updated(noise=noise)
+    if isinstance(noise, (str, Path)):
+        from coreg_ros.files.noise_file import load_noise_file, with_noise_file
+        return with_noise_file(settings, load_noise_file(noise))
+    if isinstance(noise, Mapping) and set(noise) <= {'a', 'b'} and all(
+            isinstance(v, DeviceNoise) for v in noise.values()):
+        return replace(settings, **{f'noise_{d}': v for d, v in noise.items()})
+    raise InputError(f"noise must be 'stated', 'auto', a noise file or {{'a': DeviceNoise, "
+                     f"'b': DeviceNoise}}, got {type(noise).__name__}")
+
+
 def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
               sigma_a: tuple = Settings.sigma_a, sigma_b: tuple = Settings.sigma_b,
               method: str = 'tls', stamps_a=None, stamps_b=None,
               time_offset: Union[str, float] = 'auto', robust: bool = True,
-              prior: Optional[Prior] = None, **settings) -> CalibrationResult:
+              prior: Optional[Prior] = None, noise='stated', **settings) -> CalibrationResult:
     """
     Calibrate from numpy arrays: T0 (A's base in B's base), T1 (B's marker in A's tool).
 
@@ -85,6 +106,12 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
         Reject pairs far outside the stated noise and refit.
     prior : Prior, optional
         A priori estimate of T0 and T1 (Ikits B.3).
+    noise : 'stated', 'auto', str or Path, or dict
+        ``'stated'``: ``sigma_a``/``sigma_b`` as given; ``'auto'``: each device's noise
+        estimated with the calibration (``res.noise``; what the motion cannot separate held
+        at ``sigma_a``/``sigma_b``), the verdict naming what was misstated; a noise file
+        (``coreg noise``) or ``{'a': DeviceNoise, 'b': DeviceNoise}`` (either may be left
+        out): full covariances in each device's base frame instead of the σ.
     **settings
         Further ``Settings`` fields (``max_gap``, ``estimate_clock_drift``, ``min_pairs``,
         ``max_iterations``).
@@ -115,8 +142,10 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
         estimate, offset = not synchronised, 0.0
     else:
         estimate, offset = False, float(time_offset)
-    cfg = Settings(model=model, method=method, sigma_a=tuple(sigma_a), sigma_b=tuple(sigma_b),
-                   robust=robust, estimate_time_offset=estimate, time_offset=offset, **settings)
+    cfg = _with_noise(Settings(model=model, method=method, sigma_a=tuple(sigma_a),
+                               sigma_b=tuple(sigma_b), robust=robust,
+                               estimate_time_offset=estimate, time_offset=offset, **settings),
+                      noise)
     ta, tb = _stamps(stamps_a, n, 'stamps_a'), _stamps(stamps_b, m, 'stamps_b')
     stream_a = PoseStream(ta, pos_a, np.asarray(quat_a_wxyz, dtype=float))
     if model == 'three_marker':

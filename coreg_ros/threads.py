@@ -26,3 +26,17 @@ def one_blas_thread():
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api='blas')
+
+
+def blas_threads_for(settings):
+    """
+    Return ``one_blas_thread()`` when ``settings`` estimate the noise, else a no-op context.
+
+    The noise estimation (``noise: auto``) sums products of small per-pair matrices, which
+    suffer as the diagnosis' do; for a caller whose plain calibration keeps BLAS as it is
+    (``coreg calibrate`` holds one thread for every fit, ``one_blas_thread``).
+    """
+    import contextlib
+
+    return one_blas_thread() if getattr(settings, 'noise', 'stated') == 'auto' else \
+        contextlib.nullcontext()

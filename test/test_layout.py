@@ -159,7 +159,7 @@ def test_layers_only_point_inwards():
 #: parameter schema, the models, the result text); every package of the core has one level.
 CORE_LEVELS = (
     ('',),                                   # the foundation: coreg_ros/core/*.py
-    ('estimator',),                          # Ikits appendix B, the prior and the posterior
+    ('estimator', 'noise'),                  # Ikits appendix B; a still device's noise
     ('uncertainty', 'clock'),                # Hoff & Vincent; the clock's signals and step
     ('calibration',),                        # streams and pairs to a judged result
     ('planning',),                           # the Cramér-Rao bound, a recording's plan

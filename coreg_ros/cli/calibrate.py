@@ -87,7 +87,8 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
     stream_a, streams_b = streams[settings.topic_a], [streams[t] for t in settings.topic_b]
     # small products over many pairs: BLAS threads only spin (coreg_ros.threads); at 2M pairs
-    # they took 2.5x the CPU time, and one thread gives the numbers bench/fingerprint.py checks
+    # they took 2.5x the CPU time, and one thread gives the numbers bench/fingerprint.py checks;
+    # this also covers the noise estimation's small products (noise: auto)
     with one_blas_thread():
         result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames,
                                            direction_check=direction_check)
@@ -96,6 +97,10 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
                        'unpaired': dict(report.unpaired)}
     data['settings'] = settings.as_dict()
+    if 'noise' not in data:  # the noise the fit was judged against, stated
+        from coreg_ros.core.calibration.auto_noise import stated_noise
+        from coreg_ros.core.calibration.noise_verdict import stated_noise_dict
+        data['noise'] = stated_noise_dict(*stated_noise(settings))
     if check is not None:
         data['direction_check'] = check.as_dict()
     run = CalibrationRun(result, report, check, data, 0)

@@ -23,6 +23,8 @@ from coreg_ros.core.live.watchdog import keys as w
 
 #: Name suffix of the node's main status (``coreg_ros.ros.node``).
 CALIBRATION_STATUS = 'coregistration'
+#: Name suffix of the node's noise status (``coreg_ros.ros.live_noise``).
+NOISE_STATUS = 'noise'
 #: Width of a σ bar, cells; the bar spans 0.1× to 100× the target on a log scale.
 BAR_WIDTH = 24
 BAR_DECADES = (-1.0, 2.0)
@@ -69,7 +71,7 @@ class DashboardState:
     ----------
     node : str
         The node whose statuses are shown.
-    calibration, guidance, watchdog : Status or None
+    calibration, guidance, watchdog, noise : Status or None
         The latest status of each concern.
     received_at : float or None
         ``time.monotonic()`` of the latest message.
@@ -82,6 +84,7 @@ class DashboardState:
     calibration: Optional[Status] = None
     guidance: Optional[Status] = None
     watchdog: Optional[Status] = None
+    noise: Optional[Status] = None
     received_at: Optional[float] = None
     messages: int = 0
 
@@ -98,6 +101,8 @@ class DashboardState:
                 self.guidance = status
             elif what == w.STATUS_NAME:
                 self.watchdog = status
+            elif what == NOISE_STATUS:
+                self.noise = status
             else:
                 continue
             seen = True
@@ -328,6 +333,33 @@ def _watchdog_panel(status: Optional[Status]):
     return Panel(Group(*lines), title='watchdog', title_align='left')
 
 
+def _noise_panel(status: Optional[Status]):
+    """Each device's noise: measured while still, stated, in use (and from where)."""
+    from rich.console import Group
+    from rich.panel import Panel
+    from rich.text import Text
+    if status is None:
+        return Panel(Text('no noise status yet', style='dim'), title='noise', title_align='left')
+    v = status.values
+    lines = [Text(status.message, style=LEVEL_STYLES.get(status.level, ''))]
+    for d in 'AB':
+        row = Text(f'{d}  ', style='bold')
+        for label, key in (('still', 'measured'), ('stated', 'stated'), ('in use', 'used')):
+            pos = _floats(v.get(f'{d} {key} position sigma m'))
+            rot = _floats(v.get(f'{d} {key} rotation sigma rad'))
+            if not pos:
+                continue
+            row.append(f'{label} σ ')
+            row.append(' '.join(f'{p * 1e3:.3g}' for p in pos) + ' mm')
+            if rot:
+                row.append(', ' + ' '.join(f'{r * 1e3:.3g}' for r in rot) + ' mrad')
+            row.append('   ')
+        row.append(f'({v.get(f"{d} source", "n/a")}; still {v.get(f"{d} still seconds", "0")} s)',
+                   style='dim')
+        lines.append(row)
+    return Panel(Group(*lines), title=f'noise ({v.get("noise", "stated")})', title_align='left')
+
+
 def render(state: DashboardState, now: Optional[float] = None):
     """
     Build the dashboard as a rich renderable (a group of panels).
@@ -354,7 +386,8 @@ def render(state: DashboardState, now: Optional[float] = None):
                     style='red' if age > 5.0 else 'dim')
     top = Panel(Group(_counts_table(state.calibration), _calibration_lines(state.calibration)),
                 title='calibration', title_align='left')
-    return Group(head, top, _guidance_panel(state.guidance), _watchdog_panel(state.watchdog))
+    return Group(head, top, _guidance_panel(state.guidance), _watchdog_panel(state.watchdog),
+                 _noise_panel(state.noise))
 
 
 def render_text(state: DashboardState, width: int = 100, now: Optional[float] = None) -> str:

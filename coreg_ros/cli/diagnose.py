@@ -95,6 +95,10 @@ def cmd_diagnose(args) -> int:
     print(f'{PROG} diagnose: {args.bag} ({report.n_pairs} pairs, '
           f'{report.duration_s:.1f} s, model {report.model})')
     print(format_diagnosis(report))
+    if report.noise is not None:  # noise: auto, the floor the gap was measured against
+        print('noise floor: estimated with the calibration (the stated noise beside it):')
+        for s in report.noise['statements']:
+            print(f"  {s['text']}")
     if args.json:
         write_json(args.json, document)
         print(f'diagnosis written to {args.json}')
@@ -147,8 +151,14 @@ def cmd_validate(args) -> int:
     from coreg_ros.sim.validation import _jsonable, format_validation, validate
 
     progress = case_progress(f'{PROG} validate-diagnosis', args.quiet)
+    noise = None
+    if args.noise:
+        from coreg_ros.files.noise_file import load_noise_file
+        got = load_noise_file(args.noise)
+        noise = {d: getattr(got, f'device_{d}') for d in 'ab'
+                 if getattr(got, f'device_{d}') is not None}
     out = validate(args.cases, args.seed, progress, workers=args.workers,
-                   scheduler=args.scheduler)
+                   scheduler=args.scheduler, noise=noise)
     failed = failures(out['results'])
     print(f'{PROG} validate-diagnosis: {args.cases} cases, seed {args.seed}'
           + (f', {len(failed)} failed' if failed else ''))
@@ -183,5 +193,8 @@ def register(sub) -> None:
     p.add_argument('--jobs', type=positive_int, dest='workers', default=argparse.SUPPRESS,
                    help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument('--json', metavar='OUT', help='also write every case and the summary')
+    p.add_argument('--noise', metavar='FILE',
+                   help='a noise file (coreg noise RECORDING): every case simulated and stated '
+                        "with its devices' noise instead of the drawn one")
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(func=cmd_validate)

@@ -26,12 +26,15 @@ def build_parser() -> argparse.ArgumentParser:
         calibrate,
         convert,
         diagnose,
+        export,
+        noise,
         plan,
         ros_commands,
         simulate,
         watch,
     )
-    for module in (calibrate, simulate, diagnose, batch, convert, plan, ros_commands, watch):
+    for module in (calibrate, noise, simulate, diagnose, batch, convert, plan, export,
+                   ros_commands, watch):
         module.register(sub)
     return parser
 

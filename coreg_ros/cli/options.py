@@ -55,6 +55,17 @@ def add_calibration_options(p: argparse.ArgumentParser, bag: bool = True) -> Non
                    help='on (default) rejects pairs far outside the stated noise before the '
                         'final fit; off is plain least squares')
     p.add_argument('--min-pairs', type=int, help='fewest pairs accepted (default 30)')
+    add_noise_option(p)
+
+
+def add_noise_option(p: argparse.ArgumentParser, auto: bool = True) -> None:
+    """Add ``--noise FILE|auto`` (``noise_from_args``)."""
+    p.add_argument('--noise', metavar='FILE|auto' if auto else 'FILE',
+                   help='a noise file (coreg noise RECORDING): 3x3 covariances per device '
+                        'in its base frame, instead of --sigma-a/--sigma-b'
+                        + ("; auto estimates each device's noise with the calibration (what "
+                           'the motion cannot separate held at the stated noise) and says '
+                           'which device was noisier than stated' if auto else ''))
 
 
 def offset_or_auto(text: str):
@@ -81,7 +92,7 @@ def settings_from_args(args):
     offset = getattr(args, 'time_offset', None)
     drift = getattr(args, 'clock_drift', None)
     robust = getattr(args, 'robust', None)
-    return settings.updated(
+    settings = settings.updated(
         topic_a=args.topic_a, topic_b=topic_b, model=args.model, method=args.method,
         sigma_a=tuple(args.sigma_a) if args.sigma_a else None,
         sigma_b=tuple(args.sigma_b) if args.sigma_b else None,
@@ -90,6 +101,39 @@ def settings_from_args(args):
         estimate_time_offset=None if offset is None else offset == 'auto',
         estimate_clock_drift=None if drift is None else drift == 'auto',
         robust=None if robust is None else robust == 'on')
+    return noise_from_args(args, settings)
+
+
+def noise_from_args(args, settings):
+    """
+    Return the settings with ``--noise`` applied (and the ``--config`` file's ``noise_file``).
+
+    ``auto`` (or ``stated``) sets ``Settings.noise``; a file gives the devices' full noise
+    (``files.noise_file.with_noise_file``: units, topics and covariances checked). A device
+    whose noise both the file and ``--sigma-a``/``--sigma-b`` give is refused: say it once.
+    """
+    from coreg_ros.core.errors import ConfigError
+    from coreg_ros.core.settings import NOISE_MODES
+
+    given = getattr(args, 'noise', None)
+    path = None
+    if given is not None and given.strip().lower() in NOISE_MODES:
+        settings = settings.updated(noise=given.strip().lower())
+    elif given:
+        path = given
+    if path is None and getattr(args, 'config', None):
+        from coreg_ros.files.parameters import load_parameters
+        path = load_parameters(args.config).get('noise_file') or None
+    if path is None:
+        return settings
+    from coreg_ros.files.noise_file import load_noise_file, with_noise_file
+    noise = load_noise_file(path)
+    for d in 'ab':
+        if getattr(args, f'sigma_{d}', None) and getattr(noise, f'device_{d}') is not None:
+            raise ConfigError(f'--sigma-{d} and the noise file {path} both give device '
+                              f"{d.upper()}'s noise: give it once (drop --sigma-{d}, or "
+                              f'the file)')
+    return with_noise_file(settings, noise)
 
 
 def config_frames(args) -> tuple:

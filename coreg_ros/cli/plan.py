@@ -11,6 +11,7 @@ model (``coreg_ros.core.planning.plan``).
 from __future__ import annotations
 
 from coreg_ros.cli.argtypes import positive
+from coreg_ros.cli.options import add_noise_option
 from coreg_ros.core.types import MODELS
 import numpy as np
 
@@ -20,11 +21,12 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         'plan', help='predict the calibration accuracy (Cramér-Rao bound) and the best '
                      'motion to add')
-    p.add_argument('--sigma-a', nargs=2, type=positive, required=True,
+    p.add_argument('--sigma-a', nargs=2, type=positive,
                    metavar=('POS_M', 'ROT_RAD'), help='device A noise std: position m, '
                                                       'rotation rad')
-    p.add_argument('--sigma-b', nargs=2, type=positive, required=True,
+    p.add_argument('--sigma-b', nargs=2, type=positive,
                    metavar=('POS_M', 'ROT_RAD'), help='device B noise std')
+    add_noise_option(p, auto=False)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument('--bag', help='a recording whose device A motion is used')
     src.add_argument('--duration', type=positive, metavar='S',
@@ -87,18 +89,28 @@ def _motion_from_bag(args, settings, cov_a, cov_b):
 
 def cmd_plan(args) -> int:
     """Predict the calibration accuracy and rank candidate additions to the motion."""
-    from coreg_ros.core.estimator import noise_covariance
+    from coreg_ros.cli.options import noise_from_args
+    from coreg_ros.core.errors import ConfigError
     from coreg_ros.core.planning.plan import plan_recording
     from coreg_ros.core.settings import Settings
     from coreg_ros.files.atomic import write_json
     from coreg_ros.sim import make_motion, random_truth
 
-    settings = Settings(model=args.model, sigma_a=tuple(args.sigma_a),
-                        sigma_b=tuple(args.sigma_b))
+    settings = Settings(model=args.model)
     if args.topic_a or args.topic_b:
         settings = settings.updated(topic_a=args.topic_a,
                                     topic_b=tuple(args.topic_b) if args.topic_b else None)
-    cov_a, cov_b = noise_covariance(args.sigma_a), noise_covariance(args.sigma_b)
+    settings = noise_from_args(args, settings.updated(
+        sigma_a=tuple(args.sigma_a) if args.sigma_a else None,
+        sigma_b=tuple(args.sigma_b) if args.sigma_b else None))
+    for d in 'ab':
+        if getattr(args, f'sigma_{d}') is None and getattr(settings, f'noise_{d}') is None:
+            raise ConfigError(f"device {d.upper()}'s noise is needed: give --sigma-{d} POS_M "
+                              f'ROT_RAD, or --noise FILE (coreg noise RECORDING writes one)')
+    if settings.noise == 'auto':
+        raise ConfigError('coreg plan takes the noise as stated: give --noise FILE or '
+                          "--sigma-a/--sigma-b (a recording's noise: coreg noise RECORDING)")
+    cov_a, cov_b = settings.cov_a, settings.cov_b
     rng = np.random.default_rng(args.seed)
     truth = random_truth(rng, args.model)
     if args.bag:

@@ -21,11 +21,12 @@ import math
 from typing import Any
 
 from coreg_ros.core.errors import ConfigError
-from coreg_ros.core.settings import Settings
+from coreg_ros.core.settings import NOISE_MODES, Settings
 
 #: Keys of the node only (the calibration keys and their defaults are those of Settings).
 NODE_DEFAULTS = {
     'prior_file': '',
+    'noise_file': '',
     'use_last_result_as_prior': False,
     'gravity_aligned_sigma': 0.0,
     'publish_inconsistent': False,
@@ -35,6 +36,7 @@ NODE_DEFAULTS = {
     'frame_base_b': 'device_b_base',
     'frame_tool': 'device_a_tool',
     'frame_marker': 'device_b_marker',
+    'publish_tf': True,
     'storage_dir': '~/.ros/coreg',
     'resume_samples': False,
     'publish_fused_pose': True,
@@ -73,6 +75,7 @@ RANGES = {
 #: Allowed values of the string keys of the node that name a choice.
 CHOICES = {
     'motion_limits': ('free', 'auto', 'restricted'),
+    'noise': NOISE_MODES,
 }
 
 #: Keys ROS itself gives every node (not ours, never warned about), all booleans.

@@ -75,6 +75,36 @@ def format_unobservable(u) -> str:
     return f'determined by the prior only: {u.description} ({at["component"]} = {value})'
 
 
+def format_noise_estimate(estimate) -> list:
+    """
+    Return the lines of a noise estimated with the calibration (``CalibrationResult.noise``).
+
+    Each device channel's principal σ with its standard error, or why it is held, then the
+    comparison with the stated noise.
+    """
+    out = [f'noise: estimated with the calibration from {estimate.n_pairs} pairs '
+           f'({estimate.method.upper()}); the fit above used it']
+    shown = {'position': (1e3, 'mm'), 'rotation': (1e3, 'mrad')}
+    for d in 'ab':
+        for kind, ch in estimate.devices[d].items():
+            k, unit = shown[kind]
+            name = f'  {d.upper()} {kind:<8}'
+            if ch.status == 'estimated':
+                sig = ', '.join(f'{s * k:.3g} ± {e * k:.2g}' for s, e in zip(ch.sigma, ch.sigma_se,
+                                                                             strict=True))
+                what = 'full covariance' if ch.mode == 'full' else 'the stated shape scaled'
+                out.append(f'{name} σ {sig} {unit} (principal; {what})')
+            elif ch.status == 'held':
+                sig = ', '.join(f'{s * k:.3g}' for s in ch.sigma)
+                out.append(f'{name} σ {sig} {unit} held at the stated value: {ch.note}')
+    for s in estimate.statements:
+        if s.ratio_se > 0:
+            out.append(f'  {s.text}' + ('  <- misstated' if s.misstated else ''))
+    if not estimate.converged:
+        out.append('  the estimation did not converge: take these as rough')
+    return out
+
+
 def format_result(result, report=None) -> str:
     """Render the full report a person reads after ``coreg calibrate``."""
     state = 'success' if result.success else (
@@ -83,9 +113,14 @@ def format_result(result, report=None) -> str:
     out = [f'model {result.model}, method {result.method.upper()}: {state}: {result.message}']
     if report is not None:
         out.append(f'pairing: {report.summary()}')
+    said = fit_verdict(result.p_value)
+    if result.noise is not None:  # judged against the noise estimated with it
+        said = said.replace('the stated noise', 'the estimated noise') + (
+            f' (p of F(dof, {result.noise.dof}): the noise was estimated from '
+            f'{result.noise.dof} of these errors, so an effect the model lacks shows as noise, '
+            f'not here: coreg diagnose looks for its structure)')
     out.append(f'fit: chi2 = {result.chi2:.1f}, dof = {result.dof}, '
-               f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: '
-               f'{fit_verdict(result.p_value)}')
+               f'chi2/dof = {result.reduced_chi2:.3f}, p = {result.p_value:.3g}: {said}')
     if result.verdict:
         out.append(f'verdict: {result.verdict}')
     if result.time_offset is not None:
@@ -94,6 +129,8 @@ def format_result(result, report=None) -> str:
         share = result.n_rejected / max(result.n_pairs, 1)
         out.append(f'outliers: {result.n_rejected} of {result.n_pairs} pairs rejected '
                    f'({share:.2%}), far outside the stated noise')
+    if result.noise is not None:
+        out += format_noise_estimate(result.noise)
     if result.prior_check is not None:
         pc = result.prior_check
         out.append(f"prior: chi2 = {pc['chi2']:.2f} for {pc['dof']} dof, p = "

@@ -9,17 +9,22 @@ descriptor, the CLI reads the same file with ``--config`` and overrides keys wit
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from dataclasses import dataclass, fields, replace
+from typing import Any, Optional
 
 from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.noise_model import DeviceNoise, MAX_SIGMA, noise_covariance
 from coreg_ros.core.types import METHODS, MODELS
 import numpy as np
 
-#: Largest noise σ taken as meant (position m, rotation rad): beyond it the numbers are in
-#: other units (mm, degrees), as no tracker that could be coregistered is that noisy.
-MAX_SIGMA_M = 1.0
-MAX_SIGMA_RAD = 0.5
+#: Largest noise σ taken as meant (position m, rotation rad; ``noise_model.MAX_SIGMA``).
+MAX_SIGMA_M = MAX_SIGMA['position']
+MAX_SIGMA_RAD = MAX_SIGMA['rotation']
+#: How the noise is known: ``stated`` (sigma_a/sigma_b or a noise file, taken as true) or
+#: ``auto`` (estimated jointly with the calibration, ``calibration.noise_components``).
+NOISE_MODES = ('stated', 'auto')
+#: Fields of Settings that are not parameters of a file (objects: the noise file's contents).
+OBJECT_FIELDS = ('noise_a', 'noise_b')
 DEFAULT_TOPIC_A = '/device_a/pose'
 DEFAULT_TOPIC_B = ('/device_b/pose',)
 DEFAULT_TOPICS_B_THREE_MARKER = (
@@ -61,6 +66,16 @@ class Settings:
         Fewest pairs a calibration accepts.
     max_iterations : int
         Iteration limit of the estimator.
+    noise : {'stated', 'auto'}
+        ``stated``: the noise is as given (``sigma_a``/``sigma_b``, or ``noise_a``/``noise_b``)
+        and the verdict judges the fit against it; ``auto``: each device's noise is estimated
+        jointly with the calibration (variance components), the given noise being where the
+        components the data cannot separate are held.
+    noise_a, noise_b : DeviceNoise, optional
+        Full (anisotropic) noise of a device in its base frame, e.g. from a noise file
+        (``coreg noise``); overrides ``sigma_a``/``sigma_b``, which then hold its largest
+        principal σ (for what needs one number). Not a parameter of a file: the node's
+        ``noise_file`` and ``--noise FILE`` give them.
 
     """
 
@@ -77,6 +92,9 @@ class Settings:
     robust: bool = True
     min_pairs: int = 30
     max_iterations: int = 100
+    noise: str = 'stated'
+    noise_a: Optional[DeviceNoise] = None
+    noise_b: Optional[DeviceNoise] = None
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -96,6 +114,17 @@ class Settings:
                     f'(above {MAX_SIGMA_M:g} m or {MAX_SIGMA_RAD:g} rad); give metres and '
                     f'radians, e.g. 0.002 0.0087 for 2 mm and 0.5°')
             object.__setattr__(self, name, value)
+        for device in 'ab':
+            full = getattr(self, f'noise_{device}')
+            if full is not None:
+                if not isinstance(full, DeviceNoise):
+                    raise ConfigError(f'noise_{device} must be a DeviceNoise (e.g. from a noise '
+                                      f'file), got {type(full).__name__}')
+                # what needs one number (thresholds, summaries) gets the largest principal σ
+                object.__setattr__(self, f'sigma_{device}', full.largest_sigmas())
+        if self.noise not in NOISE_MODES:
+            raise ConfigError(f'noise must be one of {" | ".join(NOISE_MODES)}, got '
+                              f'{self.noise!r} (a noise file is given as noise_file)')
         topics = (self.topic_b,) if isinstance(self.topic_b, str) else tuple(self.topic_b)
         object.__setattr__(self, 'topic_b', topics)
         needed = 3 if self.model == 'three_marker' else 1
@@ -124,6 +153,21 @@ class Settings:
             raise ConfigError(f'max_iterations must be >= 1, got {self.max_iterations}')
 
     @property
+    def cov_a(self) -> np.ndarray:
+        """Device A's stated noise, 6×6 ROS layout (``noise_a`` if given, else ``sigma_a``)."""
+        return noise_covariance(self.device_noise('a'))
+
+    @property
+    def cov_b(self) -> np.ndarray:
+        """Device B's stated noise, 6×6 ROS layout (``noise_b`` if given, else ``sigma_b``)."""
+        return noise_covariance(self.device_noise('b'))
+
+    def device_noise(self, device: str):
+        """Device ``'a'`` or ``'b'``'s stated noise: its DeviceNoise, else its σ pair."""
+        full = getattr(self, f'noise_{device}')
+        return full if full is not None else getattr(self, f'sigma_{device}')
+
+    @property
     def max_gap_ns(self) -> int:
         """Maximum pairing gap in nanoseconds."""
         return int(round(self.max_gap * 1e9))
@@ -138,8 +182,23 @@ class Settings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
 
     def as_dict(self) -> dict:
-        """Plain dict of the settings (lists for tuples), e.g. for YAML or JSON."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        """
+        Plain dict of the parameters (lists for tuples), e.g. for YAML or JSON.
+
+        The full noise (``noise_a``, ``noise_b``) is no parameter: ``noise_dict`` gives it.
+        """
+        return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v
+                for f in fields(self) if f.name not in OBJECT_FIELDS}
+
+    def noise_dict(self) -> dict:
+        """Return the full noise given (``noise_a``, ``noise_b`` as 3×3 lists), empty when none."""
+        out = {}
+        for device in 'ab':
+            full = getattr(self, f'noise_{device}')
+            if full is not None:
+                out[f'device_{device}'] = {'position_covariance': [list(r) for r in full.position],
+                                           'rotation_covariance': [list(r) for r in full.rotation]}
+        return out
 
 
 def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = None) -> Settings:
@@ -148,6 +207,6 @@ def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = Non
 
     Unknown keys that belong to the node only (frame ids, storage paths, QoS) are ignored here.
     """
-    known = {f.name for f in fields(Settings)}
+    known = {f.name for f in fields(Settings)} - set(OBJECT_FIELDS)
     base = base or Settings()
     return base.updated(**{k: v for k, v in values.items() if k in known})

@@ -365,6 +365,9 @@ class CalibrationResult:
         With directions held: the joint covariance of the part the motion determines (the
         published one less what it says along them). What propagates through the model
         (``cov_for_propagation``), which a held direction does not change.
+    noise : calibration.noise_verdict.NoiseEstimate, optional
+        Each device's noise estimated jointly with the calibration (``noise: auto``), which
+        the fit then used; None when the noise was stated.
 
     """
 
@@ -396,6 +399,7 @@ class CalibrationResult:
     direction_check: Optional[object] = None
     unobservable: tuple = ()
     cov_determined: Optional[np.ndarray] = None
+    noise: Optional[object] = None
 
     @property
     def reduced_chi2(self) -> float:

@@ -10,7 +10,7 @@ from coreg_ros.core.errors import ConfigError
 _WARNED: set = set()
 
 
-def _yaml_loader():
+def yaml_loader():
     """Return a safe YAML loader that also reads ``1e-3`` as a number, as the ROS parser does."""
     import re
 
@@ -72,13 +72,13 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
     try:
         with open(path, encoding='utf-8') as f:
             text = f.read()
-        for event in yaml.parse(text, Loader=_yaml_loader()):  # noqa: S506 - a SafeLoader
+        for event in yaml.parse(text, Loader=yaml_loader()):  # noqa: S506 - a SafeLoader
             if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None):
                 line = event.start_mark.line + 1
                 raise ConfigError(f'config file {path} uses a YAML anchor or alias (& or *) at '
                                   f'line {line}, which ROS parameter files do not support; '
                                   f'write the values out')
-        doc = yaml.load(text, Loader=_yaml_loader()) or {}  # noqa: S506 - a SafeLoader
+        doc = yaml.load(text, Loader=yaml_loader()) or {}  # noqa: S506 - a SafeLoader
     except OSError as e:
         raise ConfigError(f'cannot read config file {path}: {e.strerror}') from e
     except yaml.YAMLError as e:

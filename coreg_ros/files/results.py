@@ -18,7 +18,10 @@ Layout (relied upon by checks)::
      "tool_to_marker": {same},
      "markers": [[x, y, z], ...],
      "unobservable": [{"direction": [12 numbers], "description", "held_at", "by", "determine"}]
-                     (the directions the motion does not determine: empty for a free rig)}
+                     (the directions the motion does not determine: empty for a free rig),
+     "noise": {"device_a": {"position_sigma_m", "rotation_sigma_rad", "estimated",
+                            "sigma_of_estimate", "stated", ...}, "device_b": {...},
+               "statements", "verdict"} (noise: auto; ``noise_verdict.estimate_dict``)}
 
 ``base_to_base`` is T_bbase_abase (A's base frame in B's base frame); ``tool_to_marker`` is
 T_atool_bmarker (B's marker frame in A's tool frame).
@@ -105,6 +108,9 @@ def result_to_dict(result: CalibrationResult) -> dict:
     if result.prior_check is not None:
         out['prior_check'] = dict(result.prior_check)
     out['unobservable'] = [u.as_dict() for u in result.unobservable]
+    if result.noise is not None:
+        from coreg_ros.core.calibration.noise_verdict import estimate_dict
+        out['noise'] = estimate_dict(result.noise)
     return out
 
 

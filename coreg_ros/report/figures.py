@@ -18,13 +18,14 @@ from coreg_ros.core import uncertainty as unc
 from coreg_ros.core.types import CalibrationResult, UncertainPose
 import numpy as np
 
-_AXIS_COLOURS = ('#d62728', '#2ca02c', '#1f77b4')
+AXIS_COLOURS = ('#d62728', '#2ca02c', '#1f77b4')
 #: Displayed size of the largest ellipsoid semi-axis and cone half-angle after magnification.
 _SHOW_ELLIPSOID = 0.3
 _SHOW_CONE_DEG = 14.0
 
 
-def _figure(width: float, height: float):
+def new_figure(width: float, height: float):
+    """Return an empty figure on the Agg canvas (inches; no global backend)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -79,8 +80,8 @@ def draw_pose_uncertainty(ax, pose: UncertainPose, title: str, n_sigma: float = 
     gains = {'ellipsoid_gain': None, 'cone_gain': None}
     for i in range(3):
         a = R[:, i]
-        ax.plot([0, a[0]], [0, a[1]], [0, a[2]], color=_AXIS_COLOURS[i], lw=2.5)
-        ax.text(*(1.12 * a), 'xyz'[i], color=_AXIS_COLOURS[i], fontsize=11, weight='bold')
+        ax.plot([0, a[0]], [0, a[1]], [0, a[2]], color=AXIS_COLOURS[i], lw=2.5)
+        ax.text(*(1.12 * a), 'xyz'[i], color=AXIS_COLOURS[i], fontsize=11, weight='bold')
     if position_known(pose):
         ell = unc.ellipsoid_axes(pose.covariance[0:3, 0:3], n_sigma)
         gain = _SHOW_ELLIPSOID / max(float(ell.semi_axes[0]), 1e-300)
@@ -101,8 +102,8 @@ def draw_pose_uncertainty(ax, pose: UncertainPose, title: str, n_sigma: float = 
                    + c.ellipse_axes[:, 1:2] * ext[1] * np.sin(t))
             apex = np.zeros((3, t.size))
             X, Y, Z = (np.stack([apex[k], rim[k]]) for k in range(3))
-            ax.plot_surface(X, Y, Z, color=_AXIS_COLOURS[c.index], alpha=0.25, linewidth=0)
-            ax.plot(rim[0], rim[1], rim[2], color=_AXIS_COLOURS[c.index], lw=1.2)
+            ax.plot_surface(X, Y, Z, color=AXIS_COLOURS[c.index], alpha=0.25, linewidth=0)
+            ax.plot(rim[0], rim[1], rim[2], color=AXIS_COLOURS[c.index], lw=1.2)
         gains['cone_gain'] = gain
     ax.set_xlim(-1.1, 1.1)
     ax.set_ylim(-1.1, 1.1)
@@ -120,7 +121,7 @@ def draw_pose_uncertainty(ax, pose: UncertainPose, title: str, n_sigma: float = 
 
 def pose_uncertainty_figure(result: CalibrationResult, n_sigma: float = 3.0):
     """Figure with T0 and T1 drawn as in Hoff Fig. 1; returns (figure, captions)."""
-    fig = _figure(11.0, 5.6)
+    fig = new_figure(11.0, 5.6)
     captions = []
     for k, (pose, title) in enumerate((
             (result.base_to_base, "T0 base_to_base: A's base in B's base"),
@@ -179,7 +180,7 @@ def residuals_figure(result: CalibrationResult):
     inp = None if result.input_residuals is None else np.asarray(result.input_residuals)
     has_inp = inp is not None and inp.size > 0
     n, m = res.shape
-    fig = _figure(11.0, 6.8)
+    fig = new_figure(11.0, 6.8)
     out_labels = (['x', 'y', 'z', 'rot x', 'rot y', 'rot z'] if m == 6
                   else [f'm{j // 3 + 1} {"xyz"[j % 3]}' for j in range(m)])
     step = max(1, n // 4000)  # at most ~4000 points per channel

@@ -8,7 +8,8 @@ diagnostics, the fused pose and the journal do not wait for it); what follows th
 (publishing, telling the listeners, storing) happens back in the executor thread, as it does
 for the live checks' calibrations (``auto_calibrate``, ``auto_recalibrate``), which run in it.
 
-A published calibration goes to ``~/base_to_base`` and ``~/tool_to_marker`` (stamped now), to
+A published calibration goes to ``~/base_to_base`` and ``~/tool_to_marker`` (stamped now) and
+to /tf_static (``ros.static_tf``, with ``publish_tf``), to
 the listeners (``UncertaintyOutputs`` and ``LiveChecks``: ``set_result``) and to
 ``storage_dir`` under a name of the node and its configuration. At start-up
 ``republish_stored`` republishes the stored result of this node and configuration only,
@@ -36,6 +37,7 @@ from coreg_ros.ros.alerts import Alerts
 from coreg_ros.ros.messages import ns_to_stamp, uncertain_pose_to_msg
 from coreg_ros.ros.parameters import NodeConfig, ParameterView
 from coreg_ros.ros.sample_store import SampleStore
+from coreg_ros.ros.static_tf import StaticTf
 from coreg_ros.ros.uncertainty_outputs import stored_result_dict
 from rclpy.task import Future
 
@@ -70,6 +72,8 @@ class Calibrator:
     wake : callable
         Wakes the services executor (a guard condition's ``trigger``) when a fit in the worker
         thread is done, so the waiting ``~/calibrate`` goes on at once.
+    static_tf : StaticTf, optional
+        Broadcasts what is published on /tf_static too (``ros.static_tf``).
 
     Attributes
     ----------
@@ -82,7 +86,8 @@ class Calibrator:
 
     def __init__(self, config: NodeConfig, config_key: str, node_name: str, node_fqn: str,
                  params: ParameterView, store: SampleStore, pub_base, pub_tool, clock, logger,
-                 alerts: Alerts, io_lock: threading.Lock, wake: Callable[[], None]):
+                 alerts: Alerts, io_lock: threading.Lock, wake: Callable[[], None],
+                 static_tf: Optional[StaticTf] = None):
         self.config = config
         self.config_key = config_key
         self.node_name = node_name
@@ -96,6 +101,7 @@ class Calibrator:
         self.alerts = alerts
         self.io_lock = io_lock
         self.wake = wake
+        self.static_tf = static_tf
         self.result_name = persistence.result_file_name(node_name, config_key)
         self.summary: Optional[dict] = None
         self.timing: Optional[TimeOffset] = None
@@ -258,6 +264,8 @@ class Calibrator:
             f'{result.iterations} iterations, '
             f'{seconds:.2f} s; base_to_base p [{p0[0]:.4f}, {p0[1]:.4f}, {p0[2]:.4f}] m, '
             f'tool_to_marker p [{p1[0]:.4f}, {p1[1]:.4f}, {p1[2]:.4f}] m; {stored}')
+        if result.noise is not None:  # noise: auto, what the calibration found of the noise
+            message += '; ' + (result.noise.verdict() or 'noise estimated: as stated')
         if result.held:  # a rig that cannot move in every direction: what is unknown
             message += '; held (the motion cannot show it, covariance unknown along it): ' + \
                 '; '.join(u.description for u in result.held)
@@ -266,7 +274,11 @@ class Calibrator:
 
     def _publish_result(self, base_to_base, tool_to_marker,
                         stamp_ns: Optional[int] = None) -> int:
-        """Publish the two transforms stamped ``stamp_ns`` (default: now); return the stamp."""
+        """
+        Publish the two transforms stamped ``stamp_ns`` (default: now); return the stamp.
+
+        To ``~/base_to_base``, ``~/tool_to_marker`` and (``publish_tf``) /tf_static.
+        """
         if stamp_ns is None:
             stamp_ns = self.clock.now().nanoseconds
         stamp = ns_to_stamp(int(stamp_ns))
@@ -274,6 +286,8 @@ class Calibrator:
                                                     stamp))
         self.pub_tool.publish(uncertain_pose_to_msg(tool_to_marker, self.config.frame_tool,
                                                     stamp))
+        if self.static_tf is not None:
+            self.static_tf.send(base_to_base, tool_to_marker, stamp)
         return int(stamp_ns)
 
     # --- the stored result --------------------------------------------------------------------

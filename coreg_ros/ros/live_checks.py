@@ -203,7 +203,8 @@ class LiveChecks:
         self.settings = settings
         self.feed = gd.PairFeed(max_gap=settings.max_gap)
         self.guide = gd.GuidanceAccumulator(
-            settings.model, settings.sigma_a, settings.sigma_b, *self._targets(),
+            settings.model, settings.device_noise('a'), settings.device_noise('b'),
+            *self._targets(),
             estimate_time_offset=settings.estimate_time_offset, tls=settings.method == 'tls',
             motion_limits=str(self.params('motion_limits')))
         self.guidance: Optional[gd.Guidance] = None
@@ -238,8 +239,8 @@ class LiveChecks:
 
     def _watch(self, calibration: wd.Calibration, chi2_dof: float) -> None:
         s = self.settings = self.params.settings()
-        self.watch = wd.Watchdog(calibration, s.sigma_a, s.sigma_b, tls=s.method == 'tls',
-                                 noise_scale=max(1.0, float(chi2_dof)))
+        self.watch = wd.Watchdog(calibration, s.device_noise('a'), s.device_noise('b'),
+                                 tls=s.method == 'tls', noise_scale=max(1.0, float(chi2_dof)))
         self.state = None
         self._set_stale(False)
 

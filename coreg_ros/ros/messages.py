@@ -11,7 +11,7 @@ from typing import Optional
 
 from builtin_interfaces.msg import Time
 from coreg_ros.core.types import UncertainPose
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
 import numpy as np
 
 _NS = 1_000_000_000
@@ -91,6 +91,34 @@ def uncertain_pose_to_msg(pose: UncertainPose, frame_id: str,
     q.w, q.x, q.y, q.z = (float(v) for v in pose.quat_wxyz)
     cov = -np.eye(6) if pose.covariance is None else np.asarray(pose.covariance, dtype=float)
     msg.pose.covariance = [float(v) for v in cov.reshape(36)]
+    return msg
+
+
+def pose_to_transform(pose: UncertainPose, parent: str, child: str,
+                      stamp: Time) -> TransformStamped:
+    """
+    Build a tf2 TransformStamped: the pose of frame ``child`` in frame ``parent``.
+
+    Parameters
+    ----------
+    pose : UncertainPose
+        Position (m) and (w, x, y, z) quaternion of ``child`` in ``parent`` (its covariance
+        has no place in TF and is left out).
+    parent, child : str
+        ``header.frame_id`` and ``child_frame_id`` (tf2's direction: a point p in ``child``
+        is ``R p + t`` in ``parent``).
+    stamp : builtin_interfaces.msg.Time
+        Header stamp.
+
+    """
+    msg = TransformStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    t = msg.transform.translation
+    t.x, t.y, t.z = (float(v) for v in pose.position)
+    q = msg.transform.rotation
+    q.w, q.x, q.y, q.z = (float(v) for v in pose.quat_wxyz)
     return msg
 
 

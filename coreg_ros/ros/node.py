@@ -17,7 +17,9 @@ Services (std_srvs/Trigger)
 Publications
     ``~/base_to_base`` (pose of ``frame_base_a`` in ``frame_base_b``) and ``~/tool_to_marker``
     (pose of ``frame_marker`` in ``frame_tool``), PoseWithCovarianceStamped, transient-local
-    so late subscribers get the last result; ``/diagnostics`` at 1 Hz (with messages lost in
+    so late subscribers get the last result; the same two transforms on ``/tf_static``
+    (``publish_tf``: ``frame_base_b`` -> ``frame_base_a``, ``frame_tool`` -> ``frame_marker``,
+    ``ros.static_tf``); ``/diagnostics`` at 1 Hz (with messages lost in
     the middleware or missing from the stamps, swapped frame ids, a wrong message type on a
     topic, and storage errors). Once a calibration exists, ``~/fused_pose`` and
     ``~/uncertainty_markers`` (``ros.uncertainty_outputs``). The live checks
@@ -73,6 +75,7 @@ from coreg_ros.ros.lifecycle import (
     shutdown_quietly,
 )
 from coreg_ros.ros.live_checks import LiveChecks, STALE_QOS
+from coreg_ros.ros.live_noise import NoiseSources
 from coreg_ros.ros.parameters import (
     check_params_files,
     declare_parameters,
@@ -80,6 +83,7 @@ from coreg_ros.ros.parameters import (
     read_config,
 )
 from coreg_ros.ros.sample_store import FLUSH_PERIOD, SampleStore
+from coreg_ros.ros.static_tf import StaticTf
 from coreg_ros.ros.status_publisher import StatusPublisher
 from coreg_ros.ros.uncertainty_outputs import (
     DRAIN_PERIOD,
@@ -143,10 +147,14 @@ class CoregNode(Node):
         for line in declare_parameters(self):
             self.get_logger().warning(line)
         self.config = config = read_config(self)
-        self.params = ParameterView(self)
+        self.noise = NoiseSources(config.noise_file, config.settings)
+        self.params = ParameterView(self, self.noise)
         settings, log, name = config.settings, self.get_logger(), self.get_name()
-        # What a stored result or a journal is valid for: one per node name and configuration.
-        key = persistence.config_key(settings.as_dict(), config.frames)
+        # What a stored result or a journal is valid for: one per node name and configuration
+        # (a noise file's covariances are part of it).
+        stated = settings.noise_dict()
+        key = persistence.config_key({**settings.as_dict(), **(
+            {'noise_file': stated} if stated else {})}, config.frames)
         io_lock = threading.Lock()  # the node's disk writes, one at a time
         self.alerts = Alerts(log, config.storage_dir)
         raw = os.environ.get(PLAIN_ENV, '').strip() in ('', '0')
@@ -169,10 +177,11 @@ class CoregNode(Node):
         pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # Wakes the services executor when a ~/calibrate fit in the worker thread is done.
         fitted = self.create_guard_condition(lambda: None)
+        self.static_tf = StaticTf(self, config.frames, config.publish_tf, log)
         self.calibrator = Calibrator(config, key, name, self.get_fully_qualified_name(),
                                      self.params, self.store, pub_base, pub_tool,
                                      self.get_clock(), log, self.alerts, io_lock,
-                                     fitted.trigger)
+                                     fitted.trigger, self.static_tf)
         self.outputs = UncertaintyOutputs(
             config, self.params, self.store.buffers,
             self.create_publisher(PoseWithCovarianceStamped, '~/fused_pose', FUSED_QOS),
@@ -184,9 +193,10 @@ class CoregNode(Node):
                                log)
         self.calibrator.add_listener(self.outputs)
         self.calibrator.add_listener(self.live)
+        self.calibrator.add_listener(self.noise)
         self.status = StatusPublisher(name, config, self.params, self.store, self.calibrator,
                                       self.live, self.alerts, pub_diag, self.get_clock(),
-                                      self.get_publishers_info_by_topic)
+                                      self.get_publishers_info_by_topic, self.noise)
 
         guard = self.alerts.guard_service
         # A group of its own: while ~/calibrate awaits its fit, the node's default group (the
@@ -234,6 +244,7 @@ class CoregNode(Node):
         """Answer ``~/reset``: forget the samples, start guidance afresh; keep the result."""
         held = self.store.forget()
         self.live.reset()
+        self.noise.forget()
         response.success = True
         response.message = f'forgot {held} samples; the published result is kept'
         return response

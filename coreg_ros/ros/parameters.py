@@ -79,9 +79,18 @@ PARAMETERS = (
      _desc('fewest pairs a calibration accepts', ints=_int_range(*RANGES['min_pairs']))),
     ('max_iterations', DEFAULTS['max_iterations'],
      _desc('iteration limit of the estimator', ints=_int_range(*RANGES['max_iterations']))),
+    ('noise', DEFAULTS['noise'],
+     _desc('stated: the noise is as given (sigma_a/sigma_b or noise_file) and the fit is judged '
+           'against it; auto: each device noise is estimated with the calibration (variance '
+           'components), what the motion cannot separate held at the noise measured while a '
+           'device stood still, else at the given noise', constraints='stated | auto')),
     ('prior_file', DEFAULTS['prior_file'],
      _desc('a previous result (result.yaml or coreg calibrate --json) or a partial prior that '
            'calibrations refine (Ikits B.3); empty: none')),
+    ('noise_file', DEFAULTS['noise_file'],
+     _desc('a noise file (coreg noise RECORDING --out FILE): 3x3 position and rotation '
+           'covariances per device in its base frame, used instead of sigma_a/sigma_b; empty: '
+           'none', read_only=True)),
     ('use_last_result_as_prior', DEFAULTS['use_last_result_as_prior'],
      _desc("refine the node's own stored result (its result_<node>_<hash>.yaml in "
            'storage_dir) when no prior_file is given')),
@@ -101,6 +110,9 @@ PARAMETERS = (
     ('frame_base_b', DEFAULTS['frame_base_b'], _desc("device B's base frame", read_only=True)),
     ('frame_tool', DEFAULTS['frame_tool'], _desc("device A's tool frame", read_only=True)),
     ('frame_marker', DEFAULTS['frame_marker'], _desc("device B's marker frame", read_only=True)),
+    ('publish_tf', DEFAULTS['publish_tf'],
+     _desc('broadcast the calibration on /tf_static (tf2): frame_base_b -> frame_base_a (T0) '
+           'and frame_tool -> frame_marker (T1), latched', read_only=True)),
     ('storage_dir', DEFAULTS['storage_dir'],
      _desc('directory of the stored results (one file per node and configuration), the '
            'sample journal and saved sample bags', read_only=True)),
@@ -158,7 +170,7 @@ if [name for name, _, _ in PARAMETERS] != list(DEFAULTS):  # one table of keys, 
 #: Names of the calibration keys (those of Settings).
 CALIBRATION_KEYS = ('topic_a', 'topic_b', 'model', 'method', 'sigma_a', 'sigma_b', 'max_gap',
                     'time_offset', 'estimate_time_offset', 'estimate_clock_drift', 'robust',
-                    'min_pairs', 'max_iterations')
+                    'min_pairs', 'max_iterations', 'noise')
 
 
 @dataclass(frozen=True)
@@ -176,10 +188,15 @@ class NodeConfig:
         Reliable subscriptions instead of the sensor-data (best effort) profile.
     frame_base_a, frame_base_b, frame_tool, frame_marker : str
         Frame ids of the published poses.
+    publish_tf : bool
+        Broadcast T0 and T1 on /tf_static (``ros.static_tf``).
     storage_dir : str
         Directory of the stored results, the journal and sample bags, user (~) expanded.
     resume_samples : bool
         Load the journal of an interrupted session at start-up.
+    noise_file : files.noise_file.NoiseFile or None
+        The ``noise_file`` read (and checked against the topics) at start-up; ``settings``
+        carry its noise.
 
     """
 
@@ -192,6 +209,8 @@ class NodeConfig:
     frame_marker: str
     storage_dir: str
     resume_samples: bool = False
+    noise_file: object = None
+    publish_tf: bool = True
 
     @property
     def frames(self) -> dict:
@@ -308,16 +327,19 @@ class ParameterView:
 
     """
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, noise=None):
         self._node = node
+        #: ``live_noise.NoiseSources``: the noise in use (file, measured, estimated)
+        self.noise = noise
 
     def __call__(self, name: str):
         """Return the current value of parameter ``name``."""
         return self._node.get_parameter(name).value
 
     def settings(self) -> Settings:
-        """Calibration settings from the current parameter values."""
-        return settings_from_values({k: self(k) for k in CALIBRATION_KEYS})
+        """Calibration settings from the current parameter values, with the noise in use."""
+        settings = settings_from_values({k: self(k) for k in CALIBRATION_KEYS})
+        return settings if self.noise is None else self.noise.apply(settings)
 
     def check_change(self, params) -> SetParametersResult:
         """
@@ -359,6 +381,11 @@ def read_config(node: Node) -> NodeConfig:
     """
     values = {name: node.get_parameter(name).value for name, _, _ in PARAMETERS}
     settings = settings_from_values(values)
+    noise = None
+    if str(values['noise_file']).strip():
+        from coreg_ros.files.noise_file import load_noise_file, with_noise_file
+        noise = load_noise_file(os.path.expanduser(str(values['noise_file']).strip()))
+        settings = with_noise_file(settings, noise)  # refused here: other topics, units
     storage = str(values['storage_dir']).strip()
     if not storage:
         raise ConfigError('storage_dir is empty; set it to a writable directory')
@@ -372,4 +399,6 @@ def read_config(node: Node) -> NodeConfig:
         frame_marker=str(values['frame_marker']),
         storage_dir=os.path.expanduser(storage),
         resume_samples=bool(values['resume_samples']),
+        noise_file=noise,
+        publish_tf=bool(values['publish_tf']),
     )

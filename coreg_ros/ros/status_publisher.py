@@ -57,12 +57,14 @@ class StatusPublisher:
         Stamps the messages.
     publishers_info : callable
         ``Node.get_publishers_info_by_topic`` (who publishes on the pose topics, and what).
+    noise : live_noise.NoiseSources, optional
+        The noise measured while still (the status ``<node>: noise``).
 
     """
 
     def __init__(self, node_name: str, config: NodeConfig, params: ParameterView,
                  store: SampleStore, calibrator: Calibrator, live: LiveChecks, alerts: Alerts,
-                 publisher, clock, publishers_info: Callable):
+                 publisher, clock, publishers_info: Callable, noise=None):
         self.node_name = node_name
         self.config = config
         self.params = params
@@ -73,6 +75,7 @@ class StatusPublisher:
         self.publisher = publisher
         self.clock = clock
         self.publishers_info = publishers_info
+        self.noise = noise
         self.pairing = {'n_paired': None, 'rate': None, 'summary': 'not yet paired',
                         'at_accepted': -1, 'next_time': 0.0}
         self._prev_problems = 0
@@ -83,8 +86,19 @@ class StatusPublisher:
         msg = DiagnosticArray()
         msg.header.stamp = self.clock.now().to_msg()
         live = self.live.tick()  # guidance and watchdog (they never raise)
-        msg.status = [self.diagnostics(), *live]
+        msg.status = [self.diagnostics(), *live, *self._noise()]
         self.publisher.publish(msg)
+
+    def _noise(self) -> list:
+        """Return ``<node>: noise`` (``live_noise``); a failure is said, never raised."""
+        if self.noise is None:
+            return []
+        try:
+            return [self.noise.tick(self.node_name, self.params.settings(), self.store.buffers)]
+        except Exception as e:  # noqa: BLE001 - the diagnostics timer must go on
+            self.alerts.throttled(('noise',), f'noise monitor failed: {type(e).__name__}: {e}',
+                                  period=SETUP_WARN_PERIOD)
+            return []
 
     def _update_pairing(self) -> None:
         """Pair the held samples now and then (rate-limited to a few % of one core)."""

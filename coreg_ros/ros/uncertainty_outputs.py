@@ -367,7 +367,8 @@ class UncertaintyOutputs:
             return 0
         if self.rate > 0:
             pairs = _last_pair(pairs)
-        fused = fused_stream(cal, pairs, settings.sigma_a, settings.sigma_b)
+        fused = fused_stream(cal, pairs, settings.device_noise('a'),
+                             settings.device_noise('b'))
         frame = self.config.frame_base_b
         n = 0
         if self.fused_on and not (self.stale and not self.fuse_when_stale):

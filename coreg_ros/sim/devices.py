@@ -25,6 +25,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
 from coreg_ros.core.types import MODELS, Pairs, PoseStream
+from coreg_ros.sim.device_noise import add_device_noise
 from coreg_ros.sim.injection import apply_effects, effect_stage, EffectContext, STAGES
 from coreg_ros.sim.motion import make_motion, Motion
 from coreg_ros.sim.truth import random_truth, Truth, validate_sigma
@@ -207,6 +208,13 @@ def add_pose_noise(rng: np.random.Generator, position: np.ndarray, quat_wxyz: Op
     return position, quat_wxyz
 
 
+def _device_noise(rng: np.random.Generator, position, quat_wxyz, noise) -> tuple:
+    """Add a device's noise: a σ pair (``add_pose_noise``) or a DeviceNoise (full covariances)."""
+    if isinstance(noise, tuple):
+        return add_pose_noise(rng, position, quat_wxyz, noise)
+    return add_device_noise(rng, position, quat_wxyz, noise)
+
+
 def _stamps(rng: np.random.Generator, rate: float, duration_ns: int, start_ns: int) -> np.ndarray:
     """Stamps at ``rate`` Hz with a random phase in [0, period), within [0, duration), int64 ns."""
     period = 1e9 / rate
@@ -242,7 +250,8 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
                        sigma_a=DEFAULT_SIGMA_A, sigma_b=DEFAULT_SIGMA_B,
                        motion: Union[str, Motion] = 'diverse', truth: Optional[Truth] = None,
                        start_ns: int = DEFAULT_START_NS,
-                       effects: Sequence = (), max_bytes: Optional[int] = None) -> SimRecording:
+                       effects: Sequence = (), max_bytes: Optional[int] = None,
+                       noise_a=None, noise_b=None) -> SimRecording:
     """
     Simulate a recording of devices A and B tracking one rigidly linked body.
 
@@ -275,6 +284,10 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
         (``coreg_ros.sim.injection.STAGES``: before the noise, on the noise, after the noise),
         in the given order within a stage; ``Truth.effects`` lists them in the order applied.
         Empty by default: the recording follows the model exactly.
+    noise_a, noise_b : DeviceNoise, optional
+        Full (anisotropic) noise of a device in its base frame instead of ``sigma_a`` /
+        ``sigma_b``, which then hold its largest σ for the truth and for the effects that
+        draw noise of their own (``noise_scale``, ``distance_noise``: isotropic at that σ).
     max_bytes : int, optional
         Refuse a recording whose estimated memory (``BYTES_PER_SAMPLE`` per sample) exceeds
         this; default ``memory_limit()`` (4 GiB or half the RAM).
@@ -296,6 +309,8 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
     seed = _check_seed(seed)
     _check_model(model)
     effects = tuple(effects)
+    sigma_a = noise_a.largest_sigmas() if noise_a is not None else sigma_a
+    sigma_b = noise_b.largest_sigmas() if noise_b is not None else sigma_b
     sigma_a = validate_sigma(sigma_a, 'sigma_a')
     sigma_b = validate_sigma(sigma_b, 'sigma_b')
     if not (np.isfinite(duration) and duration > 0.0):
@@ -340,9 +355,9 @@ def simulate_recording(seed: int, duration: float, model: str = 'full_pose', *,
         if model == 'full_pose':
             q_b = clean_streams[topics_b[0]].quat_wxyz
 
-    noisy_a = add_pose_noise(np.random.default_rng(seq_a), pos_a, q_a, sigma_a)
-    noisy_b = add_pose_noise(np.random.default_rng(seq_b), pos_b,
-                             q_b if model == 'full_pose' else None, sigma_b)
+    noisy_a = _device_noise(np.random.default_rng(seq_a), pos_a, q_a, noise_a or sigma_a)
+    noisy_b = _device_noise(np.random.default_rng(seq_b), pos_b,
+                            q_b if model == 'full_pose' else None, noise_b or sigma_b)
     streams = {topic_a: PoseStream(stamps_a, noisy_a[0], noisy_a[1], FRAME_A)}
     streams.update(_streams_b(model, topics_b, stamps_b, noisy_b[0],
                               q_b if noisy_b[1] is None else noisy_b[1]))

@@ -180,17 +180,20 @@ def _size_ratio(name: str, estimate: Optional[dict], value) -> Optional[float]:
 def run_case(case: dict, options=None) -> dict:
     """Simulate the case's recording, diagnose it blind, and return the outcome."""
     from coreg_ros.core.diagnosis import diagnose_streams
+    from coreg_ros.core.noise_model import DeviceNoise
     from coreg_ros.core.settings import Settings
     from coreg_ros.sim import simulate_recording
     from coreg_ros.threads import one_blas_thread
 
     effects = _make_effects(case)
+    full = {d: None if case.get(f'noise_{d}') is None else DeviceNoise.from_covariances(
+        *case[f'noise_{d}']) for d in 'ab'}
     rec = simulate_recording(case['seed'], case['duration'], case['model'],
                              sigma_a=tuple(case['sigma_a']), sigma_b=tuple(case['sigma_b']),
-                             effects=effects)
+                             effects=effects, noise_a=full['a'], noise_b=full['b'])
     # the diagnosis sees the recording and the stated noise only, never the truth
     settings = Settings(model=case['model'], sigma_a=tuple(case['sigma_a']),
-                        sigma_b=tuple(case['sigma_b']))
+                        sigma_b=tuple(case['sigma_b']), noise_a=full['a'], noise_b=full['b'])
     t0 = time.perf_counter()
     with one_blas_thread():
         diag = diagnose_streams(rec.stream_a, list(rec.streams_b), settings, options=options)
@@ -382,7 +385,8 @@ def format_validation(summary: dict) -> str:
 
 
 def validate(cases: int, seed: int, progress=None, options=None, workers: int = 1,
-             duration: Optional[tuple] = None, scheduler: Optional[str] = None) -> dict:
+             duration: Optional[tuple] = None, scheduler: Optional[str] = None,
+             noise: Optional[dict] = None) -> dict:
     """
     Run ``cases`` blind validation cases drawn from ``seed``; returns results and summary.
 
@@ -390,13 +394,20 @@ def validate(cases: int, seed: int, progress=None, options=None, workers: int = 
     ``failed`` with its seed) and is not scored; the other cases go on.
 
     Every case carries its own seed (drawn up front from ``seed``), so the results are the same
-    whatever the number of workers. ``workers`` local processes, or the Dask cluster at
-    ``scheduler``, run them (``coreg_ros.parallel.run_cases``).
+    whatever the number of workers. ``noise`` (``{'a': DeviceNoise, 'b': DeviceNoise}``,
+    either may be left out; ``--noise FILE``) replaces the drawn noise of those devices in
+    every case, simulated and stated: the diagnosis scored at a user's trackers' noise.
+    ``workers`` local processes, or the Dask cluster at ``scheduler``, run them
+    (``coreg_ros.parallel.run_cases``).
     """
     from coreg_ros.parallel import CaseFailure, run_cases
 
     rng = np.random.default_rng(seed)
     drawn = [draw_case(rng, duration=duration or DURATION) for _ in range(cases)]
+    for d, full in (noise or {}).items():
+        for case in drawn:
+            case[f'noise_{d}'] = [full.position_cov.tolist(), full.rotation_cov.tolist()]
+            case[f'sigma_{d}'] = list(full.largest_sigmas())
     # the longest recordings first, so that no worker is left with a long case at the end; the
     # results go back to the order drawn (each case has its own seed: nothing else changes)
     order = sorted(range(len(drawn)), key=lambda i: -drawn[i]['duration'])

@@ -215,7 +215,8 @@ THIRD_PARTY = {'numpy': ('numpy', 'python3-numpy'), 'scipy': ('scipy', 'python3-
                'dask': ('dask[distributed]', None), 'distributed': ('dask[distributed]', None)}
 #: Imports that come with ROS (package.xml exec_depend) or the standard library.
 ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'geometry_msgs', 'std_msgs',
-               'std_srvs', 'diagnostic_msgs', 'visualization_msgs', 'launch', 'launch_ros'}
+               'std_srvs', 'diagnostic_msgs', 'visualization_msgs', 'launch', 'launch_ros',
+               'tf2_msgs', 'tf2_ros'}
 
 
 def _top_level_imports(folder: Path) -> set:

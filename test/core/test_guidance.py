@@ -249,3 +249,41 @@ def test_errors():
         GuidanceAccumulator('full_pose', SIGMA_A, SIGMA_B, 0.0, 1e-3)
     with pytest.raises(InputError, match='estimate'):
         GuidanceAccumulator('full_pose', SIGMA_A, SIGMA_B, 1e-4, 1e-3).guidance()
+
+
+def _scara_guidance(duration, limits):
+    rec = simulate_recording(26, duration, sigma_a=SIGMA_A, sigma_b=SIGMA_B, motion='scara')
+    pairs, _ = pair_for(rec.stream_a, rec.streams_b, Settings(sigma_a=SIGMA_A, sigma_b=SIGMA_B))
+    acc = GuidanceAccumulator('full_pose', SIGMA_A, SIGMA_B, 1e-3, 1e-2,
+                              estimate_time_offset=True, motion_limits=limits)
+    feed = PairFeed()
+    for part in _chunks(pairs, 250):
+        batch = feed.push(part)
+        if batch is not None and acc.estimate is None and len(batch) > 50:
+            acc.set_estimate(Estimate.from_pairs('full_pose', batch))
+        acc.add(batch)
+    acc.add(feed.push(None, final=True))
+    return acc.guidance()
+
+
+def test_a_restricted_rig_is_ready_on_what_it_can_show_and_never_asked_for_more():
+    """
+    Issue 22: a SCARA arm (yaw only). Free: not ready, asked to turn about another axis.
+
+    Restricted: ready once the determined part meets the targets, the lever along the yaw
+    axis held and said, and no candidate that would determine it offered; auto: free for the
+    first ``AUTO_RESTRICTED_S`` of recording, restricted after.
+    """
+    free = _scara_guidance(90.0, 'free')
+    assert not free.ready and not free.determined and not free.held
+    asked = free.options[0].name
+    held = _scara_guidance(90.0, 'restricted')
+    assert held.ready and held.determined and len(held.held) == 1
+    assert "T1's position along" in held.held[0] and 'held' in held.summary
+    names = {o.name for o in held.options}
+    assert asked not in names and names < {o.name for o in free.options}
+    early, late = _scara_guidance(30.0, 'auto'), _scara_guidance(90.0, 'auto')
+    assert not early.ready and not early.held
+    assert late.ready and late.held == held.held
+    with pytest.raises(InputError, match='motion_limits'):
+        GuidanceAccumulator('full_pose', SIGMA_A, SIGMA_B, 1e-3, 1e-2, motion_limits='scara')

@@ -105,6 +105,7 @@ def gauged_nees(model, move, k, result) -> tuple:
     known = KNOWN[model]
     cov = joint_pose_covariance(params, result.param_cov)[known, known]  # gauge-fixed
     L = np.linalg.cholesky(np.linalg.inv(cov)).T
+
     def plain(th):
         return errors(model, *move(th), result)
 

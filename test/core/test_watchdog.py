@@ -4,6 +4,7 @@ from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.live.guidance import PairFeed
 from coreg_ros.core.live.watchdog import (
     Calibration,
@@ -329,3 +330,41 @@ def test_chi_square_clip_leaves_the_step_detectable():
     assert clip == pytest.approx(stats.chi2.isf(1e-3, 6))
     delay = run_length(cusum_threshold(6), 6, noncentrality=13.0)
     assert delay < 0.5 * RATE  # pairs: well under 5 s at 100 Hz
+
+
+# --------------------------------------------------------------------------- restricted rigs
+
+@pytest.mark.parametrize('rig, model', [('scara', 'full_pose'), ('gantry', 'full_pose'),
+                                        ('gantry', 'position_only'),
+                                        ('turntable', 'position_only')])
+def test_a_restricted_rig_watched_without_false_alarm_and_its_changes_named(rig, model):
+    """
+    Issue 22: a held direction is no change; a gantry cannot tell T0 from T1 and says so.
+
+    On a SCARA arm or a turntable T0 and T1 are told apart (the tool turns); on a gantry
+    (translation only) a translation of T0 and one of T1 change every prediction alike. On a
+    turntable the calibration's turn about the axis is held, so a change is said in the
+    held turn's axes: its size, not its direction, is the truth's.
+    """
+    rec = simulate_recording(51, 40.0, model, rate_a=RATE, rate_b=RATE, sigma_a=SIGMA_A,
+                             sigma_b=SIGMA_B, motion=rig)
+    settings = Settings(model=model, sigma_a=SIGMA_A, sigma_b=SIGMA_B)
+    result, _ = calibrate_streams(rec.stream_a, rec.streams_b, settings)
+    assert result.success and result.held
+    quiet = _watch(Watchdog(result, SIGMA_A, SIGMA_B), rec, settings, result)
+    assert max(s.level for s in quiet) == OK, quiet[-1].message
+    for spec, expected in (('t0_step=2mm@20', 't0'), ('t1_step=2mm@20', 't1')):
+        moved = apply_changes(rec, [spec], seed=3)
+        final = _watch(Watchdog(result, SIGMA_A, SIGMA_B), moved, settings, result)[-1]
+        att = final.attribution
+        assert final.level == ERROR and att.decided, final.message
+        assert att.kind == ('t0_or_t1' if rig == 'gantry' else expected), final.message
+        if rig == 'gantry':
+            assert 'cannot tell which' in final.message
+            assert recalibration_prior(result, att.kind) == Prior()  # neither kept
+        dp = np.asarray(moved.truth.effects[-1]['translation_m'])
+        if rig == 'turntable':  # δp is in the held turn's tool axes: its size is the truth's
+            size = abs(np.linalg.norm(att.translation) - np.linalg.norm(dp))
+            assert size < max(4 * att.translation_sigma, 2e-4), final.message
+        elif att.size_in == expected:  # in the moved transform's own terms
+            assert np.linalg.norm(att.translation - dp) < max(4 * att.translation_sigma, 2e-4)

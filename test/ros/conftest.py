@@ -39,8 +39,9 @@ def start_node(ros_domain, tmp_path):
     """Start coreg_node subprocesses (params dict) in the test's domain; stopped at teardown."""
     nodes = []
 
-    def start(params=None, name='node') -> NodeProcess:
-        node = NodeProcess(ros_domain, tmp_path, dict(params or {}), name=f'{name}{len(nodes)}')
+    def start(params=None, name='node', env=None) -> NodeProcess:
+        node = NodeProcess(ros_domain, tmp_path, dict(params or {}), name=f'{name}{len(nodes)}',
+                           env=env)
         nodes.append(node)
         return node
 

@@ -24,7 +24,8 @@ PY = sys.executable
 class NodeProcess:
     """coreg_node running in a subprocess on a given domain, logging to a file."""
 
-    def __init__(self, domain, folder: Path, params: dict, name: str = 'node'):
+    def __init__(self, domain, folder: Path, params: dict, name: str = 'node',
+                 env: dict | None = None):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.storage = Path(params.setdefault('storage_dir', str(self.folder / 'store')))
@@ -35,7 +36,7 @@ class NodeProcess:
         self.proc = subprocess.Popen(
             [PY, '-m', 'coreg_ros.ros.node', '--ros-args', '--params-file',
              str(self.params_file)],
-            env=domain.env(), stdout=self._log, stderr=subprocess.STDOUT)
+            env={**domain.env(), **(env or {})}, stdout=self._log, stderr=subprocess.STDOUT)
 
     def alive(self) -> bool:
         return self.proc.poll() is None

@@ -34,7 +34,6 @@ from coreg_ros.core.estimator import (
     carried_inputs,
     heading,
     InputState,
-    noise_covariance,
     normal_equations,
     ols_cost,
     ols_information,
@@ -78,6 +77,9 @@ XTOL = 5e-3
 #: anyway, fewer (the same three TLS passes at 100k and 1M pairs from either size).
 SUBSAMPLE = 100_000
 SUBSAMPLE_TLS = 25_000
+#: Pairs (every k-th) a restricted rig's closed-form start is refined on by OLS when the
+#: recording is below ``SUBSAMPLE`` (``_Fitter.start``).
+RESTRICTED_SUBSAMPLE = 10_000
 #: First LM damping of a TLS refit that starts at the last fit's inputs.
 WARM_DAMPING = 1e-9
 #: Pairs (every k-th) the information is taken on to see what the data determine: the
@@ -299,6 +301,14 @@ class _Fitter:
         small = self.problem(sub, with_priors=False)
         start = initialize(self.spec, small.pos_a, small.quat_a, small.pos_b, small.quat_b)
         start = self.hold_undetermined(start, keep)
+        if stride < 2 and self.found.held.shape[1] and self.paths.start:
+            # a restricted rig's closed form (the angle about the axis from a grid, the axis
+            # from a sample) is tens of σ from the fit: the OLS fit of a small even sample
+            # brings it within a few σ for a fraction of a pass over all pairs
+            stride = n // RESTRICTED_SUBSAMPLE
+            if stride >= 2:
+                sub = np.zeros(len(keep), dtype=bool)
+                sub[np.flatnonzero(keep)[::stride]] = True
         if stride < 2:
             return start, False
         small = self.problem(sub, with_priors=False)  # with the gauge, if any
@@ -449,7 +459,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     prior : Prior, optional
         Prior knowledge of the parameters, added to the fit.
     cov_a, cov_b : ndarray, shape (6, 6), optional
-        Full noise covariances (ROS layout) overriding ``sigma_a`` / ``sigma_b``.
+        Full noise covariances (ROS layout) overriding the settings' (``Settings.cov_a``:
+        ``noise_a`` if given, else ``sigma_a``).
     start : Parameters, optional
         A starting φ instead of the closed form.
     warm : bool
@@ -473,8 +484,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
     """
     settings = settings or Settings()
     spec = SPECS[settings.model]
-    cov_a = noise_covariance(settings.sigma_a) if cov_a is None else cov_a
-    cov_b = noise_covariance(settings.sigma_b) if cov_b is None else cov_b
+    cov_a = settings.cov_a if cov_a is None else cov_a
+    cov_b = settings.cov_b if cov_b is None else cov_b
     fitter = _Fitter(pairs, spec, settings, prior, cov_a, cov_b, paths)
     cov_a6 = np.asarray(cov_a, dtype=float).reshape(6, 6)
     refuse_if_nothing_moved(fitter.pos_a, fitter.quat_a,

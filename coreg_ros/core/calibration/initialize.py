@@ -59,16 +59,24 @@ def rotations_from_pairs(Ra: np.ndarray, Rb: np.ndarray
         Second over first singular value: near 1 the rotations do not determine the pair.
 
     """
-    n = len(Ra)
-    # P[(k, j), (l, m)] = Σ_i Ra[i, k, j] Rb[i, l, m]; K[(l, k), (m, j)] = P[k, j, l, m].
-    P = (Ra.reshape(n, 9).T @ Rb.reshape(n, 9)).reshape(3, 3, 3, 3)
-    K = P.transpose(2, 0, 3, 1).reshape(9, 9)
+    P = rotation_moments(Ra, Rb)
+    K = P.transpose(2, 0, 3, 1).reshape(9, 9)  # K[(l, k), (m, j)] = P[k, j, l, m]
     U, sv, Vt = np.linalg.svd(K)
     X, Z = U[:, 0].reshape(3, 3), Vt[0].reshape(3, 3)
     if np.linalg.det(X) < 0:  # the singular pair's joint sign is arbitrary
         X, Z = -X, -Z
     ratio = float(sv[1] / sv[0]) if sv[0] > 0 else 1.0
     return project_to_so3(X), project_to_so3(Z).T, ratio
+
+
+def rotation_moments(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """
+    Return ``P[k, j, l, m] = Σ_i Ra[i, k, j] Rb[i, l, m]``, shape (3, 3, 3, 3): one BLAS product.
+
+    Every sum over the pairs of products of an A and a B rotation entry is a contraction of P.
+    """
+    n = len(Ra)
+    return (Ra.reshape(n, 9).T @ Rb.reshape(n, 9)).reshape(3, 3, 3, 3)
 
 
 def _translations(R0: np.ndarray, Ra: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray):
@@ -160,7 +168,7 @@ def _axis_correspondence(Ra: np.ndarray, pos_b: np.ndarray):
     if float(np.sqrt(np.mean(angle ** 2))) < TURNING_RAD:
         return None
     Z = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle)], axis=1)
-    coef = np.linalg.lstsq(Z, pos_b, rcond=1e-9)[0]
+    coef = np.linalg.lstsq(Z, pos_b[::axis_stride(len(Ra))], rcond=1e-9)[0]
     b = np.cross(coef[1], coef[2])
     norm = float(np.linalg.norm(b))
     if norm <= 1e-12:
@@ -175,14 +183,31 @@ AXIS_ANGLES = 3600
 TURNING_RAD = 0.02
 
 
+#: Rotations (every k-th) the axis of a tool that turns about one axis is read from: the
+#: principal axis of 5k rotation vectors is as good as that of all, at a fraction of the cost.
+AXIS_SAMPLE = 5_000
+
+
+def axis_stride(n: int) -> int:
+    """Return k: every k-th of n rotations is read for the axis (``AXIS_SAMPLE``)."""
+    return max(1, n // AXIS_SAMPLE)
+
+
+def _relative_rotation_vectors(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors of ``R_i R_refᵀ`` (base frame) of every ``axis_stride``-th rotation."""
+    R = R[::axis_stride(len(R))]
+    return quat.log(quat.from_matrix(R @ R[0].T))
+
+
 def principal_axis(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     Return the axis (base frame) rotations R (N, 3, 3) turn about most, and the angles about it.
 
     From the rotation vectors of ``R_i R_refᵀ`` (ref: the first), centred; the angles are their
-    projections on the axis, so two such series can be compared for sign.
+    projections on the axis, so two such series can be compared for sign. Both are read from
+    every ``axis_stride(N)``-th rotation: the angles are those of ``R[::axis_stride(N)]``.
     """
-    rel = quat.log(quat.from_matrix(R @ R[0].T))  # base-frame rotation vectors
+    rel = _relative_rotation_vectors(R)
     rel = rel - rel.mean(axis=0)
     _, _, vt = np.linalg.svd(rel, full_matrices=False)
     return vt[0], rel @ vt[0]
@@ -195,7 +220,7 @@ ONE_AXIS_SHARE = 1e-2
 
 def turns_about_one_axis(R: np.ndarray) -> bool:
     """Tell whether rotations R (N, 3, 3) turn about one axis only (``ONE_AXIS_SHARE``)."""
-    rel = quat.log(quat.from_matrix(R @ R[0].T))
+    rel = _relative_rotation_vectors(R)
     sv = np.linalg.svd(rel - rel.mean(axis=0), compute_uv=False)
     return bool(sv[0] > 0 and sv[1] <= ONE_AXIS_SHARE * sv[0])
 
@@ -222,15 +247,17 @@ def _axis_aligned_r0(Ra: np.ndarray, Rb: np.ndarray, pos_a: np.ndarray,
     ``y_i(φ) - R0ᵀp0 - R_Ai p1`` with ``y_i(φ) = R0ᵀ p_Bi - p_Ai``: the regressors do not
     depend on φ, and ``y(φ) = u0 + cos φ u1 + sin φ u2`` (Rodrigues), so the least squares
     residual is the quadratic form ``vᵀ G v`` of v = (1, cos φ, sin φ) with the 3×3 G of
-    the u's projected off the regressors: one pass over the pairs, then ``AXIS_ANGLES``
-    angles for nothing. Where the positions do not determine φ either (a turntable), any
-    angle is as good, and the fit holds that direction.
+    the u's projected off the regressors: one pass over every ``axis_stride``-th pair, then
+    ``AXIS_ANGLES`` angles for nothing. Where the positions do not determine φ either (a
+    turntable), any angle is as good, and the fit holds that direction.
     """
     a, angle_a = principal_axis(Ra)
     b, angle_b = principal_axis(Rb)
     if np.dot(angle_a, angle_b) < 0:  # the two axes' signs must turn the same way
         b = -b
     base = _rotation_taking(a, b)
+    k = axis_stride(len(Ra))  # the angle from as many pairs as the axis (the fit refines)
+    Ra, pos_a, pos_b = Ra[::k], pos_a[::k], pos_b[::k]
     bx = skew(b)
     # y(φ) = baseᵀ Rot(b, -φ) p_B - p_A, Rot(b, -φ) = (I + B²) - cos φ B² - sin φ B
     u = np.stack([pos_b @ (base.T @ (np.eye(3) + bx @ bx)).T - pos_a,
@@ -275,10 +302,12 @@ def initialize(spec: ModelSpec, pos_a, quat_a, pos_b, quat_b=None) -> Parameters
         Rb = quat.to_matrix(quat_b)
         R0, R1, ratio = rotations_from_pairs(Ra, Rb)
         if ratio > DEGENERATE_RATIO:  # rotation about one axis or none: R0 from the positions
-            turning = quat.log(quat.from_matrix(Ra @ Ra[0].T)).std(axis=0).max() > TURNING_RAD
+            turning = _relative_rotation_vectors(Ra).std(axis=0).max() > TURNING_RAD
+            k = axis_stride(len(Ra))  # no rotation: R0 from the positions of a sample
             R0 = (_axis_aligned_r0(Ra, Rb, pos_a, pos_b3[:, 0, :]) if turning else
-                  _lifted_rotation(Ra, pos_a, pos_b3[:, 0, :]))
-            R1 = project_to_so3(np.einsum('nji,njk->ik', R0 @ Ra, Rb))  # Σ (R0 R_A)ᵀ R_B
+                  _lifted_rotation(Ra[::k], pos_a[::k], pos_b3[::k, 0, :]))
+            # R1 from Σ (R0 R_A)ᵀ R_B = Σ_ja R0[j, a] P[a, i, j, m]: no pass over the pairs
+            R1 = project_to_so3(np.einsum('ja,aijm->im', R0, rotation_moments(Ra, Rb)))
         q1 = quat.from_matrix(R1)
     else:
         rotations = [_lifted_rotation(Ra, pos_a, pos_b3[:, j, :]) for j in range(pos_b3.shape[1])]

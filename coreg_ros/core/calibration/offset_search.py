@@ -30,7 +30,7 @@ from coreg_ros.core.clock.timing import (
 )
 from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
 from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
-from coreg_ros.core.estimator import noise_covariance, output_covariance
+from coreg_ros.core.estimator import output_covariance
 from coreg_ros.core.estimator.linearized import PairData
 from coreg_ros.core.estimator.posterior import tangent_map
 from coreg_ros.core.estimator.priors import Prior
@@ -96,8 +96,7 @@ class _Context:
         ref = (int(bs[0].stamps[0]) + int(bs[0].stamps[-1])) // 2
         return cls(a, bs, settings, prior, trajectory, origin, ref,
                    max(VELOCITY_HALF_WINDOW, 1.5 * step),
-                   noise_covariance(settings.sigma_a),
-                   output_covariance(noise_covariance(settings.sigma_b), spec))
+                   settings.cov_a, output_covariance(settings.cov_b, spec))
 
     def timing(self, tau: float, kappa: Optional[float]) -> TimeOffset:
         return TimeOffset(tau, drift_ppm=None if kappa is None else kappa * 1e6,
@@ -211,8 +210,16 @@ def _candidates(ctx: _Context) -> list:
 
 
 def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Settings,
-                           prior: Optional[Prior]) -> tuple[CalibrationResult, PairingReport]:
-    """Estimate τ (and κ if asked) jointly with T0 and T1 (the module docstring says how)."""
+                           prior: Optional[Prior], noise_from=None
+                           ) -> tuple[CalibrationResult, PairingReport]:
+    """
+    Estimate τ (and κ if asked) jointly with T0 and T1 (the module docstring says how).
+
+    ``noise_from(timing, result)``, if given, returns the settings the rounds on all samples
+    use, from the best subsample round's offset and fit (``auto_noise``: the noise estimated
+    on all samples paired there at that fit, so that the fit of all samples is made at it
+    once).
+    """
     ctx = _Context.build(stream_a, streams_b, settings, prior)
     kappa0 = 0.0 if settings.estimate_clock_drift else None
     sub_b = _subsampled(ctx.streams_b, SUBSAMPLE_B)
@@ -244,6 +251,10 @@ def fit_with_offset_search(stream_a: PoseStream, streams_b: list, settings: Sett
         result, report = fit_at_offset(stream_a, streams_b, settings, prior, TimeOffset(
             given, message='not estimated: no offset within the overlap gave a fit'))
         return result, report
+    if noise_from is not None:
+        settings = noise_from(ctx.timing(best.tau, best.kappa), best.result)
+        ctx = replace(ctx, settings=settings, cov_a=settings.cov_a,
+                      cov_b=output_covariance(settings.cov_b, SPECS[settings.model]))
     try:
         full = _refine(ctx, ctx.streams_b,
                        _round(ctx, ctx.streams_b, best.tau, best.kappa, best.params))
@@ -285,3 +296,32 @@ def _final(rnd: _Round, ctx: _Context) -> CalibrationResult:
     return replace(result, base_to_base=t0, tool_to_marker=t1, markers=params.markers.copy(),
                    params=params.phi.copy(), param_cov=cov, cov_joint=joint, chi2=chi2,
                    dof=dof, p_value=p_value, time_offset=timing, cov_determined=determined)
+
+
+def refit_at(stream_a: PoseStream, streams_b: list, settings: Settings,
+             prior: Optional[Prior], result: CalibrationResult
+             ) -> tuple[CalibrationResult, PairingReport]:
+    """
+    Fit again at ``result``'s clock offset from its calibration, e.g. at another noise.
+
+    An estimated offset gets one more round of the search there (its step and φ's covariance
+    marginalised over τ, with the new settings' noise); a given one is paired at and fitted
+    from ``result``'s φ.
+    """
+    timing = result.time_offset or TimeOffset(settings.time_offset, message='given')
+    spec = SPECS[settings.model]
+    start = Parameters(spec, result.params, list(result.charts))
+    if timing.estimated:
+        ctx = _Context.build(stream_a, streams_b, settings, prior)
+        kappa = None if timing.drift_ppm is None else timing.drift_ppm * 1e-6
+        rnd = _round(ctx, ctx.streams_b, timing.value_s, kappa, start)
+        ok, _ = rnd.step.determined()
+        if ok:
+            return _final(rnd, ctx), rnd.report
+        return replace(rnd.result, time_offset=timing), rnd.report
+    pairs, report = pair_for(stream_a, streams_b, settings, timing)
+    try:
+        fitted = calibrate(pairs, settings, prior, start=start, warm=True)
+    except TooFewPairsError as e:
+        raise TooFewPairsError(f'{e} ({report.summary()})') from e
+    return replace(fitted, time_offset=timing), report

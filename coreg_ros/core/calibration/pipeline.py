@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Optional, Union
 
+from coreg_ros.core.calibration.auto_noise import calibrate_with_noise
 from coreg_ros.core.calibration.offset_search import fit_at_offset, fit_with_offset_search
 from coreg_ros.core.calibration.pairing import stream_list
 from coreg_ros.core.calibration.stream_directions import (
@@ -46,7 +47,10 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     streams_b : PoseStream or sequence of PoseStream
         Device B: marker pose(s) in B's base frame (three streams for ``three_marker``).
     settings : Settings
-        The configuration (model, method, noise, pairing, robust fit).
+        The configuration (model, method, noise, pairing, robust fit). With ``noise ==
+        'auto'`` each device's noise is estimated with the calibration (``auto_noise``): the
+        result then carries it (``noise``), is fitted and judged with it, and its verdict
+        names the noise that was misstated.
     prior : Prior, optional
         Prior knowledge of the parameters, added to the fit.
     frames : (str, str), optional
@@ -77,7 +81,10 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     """
     streams_b = stream_list(streams_b)
     try:
-        if settings.estimate_time_offset:
+        if settings.noise == 'auto':  # the noise estimated with the fit, and the fit at it
+            result, report, settings = calibrate_with_noise(stream_a, streams_b, settings,
+                                                            prior)
+        elif settings.estimate_time_offset:
             result, report = fit_with_offset_search(stream_a, streams_b, settings, prior)
         else:
             result, report = fit_at_offset(stream_a, streams_b, settings, prior,
@@ -96,6 +103,9 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
             raise
         raise error from e
     result = judge(result, stream_a, streams_b, settings, prior, frames)
+    if result.noise is not None:  # which device's noise was misstated, and how
+        said = result.noise.verdict()
+        result = replace(result, verdict='; '.join(v for v in (result.verdict, said) if v))
     if direction_check and not float(result.p_value) >= CHECK_BELOW_P:  # NaN checks too
         result = with_direction_check(result, check_directions(stream_a, streams_b, settings))
     return result, report

@@ -29,7 +29,9 @@ from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Optional
 
+from coreg_ros.core.calibration.auto_noise import noise_floor
 from coreg_ros.core.calibration.calibrate import calibrate
+from coreg_ros.core.calibration.noise_verdict import estimate_dict
 from coreg_ros.core.diagnosis import gap as gp
 from coreg_ros.core.diagnosis.data import DiagData, prepare, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.effects.base import FitReading
@@ -48,6 +50,7 @@ from coreg_ros.core.diagnosis.report import CalibrationChange, DiagnosisReport, 
 from coreg_ros.core.diagnosis.residuals import base_errors, detect_locate
 from coreg_ros.core.diagnosis.selection import select_effects, Selection, Selector
 from coreg_ros.core.diagnosis.summary import gap_measures, transforms
+from coreg_ros.core.diagnosis.text import floor_named
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import Pairs, PoseStream
@@ -112,7 +115,9 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
     progress : callable, optional
         ``progress(fraction, text)`` called as the work advances.
     cov_a, cov_b : ndarray, shape (6, 6), optional
-        Full noise covariances (ROS layout) overriding the sigmas.
+        Full noise covariances (ROS layout) overriding the settings'. Without them and with
+        ``settings.noise == 'auto'`` the noise estimated with the calibration is the floor
+        (``auto_noise.noise_floor``), the report's ``noise`` beside the stated one.
     context : dict, optional
         What ``diagnose_streams`` read before pairing: ``stamps`` (``stamps.stamps_report``),
         ``coarse_shift_s`` (the pairs were made that far from the given offset, found by the
@@ -128,8 +133,18 @@ def diagnose(pairs: Pairs, settings: Settings, stream_a: Optional[PoseStream] = 
         As ``calibrate`` does.
 
     """
-    return _diagnose(pairs, settings, stream_a, options or Options(),
+    estimate = None
+    if settings.noise == 'auto' and cov_a is None and cov_b is None:
+        # the noise estimated with the calibration is the floor; the stated one is reported
+        estimate, cov_a, cov_b = noise_floor(pairs, settings)
+    cov_a = settings.cov_a if cov_a is None else cov_a  # the full noise, if the settings have it
+    cov_b = settings.cov_b if cov_b is None else cov_b
+    diag = _diagnose(pairs, settings, stream_a, options or Options(),
                      progress or (lambda f, s: None), cov_a, cov_b, context or {})
+    if estimate is not None:
+        diag.report = replace(diag.report, noise=estimate_dict(estimate),
+                              verdict=floor_named(diag.report.verdict, True))
+    return diag
 
 
 def _base_fit(pairs: Pairs, settings: Settings, stream_a, cov_a, cov_b, n_folds: int) -> tuple:

@@ -98,6 +98,9 @@ class DiagnosisReport(Record):
         The offset the coarse search moved the pairing by, s.
     pairing : Pairing, optional
         How the streams were paired (from the streams).
+    noise : dict, optional
+        With ``noise: auto``: the noise estimated with the calibration, which the diagnosis
+        took as its floor, beside the stated (``noise_verdict.estimate_dict``).
 
     """
 
@@ -121,3 +124,4 @@ class DiagnosisReport(Record):
     stamps: Optional[StampReport] = optional()
     coarse_offset_s: Optional[float] = optional()
     pairing: Optional[Pairing] = optional()
+    noise: Optional[dict] = optional()

@@ -5,8 +5,26 @@ from __future__ import annotations
 from coreg_ros.core.diagnosis.report import DiagnosisReport
 
 
+def floor_named(text: str, estimated: bool) -> str:
+    """
+    Name the noise a diagnosis' text measured against: the estimated one with ``noise: auto``.
+
+    The diagnosis measures every gap against the noise it was given, which its text calls
+    stated; with ``noise: auto`` that is the noise estimated with the calibration.
+    """
+    if not estimated:
+        return text
+    return text.replace('the stated noise', 'the estimated noise').replace(
+        'stated floor', 'estimated floor')
+
+
 def format_diagnosis(report: DiagnosisReport) -> str:
     """Human-readable summary of a diagnosis report."""
+    return floor_named(_lines(report), report.noise is not None)
+
+
+def _lines(report: DiagnosisReport) -> str:
+    """Return the summary in the words of the stated noise (``format_diagnosis``)."""
     lines = [f'verdict: {report.verdict}']
     det = report.detection
     flags = ', '.join(det.flags.raised) or 'none'

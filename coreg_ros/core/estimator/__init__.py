@@ -32,7 +32,6 @@ from coreg_ros.core.estimator.priors import PriorTerm
 from coreg_ros.core.estimator.problem import (
     CHUNK,
     metric_covariance,
-    noise_covariance,
     output_covariance,
     Problem,
     whitening,
@@ -60,6 +59,7 @@ from coreg_ros.core.estimator.tls import (
     solve_tls,
     tls_linearization,
 )
+from coreg_ros.core.noise_model import noise_covariance  # the noise in any form, as 6×6
 
 __all__ = [
     'back_substitute',

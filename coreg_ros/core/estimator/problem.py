@@ -34,12 +34,6 @@ CHUNK = 8192
 _METRIC = np.diag([1.0, 1.0, 1.0, -0.5, -0.5, -0.5])
 
 
-def noise_covariance(sigma) -> np.ndarray:
-    """6×6 covariance (ROS layout) of isotropic noise given as (position m, rotation rad)."""
-    pos, rot = float(sigma[0]), float(sigma[1])
-    return np.diag([pos ** 2] * 3 + [rot ** 2] * 3)
-
-
 def metric_covariance(cov: np.ndarray) -> np.ndarray:
     """
     Covariance of the error metric from a 6×6 ROS-layout covariance: Σθ enters as Σθ/4.

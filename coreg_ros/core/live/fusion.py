@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Optional, Union
 
 from coreg_ros.core.calibration.pairing import pair_streams
+from coreg_ros.core.noise_model import noise_covariance
 from coreg_ros.core.types import CalibrationResult, Pairs, PoseStream, UncertainPose
 from coreg_ros.core.uncertainty import fuse_arrays, through_calibration_arrays, UNKNOWN
 import numpy as np
@@ -107,21 +108,6 @@ def block_joint_covariance(base_to_base: UncertainPose,
     return joint
 
 
-def noise_cov(sigma) -> np.ndarray:
-    """
-    Return a device's 6×6 noise covariance (ROS layout) from ``(position m, rotation rad)``.
-
-    A 6×6 array is returned as it is.
-    """
-    s = np.asarray(sigma, dtype=float)
-    if s.shape == (6, 6):
-        return s
-    if s.shape != (2,):
-        raise ValueError(f'sigma must be (position m, rotation rad) or a 6×6 covariance, got '
-                         f'shape {s.shape}')
-    return np.diag([s[0] ** 2] * 3 + [s[1] ** 2] * 3)
-
-
 @dataclass(frozen=True)
 class FusedPoses:
     """
@@ -185,10 +171,10 @@ def fused_stream(calibration: Union[FusionCalibration, CalibrationResult], pairs
     if isinstance(calibration, CalibrationResult):
         calibration = FusionCalibration.from_result(calibration)
     n = len(pairs)
-    cov_a = np.broadcast_to(noise_cov(sigma_a), (n, 6, 6))
+    cov_a = np.broadcast_to(noise_covariance(sigma_a), (n, 6, 6))
     if pairs.a_var_scale is not None:
         cov_a = cov_a * np.asarray(pairs.a_var_scale, dtype=float)[:, None, None]
-    cov_b = noise_cov(sigma_b)
+    cov_b = noise_covariance(sigma_b)
     stamps = np.asarray(pairs.stamps, dtype=np.int64)
     if n == 0:
         return FusedPoses(stamps, np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 6, 6)),
@@ -309,4 +295,4 @@ def _empty_pairs(three: bool, with_orientation_b: bool) -> Pairs:
 
 
 __all__ = ['FusedPoses', 'FusionCalibration', 'ORIENTED_MODELS', 'block_joint_covariance',
-           'fuse_positions', 'fused_stream', 'noise_cov', 'pending_pairs']
+           'fuse_positions', 'fused_stream', 'pending_pairs']

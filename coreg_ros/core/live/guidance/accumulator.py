@@ -39,6 +39,7 @@ from coreg_ros.core.live.guidance.keys import (
 )
 from coreg_ros.core.live.guidance.motions import candidate_motions
 from coreg_ros.core.models import SPECS
+from coreg_ros.core.noise_model import largest_sigmas
 from coreg_ros.core.planning.crlb import CRLB_DIMENSION
 from coreg_ros.core.types import MODELS
 import numpy as np
@@ -203,8 +204,9 @@ class GuidanceAccumulator:
     Parameters
     ----------
     model : str
-    sigma_a, sigma_b : (float, float)
-        Device noise (position m, rotation rad), as the calibration states it.
+    sigma_a, sigma_b : (float, float) or DeviceNoise
+        Device noise (position m, rotation rad, or full covariances in each device's base
+        frame), as the calibration states it.
     target_sigma_position : float
         Target σ of every position component, m.
     target_sigma_rotation : float
@@ -251,7 +253,7 @@ class GuidanceAccumulator:
             raise InputError('target_sigma_time must be > 0 (or None)')
         self.model = model
         self.cov_a, self.cov_b = device_covariances(model, sigma_a, sigma_b)
-        self.sigma_pos_a, self.sigma_rot_a = float(sigma_a[0]), float(sigma_a[1])
+        self.sigma_pos_a, self.sigma_rot_a = largest_sigmas(sigma_a)
         self.targets = (float(target_sigma_position), float(target_sigma_rotation),
                         None if target_sigma_time is None else float(target_sigma_time))
         self.with_time = bool(estimate_time_offset)

@@ -105,8 +105,9 @@ def device_covariances(model: str, sigma_a, sigma_b) -> tuple[np.ndarray, np.nda
     ----------
     model : str
         Measurement model name (sets B's measurement size m).
-    sigma_a, sigma_b : (float, float)
-        Noise standard deviations (position m, rotation rad).
+    sigma_a, sigma_b : (float, float) or DeviceNoise
+        Noise standard deviations (position m, rotation rad), or full covariances
+        (``noise_model.noise_covariance`` takes either).
 
     """
     cov_a = noise_covariance(sigma_a)

@@ -55,6 +55,9 @@ class Attribution:
     time_sigma : float
     noise_factor : float or None
         Residual σ over the stated σ (√λ) for ``noise``.
+    size_in : str
+        Whose terms ``translation`` and ``rotation`` are in: the kind, or for ``t0_or_t1``
+        the one of the two that fitted best.
     text : str
         One line for a person.
 
@@ -73,6 +76,7 @@ class Attribution:
     time_step: Optional[float] = None
     time_sigma: float = float('nan')
     noise_factor: Optional[float] = None
+    size_in: str = ''
     text: str = ''
 
 
@@ -162,12 +166,21 @@ def attribute(calibration: Calibration, lin: Linearised) -> Attribution:
     order = sorted(scores, key=scores.get)
     kind, runner = order[0], order[1]
     margin = scores[runner] - scores[kind]
+    size_in = kind
+    other = {'t0': 't1', 't1': 't0'}.get(kind)
+    if other is not None and _same_change(fits, f, kind, other):
+        # a restricted rig (a gantry): no window will ever tell them apart (the margin
+        # between them is only their parameter count); the calibration is stale either way
+        runner = min((k for k in scores if k not in ('t0', 't1')), key=scores.get)
+        margin = scores[runner] - scores[kind]
+        fits['t0_or_t1'] = fits[kind]
+        kind = 't0_or_t1'
     out = {'kind': kind, 'decided': bool(margin >= DECISIVE), 'runner_up': runner,
-           'margin': margin, 'scores': scores, 'n_pairs': n}
+           'margin': margin, 'scores': scores, 'n_pairs': n, 'size_in': size_in}
     C = calibration.cov
     if kind in fits:
         G, delta, cov = fits[kind]
-        total = cov + G.T @ C @ G if kind != 't1' or model != 'three_marker' else cov
+        total = cov + G.T @ C @ G if size_in != 't1' or model != 'three_marker' else cov
         if kind == 'clock':
             out.update(time_step=float(delta[0]), time_sigma=float(np.sqrt(total[0, 0])))
         else:
@@ -182,16 +195,36 @@ def attribute(calibration: Calibration, lin: Linearised) -> Attribution:
     return Attribution(**{**out, 'text': describe(att)})
 
 
+#: T0's and T1's fits are the same change when the winner's predicted residual change is
+#: reproduced by the other's columns to within this share of its squared norm.
+SAME_CHANGE_SHARE = 1e-3
+
+
+def _same_change(fits: dict, f: np.ndarray, kind: str, other: str) -> bool:
+    """
+    Tell whether the other alternative's columns reproduce the winner's fitted change.
+
+    On a motion that never turns the tool (a gantry), a translation of T0 and one of T1
+    change every prediction alike: the two alternatives then fit the same change.
+    """
+    G, delta, _ = fits[kind]
+    change = (f @ G @ delta).reshape(-1)  # the winner's change of the whitened residuals
+    J = (f @ fits[other][0]).reshape(len(change), -1)
+    rest = change - J @ np.linalg.lstsq(J, change, rcond=None)[0]
+    total = float(change @ change)
+    return total > 0 and float(rest @ rest) <= SAME_CHANGE_SHARE * total
+
+
 def describe(att: Attribution) -> str:
     """One line for a person: what changed and by how much (mm, degrees, ms) with σ."""
     head = KIND_TEXT[att.kind]
-    if att.kind in ('t0', 't1'):
+    if att.kind in ('t0', 't1', 't0_or_t1'):
         size = float(np.linalg.norm(att.translation)) * 1e3
         text = f'{head}: {size:.3g} ± {att.translation_sigma * 1e3:.2g} mm'
         if att.rotation is not None:
             deg = float(np.degrees(np.linalg.norm(att.rotation)))
             text += f', {deg:.3g} ± {np.degrees(att.rotation_sigma):.2g}°'
-        frame = "B's base" if att.kind == 't0' else "A's tool"
+        frame = "B's base" if att.size_in == 't0' else "A's tool"
         text += f" (δp [{', '.join(f'{v * 1e3:+.2f}' for v in att.translation)}] mm in {frame}"
         text += ' axes)'
     elif att.kind == 'clock':
@@ -212,8 +245,9 @@ def recalibration_prior(result: CalibrationResult, kind: str) -> Optional[Prior]
     Return the prior for recalibrating after a change: the parts of ``result`` still valid.
 
     After ``t0`` (the base moved) T1 still holds, after ``t1`` T0 does, after ``clock`` both
-    do (only τ changed; the recalibration estimates it again). After ``noise`` (or no
-    decided change) there is nothing to recalibrate: None.
+    do (only τ changed; the recalibration estimates it again); after ``t0_or_t1`` (a motion
+    that cannot tell which) neither is kept (an empty prior). After ``noise`` (or no decided
+    change) there is nothing to recalibrate: None.
 
     Parameters
     ----------
@@ -223,6 +257,8 @@ def recalibration_prior(result: CalibrationResult, kind: str) -> Optional[Prior]
         ``Attribution.kind``.
 
     """
+    if kind == 't0_or_t1':
+        return Prior()  # neither still holds for sure: recalibrate on the new pairs alone
     if kind not in ('t0', 't1', 'clock'):
         return None
     keep_t0 = kind != 't0' and result.base_to_base.covariance is not None

@@ -5,10 +5,12 @@ from __future__ import annotations
 OK, WARN, ERROR = 0, 1, 2
 LEVEL_NAMES = ('OK', 'WARN', 'ERROR')
 #: The alternatives of the attribution.
-KINDS = ('none', 't0', 't1', 'clock', 'noise')
+KINDS = ('none', 't0', 't1', 't0_or_t1', 'clock', 'noise')
 KIND_TEXT = {'none': 'no change', 't0': 'T0 moved (base bumped)',
-             't1': 'T1 moved (marker slipped on the tool)', 'clock': 'clock offset changed',
-             'noise': 'noise or field changed'}
+             't1': 'T1 moved (marker slipped on the tool)',
+             't0_or_t1': 'T0 or T1 moved (this motion cannot tell which: it never turns the '
+                         'tool in a way that separates them)',
+             'clock': 'clock offset changed', 'noise': 'noise or field changed'}
 
 #: Name of the watchdog status in /diagnostics (``<node>: watchdog``).
 STATUS_NAME = 'watchdog'

@@ -141,8 +141,8 @@ class Watchdog:
     Parameters
     ----------
     calibration : Calibration or CalibrationResult
-    sigma_a, sigma_b : (float, float)
-        The stated device noise (position m, rotation rad).
+    sigma_a, sigma_b : (float, float) or DeviceNoise
+        The stated device noise (position m, rotation rad, or full covariances).
     tls : bool
         Errors in both devices (as the calibration's method).
     noise_scale : float
