@@ -302,7 +302,6 @@ def _profile_text(profile: Optional[dict]) -> str:
     return f'total {profile["total_cpu_s"]:.2f} s: {cpu}. Peaks: {peaks}'
 
 
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--n', type=int, default=500_000, help='messages per topic')

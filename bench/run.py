@@ -187,8 +187,9 @@ def other_table(results: dict) -> str:
                      f'{t["wrong"]} known-wrong |')
     st = results.get('time_offset')
     if isinstance(st, dict):
-        rows = [('now', st)] + ([(f'before ({st["before"]["commit"]})', st['before'])]
-                                 if st.get('before') else [])
+        rows = [('now', st)]
+        if st.get('before'):
+            rows.append((f'before ({st["before"]["commit"]})', st['before']))
         for label, r in rows:
             lines.append(f'| calibrate, τ estimated vs fixed, {label} | {r["n_pairs"]:,} pairs '
                          f'| CPU {r["estimated_cpu_s"]:.2f} s vs {r["fixed_cpu_s"]:.2f} s '

@@ -195,7 +195,7 @@ def _lerp(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, alpha: np.ndarray)
     return out
 
 
-def _rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+def _paired_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """
     ``values[idx]`` for increasing indices: a view when they are one run of C-contiguous rows.
 
@@ -338,8 +338,8 @@ def pair_streams(stream_a: PoseStream,
             pos_b[:, k, :] = _lerp(m.position, m_lo[idx], m_hi[idx], m_alpha[idx])
         quat_b = None
     else:
-        pos_b = _rows(b.position, idx)
-        quat_b = _rows(b.quat_wxyz, idx) if with_orientation_b else None
+        pos_b = _paired_rows(b.position, idx)
+        quat_b = _paired_rows(b.quat_wxyz, idx) if with_orientation_b else None
 
     used = np.zeros(n_a, dtype=bool)
     used[lo_k] = True
@@ -349,7 +349,7 @@ def pair_streams(stream_a: PoseStream,
         unpaired={'before_first_a': int(before.sum()), 'after_last_a': int(after.sum()),
                   'gap_too_large': int(gap.sum()), 'marker_missing': int(missing.sum())},
         n_a_unused=int(n_a - used.sum()))
-    pairs = Pairs(stamps=_rows(b.stamps, idx), pos_a=pos_a, quat_a=quat_a, pos_b=pos_b,
+    pairs = Pairs(stamps=_paired_rows(b.stamps, idx), pos_a=pos_a, quat_a=quat_a, pos_b=pos_b,
                   quat_b=quat_b, a_var_scale=a_var_scale)
     return pairs, report
 

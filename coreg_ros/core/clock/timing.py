@@ -354,8 +354,9 @@ def _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_co
     lam, vec = np.linalg.eigh(noise_velocity_cov)
     noise_factor = vec * np.sqrt(np.clip(lam, 0.0, None))  # Σ_v = F Fᵀ
     h_pp = None if own_information is None else own_information.copy()
-    sums = None if h_pp is not None else structured_offset_sums(params, data, velocity,
-                                                                 since_ref)
+    sums = None
+    if h_pp is None:
+        sums = structured_offset_sums(params, data, velocity, since_ref)
     if sums is not None:  # closed form (offset_sums); the noise share on the generic path
         h_tt, h_pt, g_t = sums
         noise_tt = _velocity_noise(params, data, velocity, noise_factor)
