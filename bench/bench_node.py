@@ -167,6 +167,7 @@ def run_case(rate_hz: float, duration: float, path: str = 'raw', profile: bool =
         'rate_hz': rate_hz, 'duration_s': duration, 'path': path,
         'sent': sum(sent.values()), 'received': received, 'accepted': accepted,
         'lost': sum(sent.values()) - accepted + drops,
+        'node_says_lost': sum(int(values.get(f'{t} lost', -1)) for t in sent),
         'lost_in_middleware': sum(int(values[f'{t} lost in middleware']) for t in sent),
         'missing_from_stamps': sum(int(values[f'{t} missing from stamps']) for t in sent),
         'node_cpu_cores': cpu / wall_streaming, 'cpu_seconds': cpu,
@@ -228,10 +229,11 @@ def _per_message_us(case: dict) -> dict:
 
 def table(result: dict) -> str:
     """Markdown tables of ``run``: throughput per rate and path, then the CPU split."""
-    lines = ['| streams | path | sent | lost (goal 0) | lost in middleware / missing from '
-             'stamps | node CPU, cores (goal < 1) | CPU per received message (vs plain) '
-             '| publisher achieved, Hz per topic | load (1 min) |',
-             '|---|---|---|---|---|---|---|---|---|']
+    lines = ['| streams | path | sent | lost (goal 0) | the node says lost (sequence numbers) '
+             '| lost in middleware / missing from stamps | node CPU, cores (goal < 1) '
+             '| CPU per received message (vs plain) | publisher achieved, Hz per topic '
+             '| load (1 min) |',
+             '|---|---|---|---|---|---|---|---|---|---|']
     plain = {c['rate_hz']: c for c in result['cases'] if c['path'] == 'plain'}
     for c in result['cases']:
         pub = c['publisher'].get('achieved_rate_hz_per_topic')
@@ -240,6 +242,7 @@ def table(result: dict) -> str:
                  if base is not None and c is not base else '')
         lines.append(f'| 2 x {c["rate_hz"]:g} Hz, {c["duration_s"]:g} s | {c["path"]} '
                      f'| {c["sent"]:,} | {c["lost"]:,} ({100 * c["lost"] / c["sent"]:.1f} %) '
+                     f'| {c.get("node_says_lost", "n/a")} '
                      f'| {c["lost_in_middleware"]:,} / {c["missing_from_stamps"]:,} '
                      f'| {c["node_cpu_cores"]:.2f} | {c["cpu_us_per_message"]:.0f} us{ratio} '
                      f'| {pub:.0f} | {c["load_avg"]:.2f} |'

@@ -33,6 +33,9 @@ _HOMES = {
     'TimeOffset': 'coreg_ros.core.types',
     'STATUS': 'coreg_ros.core.types',
     'Prior': 'coreg_ros.core.estimator.priors',
+    'load_prior': 'coreg_ros.files.results',
+    'prior_from_dict': 'coreg_ros.files.results',
+    'settings_from_mapping': 'coreg_ros.core.settings',
     'DeviceNoise': 'coreg_ros.core.noise_model',
     # uncertainty (Hoff & Vincent 2000)
     'compose': 'coreg_ros.core.uncertainty',

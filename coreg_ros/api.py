@@ -10,10 +10,15 @@ prints.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import fields
+import difflib
+import math
+import os
 from typing import Optional, Union
 
 from coreg_ros.core.calibration.pipeline import calibrate_streams
-from coreg_ros.core.errors import InputError
+from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
@@ -55,9 +60,70 @@ def _stamps(stamps, n: int, name: str) -> np.ndarray:
     return s.astype(np.int64)
 
 
+#: Keywords of ``calibrate`` besides the ``Settings`` fields (for the nearest-name hint).
+_KEYWORDS = ('sigma_a', 'sigma_b', 'method', 'stamps_a', 'stamps_b', 'time_offset', 'robust',
+             'prior', 'noise', 'quat_b_wxyz')
+#: Settings fields ``calibrate`` sets itself, and what to give instead.
+_DERIVED = {'model': 'the model follows from the shapes of pos_b and quat_b_wxyz (model_of)',
+            'estimate_time_offset': "give time_offset='auto' (estimate) or seconds (fixed)"}
+
+
+def _check_keywords(settings: dict) -> None:
+    """Refuse keywords ``calibrate`` does not know, naming the nearest one."""
+    known = [f.name for f in fields(Settings)]
+    for key in settings:
+        if key in _DERIVED:
+            raise ConfigError(f'calibrate() sets {key} itself: {_DERIVED[key]}')
+        if key not in known:
+            near = difflib.get_close_matches(key, [*_KEYWORDS, *known], n=1)
+            hint = f"; did you mean '{near[0]}'?" if near else ''
+            raise ConfigError(f'calibrate() has no keyword {key!r}{hint} (the keywords: '
+                              f'{", ".join(_KEYWORDS)} and the Settings fields)')
+
+
+def _offset(time_offset) -> tuple:
+    """(estimate, seconds) of ``time_offset``: 'auto' or a finite number of seconds."""
+    if isinstance(time_offset, str) and time_offset.strip().lower() == 'auto':
+        return True, 0.0
+    try:
+        value = float(time_offset)
+    except (TypeError, ValueError):
+        value = math.nan
+    if isinstance(time_offset, bool) or not math.isfinite(value):
+        raise ConfigError(f"time_offset must be 'auto' (estimated) or B's clock minus A's in "
+                          f'seconds (a finite number, fixed); got {time_offset!r}')
+    return False, value
+
+
+def as_prior(prior) -> Optional[Prior]:
+    """
+    Return ``prior`` as a ``Prior``: a ``Prior``, a dict or a file path (loaded), or None.
+
+    A dict is read as ``--prior`` reads a file (a previous result or a partial prior,
+    ``files.results.prior_from_dict``); a path (str or path-like) is loaded with
+    ``load_prior``.
+
+    Raises
+    ------
+    InputError
+        Anything else, or a dict or file that is not a prior (one line naming the fix).
+
+    """
+    if prior is None or isinstance(prior, Prior):
+        return prior
+    from coreg_ros.files.results import load_prior, prior_from_dict
+
+    if isinstance(prior, Mapping):
+        return prior_from_dict(prior)
+    if isinstance(prior, (str, os.PathLike)):
+        return load_prior(prior)
+    raise InputError(f'prior must be a coreg_ros.Prior, a dict (a previous result, or '
+                     f'base_to_base/tool_to_marker with sigma per axis) or the path of such a '
+                     f'file; got {type(prior).__name__}')
+
+
 def _with_noise(settings: Settings, noise) -> Settings:
     """Return the settings with ``calibrate``'s ``noise`` argument applied (one-line errors)."""
-    from collections.abc import Mapping
     from dataclasses import replace
     from pathlib import Path
 
@@ -80,7 +146,8 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
               sigma_a: tuple = Settings.sigma_a, sigma_b: tuple = Settings.sigma_b,
               method: str = 'tls', stamps_a=None, stamps_b=None,
               time_offset: Union[str, float] = 'auto', robust: bool = True,
-              prior: Optional[Prior] = None, noise='stated', **settings) -> CalibrationResult:
+              prior: Union[Prior, Mapping, str, os.PathLike, None] = None,
+              noise='stated', **settings) -> CalibrationResult:
     """
     Calibrate from numpy arrays: T0 (A's base in B's base), T1 (B's marker in A's tool).
 
@@ -104,8 +171,9 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
         B's clock minus A's, s: estimated ('auto', the default when stamps are given) or fixed.
     robust : bool
         Reject pairs far outside the stated noise and refit.
-    prior : Prior, optional
-        A priori estimate of T0 and T1 (Ikits B.3).
+    prior : Prior, dict, str or path-like, optional
+        A priori estimate of T0 and T1 (Ikits B.3); a dict or a file (a previous result, or
+        a partial prior) is loaded as ``coreg calibrate --prior`` loads it (``as_prior``).
     noise : 'stated', 'auto', str or Path, or dict
         ``'stated'``: ``sigma_a``/``sigma_b`` as given; ``'auto'``: each device's noise
         estimated with the calibration (``res.noise``; what the motion cannot separate held
@@ -114,7 +182,7 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
         out): full covariances in each device's base frame instead of the σ.
     **settings
         Further ``Settings`` fields (``max_gap``, ``estimate_clock_drift``, ``min_pairs``,
-        ``max_iterations``).
+        ``max_iterations``); a keyword that is none of them is refused, naming the nearest.
 
     Returns
     -------
@@ -124,10 +192,14 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
 
     Raises
     ------
-    InputError, TooFewPairsError, UnobservableError, ConvergenceError, InconsistentDataError
+    InputError, ConfigError, TooFewPairsError, UnobservableError, ConvergenceError,
+    InconsistentDataError
         All subclasses of ``CoregError``, with a message that names the fix.
 
     """
+    _check_keywords(settings)
+    estimate, offset = _offset(time_offset)
+    prior = as_prior(prior)
     model = model_of(pos_b, quat_b_wxyz)
     pos_a = np.asarray(pos_a, dtype=float)
     pos_b = np.asarray(pos_b, dtype=float)
@@ -138,14 +210,11 @@ def calibrate(pos_a, quat_a_wxyz, pos_b, quat_b_wxyz=None, *,
                          f'got {n} and {m} (give stamps_a and stamps_b to pair them by time)')
     if (stamps_a is None) != (stamps_b is None):
         raise InputError('give both stamps_a and stamps_b, or neither (simultaneous rows)')
-    if time_offset == 'auto':
-        estimate, offset = not synchronised, 0.0
-    else:
-        estimate, offset = False, float(time_offset)
-    cfg = _with_noise(Settings(model=model, method=method, sigma_a=tuple(sigma_a),
-                               sigma_b=tuple(sigma_b), robust=robust,
-                               estimate_time_offset=estimate, time_offset=offset, **settings),
-                      noise)
+    estimate = estimate and not synchronised
+    cfg = _with_noise(Settings(model=model, method=method, sigma_a=sigma_a,
+                               sigma_b=sigma_b, robust=robust,
+                               estimate_time_offset=estimate, time_offset=offset,
+                               **settings), noise)
     ta, tb = _stamps(stamps_a, n, 'stamps_a'), _stamps(stamps_b, m, 'stamps_b')
     stream_a = PoseStream(ta, pos_a, np.asarray(quat_a_wxyz, dtype=float))
     if model == 'three_marker':

@@ -40,6 +40,43 @@ class SchedulerError(ConfigError):
     """The Dask scheduler cannot be used (dask missing, address unreachable)."""
 
 
+class Terminated(KeyboardInterrupt):
+    """
+    SIGTERM while cases run: stops them as a Ctrl-C does (the workers ended, the tasks cancelled).
+
+    A ``KeyboardInterrupt`` so that every handler of Ctrl-C cleans up alike; ``signum`` tells
+    the front end which signal came (exit code 128 + ``signum``).
+    """
+
+    signum = int(signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """
+    Turn SIGTERM into ``Terminated`` while cases run (main thread, default handler only).
+
+    Python's default SIGTERM ends the process at once: no ``finally`` runs, so the local
+    workers and the resource tracker they share would go on, orphaned, and a cluster would
+    keep computing the cancelled run. A handler someone else installed is left alone.
+    """
+    import threading
+
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
+        yield
+        return
+
+    def stop(signum, frame):
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 @dataclass(frozen=True)
 class CaseFailure:
     """
@@ -221,7 +258,8 @@ def run_cases(fn: Callable, cases: Sequence, args: tuple = (), workers: Optional
     SchedulerError
         ``scheduler`` given but dask is not installed or the scheduler cannot be reached.
     KeyboardInterrupt
-        After stopping the workers (local) or cancelling the tasks (Dask).
+        After stopping the workers (local) or cancelling the tasks (Dask); ``Terminated`` (a
+        KeyboardInterrupt) on SIGTERM, where the process had Python's default handler.
 
     """
     cases = list(cases)
@@ -233,6 +271,18 @@ def run_cases(fn: Callable, cases: Sequence, args: tuple = (), workers: Optional
     nworkers = default_workers() if workers is None else max(1, int(workers))
     client = _connect(scheduler) if scheduler is not None else None
     tally = _Tally(n, progress, bool(bar) and n > 0, title)
+    with _terminate_as_interrupt():
+        parts = _run_all(fn, chunks, args, client, nworkers, tally)
+    results = [r for part in parts for r in part]
+    for i, r in enumerate(results):
+        if isinstance(r, _Failed):
+            results[i] = CaseFailure(i, seed_of(cases[i]), _label(cases[i], i, label), r.error)
+    return results
+
+
+def _run_all(fn: Callable, chunks: list, args: tuple, client, nworkers: int,
+             tally: _Tally) -> list:
+    """Run the chunks on the cluster, on local processes or here; return parts in order."""
     try:
         if client is not None:
             parts = _run_dask(client, fn, chunks, args, tally)
@@ -247,11 +297,7 @@ def run_cases(fn: Callable, cases: Sequence, args: tuple = (), workers: Optional
         tally.close()
         if client is not None:
             client.close()
-    results = [r for part in parts for r in part]
-    for i, r in enumerate(results):
-        if isinstance(r, _Failed):
-            results[i] = CaseFailure(i, seed_of(cases[i]), _label(cases[i], i, label), r.error)
-    return results
+    return parts
 
 
 def _label(case: Any, index: int, label: Optional[Callable]) -> str:
@@ -309,6 +355,7 @@ def _connect(scheduler: str):
                              "'coreg_ros[dask]' (or drop --scheduler to run on local "
                              'processes)') from None
     import logging
+    _probe(scheduler)
     log = logging.getLogger('distributed')
     level = log.level
     log.setLevel(logging.CRITICAL)  # the failure is said once, below, not as a log trace
@@ -316,10 +363,81 @@ def _connect(scheduler: str):
         return Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     except Exception as e:  # noqa: BLE001 - OSError, TimeoutError, ValueError of the address
         raise SchedulerError(f'cannot reach the Dask scheduler at {scheduler} '
-                             f'({one_line(e)}); check the address, or start one with `dask '
-                             'scheduler` and `dask worker ADDRESS`') from None
+                             f'({one_line(e)}); {_START_ONE}') from None
     finally:
         log.setLevel(level)
+
+
+_START_ONE = 'check the address, or start one with `dask scheduler` and `dask worker ADDRESS`'
+
+
+def _probe(scheduler: str) -> None:
+    """
+    Refuse an address Dask cannot use, or a host:port nothing listens on, in one line, now.
+
+    Why before ``Client``: a client that fails to connect retries until its timeout, and the
+    half-made client then closes itself on garbage collection, waiting twice the timeout and
+    printing a traceback after our one-line error. A plain socket answers at once when the
+    port is closed, and within ``CONNECT_TIMEOUT_S`` when the host does not answer.
+    """
+    import asyncio
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    example = 'e.g. tcp://10.0.0.5:8786, as `dask scheduler` prints it'
+    try:
+        scheme, location = parse_address(scheduler)
+    except ValueError as e:
+        raise SchedulerError(f'--scheduler {scheduler!r} is not a Dask address '
+                             f'({one_line(e)}); {example}') from None
+    if scheme not in backends:
+        raise SchedulerError(f'--scheduler {scheduler!r}: {scheme}:// is not a Dask protocol '
+                             f'(known: {", ".join(sorted(backends))}); {example}')
+    if scheme not in ('tcp', 'tls', 'ws', 'wss'):
+        return  # no host and port to try (inproc, ucx): the client says what goes wrong
+    try:
+        host, port = parse_host_port(location)
+    except ValueError as e:
+        raise SchedulerError(f'--scheduler {scheduler!r} is not a Dask address '
+                             f'({one_line(e)}); {example}') from None
+    if not 0 < port < 65536:
+        raise SchedulerError(f'--scheduler {scheduler!r}: port {port} is not a port number '
+                             f'(1-65535); {example}')
+    try:
+        with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):
+            pass
+    except OSError as e:
+        reason = 'no answer' if isinstance(e, TimeoutError) else one_line(e)
+        raise SchedulerError(f'cannot reach the Dask scheduler at {scheduler} ({reason} '
+                             f'from {host} port {port}); {_START_ONE}') from None
+    # Something listens (a firewall or proxy may accept any port): is it a Dask scheduler?
+    try:
+        kind = asyncio.run(asyncio.wait_for(_identity(scheduler), CONNECT_TIMEOUT_S))
+    except Exception as e:  # noqa: BLE001 - OSError, TimeoutError, a comm or protocol error
+        reason = (f'no Dask answer in {CONNECT_TIMEOUT_S:g} s' if isinstance(e, TimeoutError)
+                  else one_line(e) if isinstance(e, OSError)
+                  else "what answers there does not speak Dask's protocol")
+        raise SchedulerError(f'cannot reach the Dask scheduler at {scheduler} ({reason}); '
+                             f'{_START_ONE}') from None
+    if kind != 'Scheduler':
+        raise SchedulerError(f'{scheduler} is a Dask {kind}, not a scheduler: give the address '
+                             '`dask scheduler` prints (the workers connect to it too)')
+
+
+async def _identity(address: str) -> str:
+    """Ask the Dask server at ``address`` what it is (``'Scheduler'``, ``'Worker'``...)."""
+    from distributed.comm import connect
+
+    comm = await connect(address, timeout=CONNECT_TIMEOUT_S)
+    try:
+        await comm.write({'op': 'identity', 'reply': True})
+        answer = await comm.read()
+    finally:
+        comm.abort()
+    return str(answer.get('type', 'server of another kind')) if isinstance(answer, dict) \
+        else 'server of another kind'
 
 
 def _run_dask(client, fn: Callable, chunks: list, args: tuple, tally: _Tally) -> list:

@@ -8,6 +8,7 @@ The Dask test starts its own LocalCluster (2 worker processes, 1 thread each) on
 """
 
 import json
+import os
 from pathlib import Path
 import sys
 
@@ -176,3 +177,91 @@ def test_validate_scores_the_cases_that_ran_and_lists_the_one_that_raised(monkey
     assert 'injected fault' in out['failed'][0]['error']
     assert out['summary']['cases'] == 2  # the failure is not scored
     assert len(out['results']) == 3
+
+
+def test_an_address_where_something_else_answers_is_one_line_at_once():
+    # Issue 25.4: a port that accepts but is no Dask scheduler (a web server, a proxy that
+    # accepts any port) gave the one-line error, then a Client.__del__ traceback and a 20 s
+    # stall while the half-made client closed itself.
+    import socket
+    import subprocess
+    import threading
+    import time
+
+    server = socket.create_server(('127.0.0.1', 0))
+    port = server.getsockname()[1]
+
+    def answer_like_a_web_server():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:  # closed: the test is over
+                return
+            with conn:
+                conn.sendall(b'HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n')
+
+    threading.Thread(target=answer_like_a_web_server, daemon=True).start()
+    try:
+        cases = [('garbage:::', 'is not a Dask address'),
+                 ('http://127.0.0.1:8787', 'http:// is not a Dask protocol'),
+                 (f'tcp://127.0.0.1:{port}', "does not speak Dask's protocol")]
+        for address, said in cases:
+            start = time.monotonic()
+            proc = subprocess.run([sys.executable, '-m', 'coreg_ros.cli.main',
+                                   'validate-diagnosis', '--cases', '1', '--quiet',
+                                   '--scheduler', address],
+                                  capture_output=True, text=True, timeout=120)
+            took = time.monotonic() - start
+            assert proc.returncode == 1, proc.stderr
+            assert said in proc.stderr and proc.stderr.count('\n') == 1, proc.stderr
+            assert 'Traceback' not in proc.stderr
+            # the stall was twice the connect timeout after it: far beyond start-up and one try
+            assert took < 2 * parallel.CONNECT_TIMEOUT_S, (address, took)
+    finally:
+        server.close()
+
+
+def _children(pid: int) -> list:
+    path = Path(f'/proc/{pid}/task/{pid}/children')
+    return [int(c) for c in path.read_text().split()] if path.exists() else []
+
+
+def _alive(pid: int) -> bool:
+    stat = Path(f'/proc/{pid}/stat')
+    return stat.exists() and stat.read_text().split(')')[-1].split()[0] != 'Z'
+
+
+def test_sigterm_stops_the_local_workers_and_their_resource_tracker(tmp_path):
+    # Issue 25.4: SIGTERM to `validate-diagnosis --workers 2` ended the command at once and
+    # left both workers and the resource tracker running (orphaned, still computing).
+    import signal
+    import subprocess
+    import time
+
+    err_path = tmp_path / 'stderr'
+    children = []
+    with open(err_path, 'w') as err:  # a file, not a pipe: orphans would hold a pipe open
+        proc = subprocess.Popen([sys.executable, '-m', 'coreg_ros.cli.main',
+                                 'validate-diagnosis', '--cases', '8', '--workers', '2',
+                                 '--quiet'], stdout=subprocess.DEVNULL, stderr=err)
+    try:
+        end = time.monotonic() + 60
+        while len(_children(proc.pid)) < 3 and time.monotonic() < end:  # 2 workers, tracker
+            time.sleep(0.1)
+        children = _children(proc.pid)
+        assert len(children) == 3, 'the workers never started'
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+        end = time.monotonic() + 10
+        while any(map(_alive, children)) and time.monotonic() < end:
+            time.sleep(0.1)
+        left = [c for c in children if _alive(c)]
+    finally:
+        proc.kill()
+        for pid in children:  # never leave them to the next test
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    err = err_path.read_text()
+    assert not left, f'processes left running after SIGTERM: {left}'
+    assert proc.returncode == 143, err
+    assert err.strip() == 'coreg validate-diagnosis: SIGTERM: stopped (its workers too)', err

@@ -48,6 +48,12 @@ def finite(text: str) -> float:
     return value
 
 
+def add_storage_option(parser) -> None:
+    """Add ``--storage sqlite3|mcap`` (the rosbag2 format of a bag the command writes)."""
+    parser.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3',
+                        help='rosbag2 storage format of the bag written (default sqlite3)')
+
+
 def add_parallel_arguments(parser) -> None:
     """
     Add ``--workers N`` and ``--scheduler ADDRESS`` to an argparse parser.

@@ -52,18 +52,22 @@ def json_name(bag: Path, root: Path) -> str:
     return name + '.json'
 
 
-def calibrate_one(bag: str, settings, prior, frames, direction_check: bool) -> dict:
+def calibrate_one(bag: str, settings, prior, frames, direction_check: bool,
+                  roles_confirmed: bool = False) -> dict:
     """Run ``coreg calibrate --json`` on one bag; its document and a summary row."""
     from coreg_ros.cli.calibrate import calibrate_bag
     from coreg_ros.cli.options import EXIT_INCONSISTENT
 
     t0 = time.perf_counter()
-    run = calibrate_bag(bag, settings, prior, frames=frames, direction_check=direction_check)
+    run = calibrate_bag(bag, settings, prior, frames=frames, direction_check=direction_check,
+                        roles_confirmed=roles_confirmed)
     r = run.result
     if run.wrong_way:
         verdict = f'refused: {run.check.message}'
     elif run.exit_code == 0:
         verdict = 'consistent'
+    elif run.exit_code == EXIT_INCONSISTENT and r.refusals:
+        verdict = 'refused: ' + ', '.join(r.refusals).replace('_', ' ')
     elif run.exit_code == EXIT_INCONSISTENT:
         verdict = 'inconsistent with the stated noise'
     else:
@@ -117,16 +121,18 @@ def cmd_batch(args) -> int:
     from coreg_ros.cli.diagnose import case_progress
     from coreg_ros.cli.options import config_frames, settings_from_args
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_dir
     from coreg_ros.parallel import CaseFailure, run_cases
 
     root = Path(args.folder)
     bags = find_bags(root)
+    check_output_dir(args.out, '--out')
     settings = settings_from_args(args)
     if args.what == 'calibrate':
-        from coreg_ros.cli.options import prior_from_args
+        from coreg_ros.cli.options import prior_from_args, roles_confirmed
         prior = prior_from_args(args)
         fn, extra = calibrate_one, (settings, prior, config_frames(args),
-                                    not args.no_direction_check)
+                                    not args.no_direction_check, roles_confirmed(args))
     else:
         fn, extra = diagnose_one, (settings,)
     out_dir = Path(args.out)
@@ -164,13 +170,15 @@ def register(sub) -> None:
     """Add ``batch calibrate`` and ``batch diagnose`` to the ``coreg`` subparsers."""
     from coreg_ros.cli.argtypes import add_parallel_arguments
     from coreg_ros.cli.options import add_calibration_options
+    from coreg_ros.cli.policy import exit_codes
 
     p = sub.add_parser('batch', help='calibrate or diagnose every recording under a folder, '
-                                     'in parallel (a JSON per bag and a summary table)')
+                                     'in parallel (a JSON per bag and a summary table)',
+                       epilog=exit_codes('batch'))
     what = p.add_subparsers(dest='what', required=True, parser_class=type(p))
     for name, text in (('calibrate', 'run `coreg calibrate --json` on every recording'),
                        ('diagnose', 'run `coreg diagnose --json` on every recording')):
-        q = what.add_parser(name, help=text, description=text)
+        q = what.add_parser(name, help=text, description=text, epilog=exit_codes('batch'))
         q.add_argument('folder', help='folder searched for rosbag2 recordings (metadata.yaml)')
         q.add_argument('--out', required=True, metavar='DIR',
                        help='folder for one JSON per recording and summary.json')
@@ -180,7 +188,6 @@ def register(sub) -> None:
         if name == 'calibrate':
             from coreg_ros.cli.options import add_prior_options
             add_prior_options(q, 'a previous result or partial prior, the same for every bag')
-            q.add_argument('--no-direction-check', action='store_true',
-                           help='do not check, after a bad fit, whether a stream should be '
-                                'inverted')
+            from coreg_ros.cli.options import add_check_options
+            add_check_options(q)
         q.set_defaults(func=cmd_batch)

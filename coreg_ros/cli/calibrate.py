@@ -13,13 +13,15 @@ from typing import Any
 from coreg_ros.cli.argtypes import finite
 from coreg_ros.cli.options import (
     add_calibration_options,
+    add_check_options,
     add_prior_options,
     config_frames,
     EXIT_INCONSISTENT,
     prior_from_args,
+    roles_confirmed,
     settings_from_args,
 )
-from coreg_ros.cli.policy import PROG
+from coreg_ros.cli.policy import exit_codes, PROG, with_flags
 
 
 @dataclass
@@ -36,8 +38,9 @@ class CalibrationRun:
     data : dict
         The ``--json`` document: the result, pairing counts, settings, direction check.
     exit_code : int
-        0 consistent, EXIT_INCONSISTENT fit not matching the noise, 1 refused (a stream the
-        wrong way round, or the estimator failed).
+        0 consistent, EXIT_INCONSISTENT converged but flagged (the fit not matching the
+        noise, a disagreeing prior, devices swapped without ``--roles-confirmed``), 1 refused
+        (a stream the wrong way round, or the estimator failed).
 
     """
 
@@ -53,8 +56,8 @@ class CalibrationRun:
         return self.check is not None and self.check.flagged
 
 
-def calibrate_bag(bag, settings, prior=None, frames=None,
-                  direction_check: bool = True) -> CalibrationRun:
+def calibrate_bag(bag, settings, prior=None, frames=None, direction_check: bool = True,
+                  roles_confirmed: bool = False) -> CalibrationRun:
     """
     Read, pair and calibrate one recording as ``coreg calibrate --json`` does.
 
@@ -71,6 +74,8 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     direction_check : bool
         Check the stream directions after a bad fit (``--no-direction-check`` turns it off;
         the check itself is the pipeline's, ``calibrate_streams``).
+    roles_confirmed : bool
+        ``--roles-confirmed``: frame ids that say the devices are swapped refuse nothing.
 
     Raises
     ------
@@ -80,6 +85,7 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
 
     """
     from coreg_ros.core.calibration.pipeline import calibrate_streams
+    from coreg_ros.core.provenance import data_sketch
     from coreg_ros.files.bag.posebag import read_pose_bag
     from coreg_ros.files.results import result_to_dict
     from coreg_ros.threads import one_blas_thread
@@ -91,9 +97,11 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     # this also covers the noise estimation's small products (noise: auto)
     with one_blas_thread():
         result, report = calibrate_streams(stream_a, streams_b, settings, prior, frames=frames,
-                                           direction_check=direction_check)
+                                           direction_check=direction_check,
+                                           roles_confirmed=roles_confirmed)
     check = result.direction_check
     data = result_to_dict(result)
+    data['data_sketch'] = data_sketch(streams_b)  # which samples: --prior refuses the same
     data['pairing'] = {'n_a': report.n_a, 'n_b': report.n_b, 'n_paired': report.n_paired,
                        'unpaired': dict(report.unpaired)}
     data['settings'] = settings.as_dict()
@@ -104,7 +112,7 @@ def calibrate_bag(bag, settings, prior=None, frames=None,
     if check is not None:
         data['direction_check'] = check.as_dict()
     run = CalibrationRun(result, report, check, data, 0)
-    if run.wrong_way or not (result.success or result.fit_consistent is False):
+    if run.wrong_way or not (result.success or result.flagged):
         run.exit_code = 1
     else:
         run.exit_code = 0 if result.success else EXIT_INCONSISTENT
@@ -117,22 +125,26 @@ def cmd_calibrate(args) -> int:
 
     from coreg_ros.core.result_text import format_result
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_dir, check_output_file
     from coreg_ros.report.calibration_report import points_from_flat
 
     # `--json -` puts the JSON on stdout; the text for a person then goes to stderr
     out = sys.stderr if args.json == '-' else sys.stdout
+    check_output_file(args.json, '--json')  # before the work, not after it
+    check_output_dir(args.report, '--report')
     settings = settings_from_args(args)
     points = points_from_flat(args.points, args.report)  # checked before the long fit
     prior = prior_from_args(args)
     run = calibrate_bag(args.bag, settings, prior, frames=config_frames(args),
-                        direction_check=not args.no_direction_check)
+                        direction_check=not args.no_direction_check,
+                        roles_confirmed=roles_confirmed(args))
     result, report, check = run.result, run.report, run.check
     print(f'{PROG} calibrate: {args.bag}', file=out)
     if run.wrong_way:
         print(f'{PROG} calibrate: error: {check.message} (or --no-direction-check to fit the '
               f'data as given)', file=sys.stderr)
     else:
-        print(format_result(result, report), file=out)
+        print(with_flags(format_result(result, report)), file=out)  # `name` (--flag)
         if check is not None:
             print(f'direction check: {check.message}', file=out)
     if args.json:
@@ -152,15 +164,15 @@ def cmd_calibrate(args) -> int:
 
 def register(sub) -> None:
     """Add ``calibrate`` to the ``coreg`` subparsers."""
-    p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)')
+    p = sub.add_parser('calibrate', help='calibrate a recording offline (Ikits OLS/TLS)',
+                       epilog=exit_codes('calibrate'))
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT',
                    help='also write the result as JSON (atomically); - for stdout')
     add_prior_options(p, "a previous result (--json output or the node's result.yaml) or a "
                          'partial prior (base_to_base / tool_to_marker with sigma per axis) '
                          'that this recording refines (Ikits B.3)')
-    p.add_argument('--no-direction-check', action='store_true',
-                   help='do not check, after a bad fit, whether a stream should be inverted')
+    add_check_options(p)
     p.add_argument('--report', metavar='DIR',
                    help='also write an HTML report (ellipsoids, axis cones, residuals) to DIR')
     p.add_argument('--points', nargs='+', type=finite, metavar='X Y Z',

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 
+from coreg_ros.cli.argtypes import add_storage_option
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B
 from coreg_ros.files.csv_poses import (
@@ -43,6 +44,9 @@ def _describe(label: str, csv: CsvStream) -> str:
 def cmd_convert(args) -> int:
     """Convert two CSV exports to a rosbag2 recording."""
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.files.output_paths import check_new_bag
+
+    check_new_bag(args.out_bag, 'OUT_BAG')  # before reading the CSVs
 
     def per_file(name: str, side: str, default: str) -> str:
         value = getattr(args, f'{name}_{side}', None)
@@ -90,8 +94,8 @@ def register(subparsers) -> None:
         description='Convert two CSV exports, one row per sample "t, x, y, z, q, q, q, q" '
                     '(t in seconds; comma and/or whitespace separated; optional header), to '
                     'a rosbag2 with PoseStamped on two topics. After converting it checks the '
-                    'cheap explanations of a bad fit (a unit factor of 1000 between the '
-                    'files, a time unit, the quaternion column order) and names the option '
+                    'cheap explanations of a bad fit (a unit factor, mm or cm against m, between '
+                    'the files, a time unit, the quaternion column order) and names the option '
                     'that fixes one.')
     p.add_argument('csv_a', help='device A export (tool pose in A base)')
     p.add_argument('csv_b', help='device B export (marker pose in B base)')
@@ -111,7 +115,7 @@ def register(subparsers) -> None:
                    help='invert device B poses (T -> T^-1): the export is base-in-marker')
     p.add_argument('--sort', action='store_true',
                    help='sort rows by time and drop repeated times instead of refusing them')
-    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    add_storage_option(p)
     p.add_argument('--topic-a', default=DEFAULT_TOPIC_A, help=f'default {DEFAULT_TOPIC_A}')
     p.add_argument('--topic-b', default=DEFAULT_TOPIC_B[0], help=f'default {DEFAULT_TOPIC_B[0]}')
     p.set_defaults(func=cmd_convert)
@@ -121,7 +125,9 @@ def register(subparsers) -> None:
 def cmd_fix_bag(args) -> int:
     """Write a repaired copy of a recording: sorted, without repeated stamps, or split."""
     from coreg_ros.files.bag.fixbag import fix_bag
+    from coreg_ros.files.output_paths import check_new_bag
 
+    check_new_bag(args.out_bag, 'OUT_BAG')  # split parts are checked by fix_bag
     report = fix_bag(args.bag, args.out_bag, sort=args.sort,
                      drop_duplicates=args.drop_duplicates, split_at_jump=args.split_at_jump,
                      storage=args.storage, salvage=args.salvage)
@@ -164,5 +170,5 @@ def register_fix_bag(subparsers) -> None:
                    help='drop messages whose header stamp repeats an earlier one (keep first)')
     p.add_argument('--split-at-jump', type=positive, metavar='S',
                    help='split where a header stamp jumps by more than S seconds')
-    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    add_storage_option(p)
     p.set_defaults(func=cmd_fix_bag)

@@ -87,7 +87,10 @@ def cmd_diagnose(args) -> int:
     from coreg_ros.cli.options import settings_from_args
     from coreg_ros.core.diagnosis.text import format_diagnosis
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_dir, check_output_file
 
+    check_output_file(args.json, '--json')  # before the work, not after it
+    check_output_dir(args.report, '--report')
     settings = settings_from_args(args)
     progress = Progress(f'{PROG} diagnose', enabled=None if not args.quiet else False)
     diag, document = diagnose_bag(args.bag, settings, progress)
@@ -147,9 +150,11 @@ def report_failures(command: str, failed: list) -> None:
 def cmd_validate(args) -> int:
     """Score the diagnosis on simulated recordings with hidden effects."""
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_file
     from coreg_ros.parallel import CaseFailure, failures
     from coreg_ros.sim.validation import _jsonable, format_validation, validate
 
+    check_output_file(args.json, '--json')
     progress = case_progress(f'{PROG} validate-diagnosis', args.quiet)
     noise = None
     if args.noise:
@@ -176,9 +181,11 @@ def register(sub) -> None:
     """Add ``diagnose`` and ``validate-diagnosis`` to the ``coreg`` subparsers."""
     from coreg_ros.cli.argtypes import add_parallel_arguments
     from coreg_ros.cli.options import add_calibration_options
+    from coreg_ros.cli.policy import exit_codes
 
     p = sub.add_parser('diagnose', help='detect, locate and explain the gap between a '
-                                        'recording and the model (sim-to-real)')
+                                        'recording and the model (sim-to-real)',
+                       epilog=exit_codes('diagnose'))
     add_calibration_options(p)
     p.add_argument('--json', metavar='OUT', help='also write the diagnosis as JSON')
     p.add_argument('--report', metavar='DIR', help='write an HTML report (index.html + PNGs)')
@@ -186,7 +193,8 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser('validate-diagnosis',
-                       help='score the diagnosis on simulated recordings with hidden effects')
+                       help='score the diagnosis on simulated recordings with hidden effects',
+                       epilog=exit_codes('validate-diagnosis'))
     p.add_argument('--cases', type=positive_int, default=40, help='recordings (default 40)')
     p.add_argument('--seed', type=int, default=0, help='seed of the draws (default 0)')
     add_parallel_arguments(p)

@@ -136,15 +136,36 @@ def noise_from_args(args, settings):
     return with_noise_file(settings, noise)
 
 
+def _config_values(args) -> dict:
+    """Return the checked parameters of --config ({} without one)."""
+    if not getattr(args, 'config', None):
+        return {}
+    from coreg_ros.files.parameters import load_parameters
+    return load_parameters(args.config)
+
+
 def config_frames(args) -> tuple:
     """(frame_base_a, frame_base_b): from --config, else the node's defaults (swap check)."""
     from coreg_ros.core.config_schema import NODE_DEFAULTS
-    values = {}
-    if getattr(args, 'config', None):
-        from coreg_ros.files.parameters import load_parameters
-        values = load_parameters(args.config)
+    values = _config_values(args)
     frames = tuple(values.get(k, NODE_DEFAULTS[k]) for k in ('frame_base_a', 'frame_base_b'))
     return frames if all(isinstance(f, str) and f for f in frames) else None
+
+
+def add_check_options(p: argparse.ArgumentParser) -> None:
+    """Add the options that turn the checks of a fit off: the stream directions, the swap."""
+    p.add_argument('--no-direction-check', action='store_true',
+                   help='do not check, after a bad fit, whether a stream should be inverted')
+    p.add_argument('--roles-confirmed', action='store_true',
+                   help="the topics are device A and device B as given, whatever the messages' "
+                        'frame ids say: frame ids that name the other base frame (devices '
+                        'swapped) refuse nothing (default: such a calibration exits 3)')
+
+
+def roles_confirmed(args) -> bool:
+    """--roles-confirmed, or ``roles_confirmed: true`` in --config (the node's parameter)."""
+    return bool(getattr(args, 'roles_confirmed', False)
+                or _config_values(args).get('roles_confirmed', False))
 
 
 #: σ (rad) of ``--gravity-aligned`` given without a value: about half a degree of tilt.

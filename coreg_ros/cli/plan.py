@@ -34,7 +34,8 @@ def register(subparsers) -> None:
     from coreg_ros.sim.motion import MOTION_PRESETS
     p.add_argument('--motion', choices=MOTION_PRESETS, default='diverse',
                    help='motion preset simulated with --duration (default diverse)')
-    p.add_argument('--model', choices=MODELS, default='full_pose')
+    p.add_argument('--model', choices=MODELS, default='full_pose',
+                   help='what device B will measure (default full_pose)')
     p.add_argument('--rate-b', type=positive, metavar='HZ',
                    help="pairs per second, device B's rate (default 50; with --bag and B "
                         'in it, the recorded pairs)')
@@ -91,11 +92,13 @@ def cmd_plan(args) -> int:
     """Predict the calibration accuracy and rank candidate additions to the motion."""
     from coreg_ros.cli.options import noise_from_args
     from coreg_ros.core.errors import ConfigError
-    from coreg_ros.core.planning.plan import plan_recording
+    from coreg_ros.core.planning.plan import check_plan_memory, plan_recording
     from coreg_ros.core.settings import Settings
     from coreg_ros.files.atomic import write_json
+    from coreg_ros.files.output_paths import check_output_file
     from coreg_ros.sim import make_motion, random_truth
 
+    check_output_file(args.json, '--json')
     settings = Settings(model=args.model)
     if args.topic_a or args.topic_b:
         settings = settings.updated(topic_a=args.topic_a,
@@ -117,6 +120,9 @@ def cmd_plan(args) -> int:
         pos, q, rate, estimate, source, note = _motion_from_bag(args, settings, cov_a, cov_b)
     else:
         rate = args.rate_b or 50.0
+        check_plan_memory(args.duration * rate, args.extra,
+                          f'a plan of {args.duration:g} s at {rate:g} Hz',
+                          '--duration, --rate-b or --extra')
         motion = make_motion(rng, args.motion)
         n = max(2, int(round(args.duration * rate)))
         pos, q = motion.pose(np.arange(n) / rate)

@@ -4,7 +4,8 @@ One error policy for every ``coreg`` subcommand.
 A ``CoregError`` is one line on stderr, ``coreg COMMAND: error: ...``, and exit code 1; the
 core names parameters (``sigma_a``), and the line adds how to give them here (``--sigma-a``).
 Missing ROS 2 packages are one line naming the fix; Ctrl-C is ``interrupted`` and exit code
-130; a reader that went away (``| head``) is not an error.
+130 (SIGTERM while cases run on workers: 143, the workers stopped); a reader that went away
+(``| head``) is not an error.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ FLAGS = {'topic_a': '--topic-a', 'topic_b': '--topic-b', 'model': '--model',
          'max_gap': '--max-gap', 'time_offset': '--time-offset',
          'estimate_time_offset': '--time-offset auto',
          'estimate_clock_drift': '--clock-drift', 'robust': '--robust',
-         'min_pairs': '--min-pairs', 'prior': '--prior'}
+         'min_pairs': '--min-pairs', 'prior': '--prior',
+         'roles_confirmed': '--roles-confirmed'}
 _NAMED = re.compile(r'`([a-z_]+)`')
 
 
@@ -40,16 +42,46 @@ def with_flags(message: str) -> str:
     return _NAMED.sub(spell, message)
 
 
+#: What each exit code of the commands that decide something means (their ``--help`` epilog;
+#: the README's table says the same). Every command: 1 an error, 130 Ctrl-C.
+EXIT_CODES = {
+    'calibrate': '0 a consistent calibration; 3 it converged but the data contradict the fit '
+                 'or the roles look swapped (the verdict says what to do); 1 an error',
+    'diagnose': '0 the diagnosis ran (what it found is the report, not the code); 1 an error',
+    'batch': '0 every recording done (calibrate: each consistent); 3 none failed but a '
+             'calibration contradicts its data; 1 a recording failed (the table names it) or '
+             'an error; 143 SIGTERM (the workers stopped)',
+    'validate-diagnosis': '0 every case ran; 1 a case failed (listed) or an error; 143 '
+                          'SIGTERM (the workers stopped)',
+}
+
+
+def exit_codes(command: str) -> str:
+    """Return the ``--help`` epilog of ``command`` saying what its exit codes mean."""
+    return f'exit codes: {EXIT_CODES[command]}; 130 Ctrl-C'
+
+
 def fail(command: str, message: str) -> int:
     """Print the one-line error of ``coreg COMMAND`` and return exit code 1."""
     print(f'{PROG} {command}: error: {message}', file=sys.stderr)
     return 1
 
 
-def interrupted(command: str) -> int:
-    """Say that ``coreg COMMAND`` was interrupted and return exit code 130 (128 + SIGINT)."""
-    print(f'{PROG} {command}: interrupted', file=sys.stderr)
-    return 130
+def interrupted(command: str, signum: int = 2) -> int:
+    """
+    Say that ``coreg COMMAND`` was interrupted; return 128 + the signal (130 for SIGINT).
+
+    ``signum`` is the ``signum`` of the KeyboardInterrupt caught (``parallel.Terminated``
+    carries SIGTERM's, 15: exit code 143), else SIGINT's.
+    """
+    if signum == 2:
+        print(f'{PROG} {command}: interrupted', file=sys.stderr)
+    else:
+        import signal
+
+        print(f'{PROG} {command}: {signal.Signals(signum).name}: stopped (its workers too)',
+              file=sys.stderr)
+    return 128 + signum
 
 
 def missing_package(error: ImportError) -> str:
@@ -91,8 +123,8 @@ def run_command(command: str, func: Callable, args) -> int:
         if not fix:
             raise
         return fail(command, fix)
-    except KeyboardInterrupt:
-        return interrupted(command)
+    except KeyboardInterrupt as e:
+        return interrupted(command, getattr(e, 'signum', 2))
     except BrokenPipeError:
         # the reader (e.g. `| head`) went away: not an error of ours
         sys.stderr.close()

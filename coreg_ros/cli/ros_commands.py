@@ -14,7 +14,7 @@ import functools
 from pathlib import Path
 import sys
 
-from coreg_ros.cli.argtypes import positive, positive_or_inf
+from coreg_ros.cli.argtypes import add_storage_option, positive, positive_or_inf
 from coreg_ros.cli.policy import fail, run_command
 
 SERVICES = ('calibrate', 'reset', 'save_samples')
@@ -44,6 +44,7 @@ def cmd_record(args) -> int:
     """Record live PoseStamped topics to a new bag."""
     from coreg_ros.core.errors import BagError
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.files.output_paths import check_new_bag
     from coreg_ros.ros.lifecycle import record_stop_signals
     from coreg_ros.ros.persistence import read_journal, SampleJournal
     from coreg_ros.ros.session import RosSession
@@ -56,8 +57,7 @@ def cmd_record(args) -> int:
             raise BagError(f'no interrupted recording at {partial}; nothing to recover')
         streams = read_journal(partial, args.topics)
     else:
-        if out.exists():
-            raise BagError(f'{str(out)!r} exists already; choose a new bag name')
+        check_new_bag(out, 'OUT_BAG')
         if partial.exists():
             raise BagError(f'{partial} holds an interrupted recording; recover it with coreg '
                            f'record {out} --topics ... --recover, or delete it')
@@ -134,14 +134,14 @@ def register(subparsers) -> None:
     p.add_argument('out_bag', help='rosbag2 directory to create')
     p.add_argument('--topics', nargs='+', required=True, help='PoseStamped topics')
     p.add_argument('--duration', type=positive, help='seconds (default: until Ctrl-C)')
-    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
+    add_storage_option(p)
     p.add_argument('--recover', action='store_true',
                    help='write OUT_BAG from the samples an interrupted recording left in '
                         'OUT_BAG.partial')
     p.set_defaults(func=cmd_record)
 
     p = subparsers.add_parser('call', help='call a coreg_node service and print the answer')
-    p.add_argument('service', choices=SERVICES)
+    p.add_argument('service', choices=SERVICES, help="the node's Trigger service to call")
     p.add_argument('--node', default='coreg_node', help='node name (default coreg_node)')
     p.add_argument('--timeout', type=positive, default=60.0,
                    help='seconds to wait for the service and its answer (default 60)')

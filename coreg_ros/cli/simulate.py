@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from coreg_ros.cli.argtypes import positive
+from coreg_ros.cli.argtypes import add_storage_option, positive
 from coreg_ros.cli.policy import PROG
 from coreg_ros.core.types import MODELS
 
@@ -13,8 +13,11 @@ def cmd_simulate(args) -> int:
     """Write a simulated two-device recording and its ground truth beside it."""
     from coreg_ros.files.atomic import write_json
     from coreg_ros.files.bag.posebag import write_pose_bag
+    from coreg_ros.files.output_paths import check_new_bag, check_output_file
     from coreg_ros.sim import simulate_recording
 
+    check_new_bag(args.out_bag, 'OUT_BAG')  # before simulating, not after it
+    check_output_file(truth_path_for(args.out_bag), 'the ground truth')
     kwargs = {}
     if args.sigma_a:
         kwargs['sigma_a'] = tuple(args.sigma_a)
@@ -48,20 +51,29 @@ def truth_path_for(bag) -> Path:
 
 def register(sub) -> None:
     """Add ``simulate`` to the ``coreg`` subparsers."""
+    from coreg_ros.sim.devices import DEFAULT_SIGMA_A, DEFAULT_SIGMA_B
+
     p = sub.add_parser('simulate', help='write a simulated two-device recording')
     p.add_argument('out_bag', help='rosbag2 directory to create')
-    p.add_argument('--seed', type=int, required=True)
-    p.add_argument('--duration', type=positive, required=True, metavar='SECONDS')
-    p.add_argument('--storage', choices=('sqlite3', 'mcap'), default='sqlite3')
-    p.add_argument('--model', choices=MODELS, default='full_pose')
+    p.add_argument('--seed', type=int, required=True,
+                   help='seed of every random draw: the same seed, the same recording')
+    p.add_argument('--duration', type=positive, required=True, metavar='SECONDS',
+                   help='length of the recording, s')
+    add_storage_option(p)
+    p.add_argument('--model', choices=MODELS, default='full_pose',
+                   help='what device B measures (default full_pose)')
     from coreg_ros.sim.motion import MOTION_PRESETS
     p.add_argument('--motion', default='diverse', choices=MOTION_PRESETS,
                    help='what device A can do (default diverse); scara, planar, gantry and '
                         'turntable are rigs that cannot move in every direction')
     p.add_argument('--rate-a', type=positive, default=100.0, help='Hz (default 100)')
     p.add_argument('--rate-b', type=positive, default=50.0, help='Hz (default 50)')
-    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'))
-    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'))
+    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
+                   help="device A's noise, 1 sigma per axis: position m, rotation rad "
+                        f'(default {DEFAULT_SIGMA_A[0]:g} {DEFAULT_SIGMA_A[1]:g})')
+    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
+                   help="device B's noise, 1 sigma per axis: position m, rotation rad "
+                        f'(default {DEFAULT_SIGMA_B[0]:g} {DEFAULT_SIGMA_B[1]:g})')
     p.add_argument('--effect', action='append', metavar='NAME=VALUE',
                    help='inject an unmodelled effect (repeatable), e.g. time_offset=0.012 (s), '
                         'clock_drift=100 (ppm), timestamp_jitter=0.005 (s), '

@@ -17,7 +17,7 @@ from typing import Optional
 
 from coreg_ros.cli.argtypes import positive
 from coreg_ros.cli.dashboard import DashboardState, render, Status
-from coreg_ros.cli.policy import fail, run_command
+from coreg_ros.cli.policy import fail, interrupted, run_command
 
 
 def register(subparsers) -> None:
@@ -60,6 +60,8 @@ def cmd_watch(args) -> int:
         session.node.create_subscription(DiagnosticArray, args.topic, received, 10)
         if args.once or not console.is_terminal:
             got = session.spin_until(lambda: state.received_at is not None, timeout)
+            if not got and not session.ok():  # Ctrl-C before any status
+                return interrupted('watch')
             if not got:
                 return fail('watch', f'no status of {state.node} on {args.topic} within '
                             f'{timeout:g} s; is the node running (and on this ROS domain)?')
@@ -75,7 +77,8 @@ def cmd_watch(args) -> int:
                         and time.monotonic() - started > timeout):
                     return fail('watch', f'no status of {state.node} on {args.topic} within '
                                 f'{timeout:g} s')
-    return 0
+    # the dashboard runs until Ctrl-C (or SIGTERM): 130, as play and echo say it
+    return interrupted('watch')
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -30,6 +30,7 @@ NODE_DEFAULTS = {
     'use_last_result_as_prior': False,
     'gravity_aligned_sigma': 0.0,
     'publish_inconsistent': False,
+    'roles_confirmed': False,
     'buffer_capacity': 200_000,
     'qos_reliable': False,
     'frame_base_a': 'device_a_base',

@@ -109,7 +109,9 @@ def format_result(result, report=None) -> str:
     """Render the full report a person reads after ``coreg calibrate``."""
     state = 'success' if result.success else (
         'INCONSISTENT (converged, but the data contradict the fit)'
-        if result.fit_consistent is False and result.status > 0 else 'FAILED')
+        if result.flagged and result.fit_consistent is False else
+        'REFUSED (converged, but not to be used as it stands: see the verdict)'
+        if result.flagged else 'FAILED')
     out = [f'model {result.model}, method {result.method.upper()}: {state}: {result.message}']
     if report is not None:
         out.append(f'pairing: {report.summary()}')

@@ -102,8 +102,14 @@ class Settings:
         if self.method not in METHODS:
             raise ConfigError(
                 f'method {self.method!r} is unknown; use one of {", ".join(METHODS)}')
+        for name in ('max_gap', 'time_offset', 'min_pairs', 'max_iterations'):
+            integer = name in ('min_pairs', 'max_iterations')
+            _check_number(name, getattr(self, name), integer=integer)
         for name in ('sigma_a', 'sigma_b'):
-            value = tuple(float(v) for v in getattr(self, name))
+            try:
+                value = tuple(float(v) for v in getattr(self, name))
+            except (TypeError, ValueError):  # a scalar, a string: not the two numbers
+                value = ()
             if len(value) != 2 or not all(v > 0 and v < float('inf') for v in value):
                 raise ConfigError(
                     f'{name} must be two positive numbers (position m, rotation rad), got '
@@ -145,6 +151,12 @@ class Settings:
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')
             object.__setattr__(self, name, bool(getattr(self, name)))
+        if self.estimate_clock_drift and not self.estimate_time_offset:
+            # the drift is estimated with the offset: a fixed offset would silently drop it
+            raise ConfigError(
+                f'`estimate_clock_drift` needs the clock offset estimated too (the drift is '
+                f'estimated with it, from time_offset {self.time_offset:g} s as the start): '
+                f'set `estimate_time_offset`, or leave the drift out')
         if not self.max_gap > 0:
             raise ConfigError(f'max_gap must be > 0 s, got {self.max_gap}')
         if int(self.min_pairs) < 3:
@@ -199,6 +211,34 @@ class Settings:
                 out[f'device_{device}'] = {'position_covariance': [list(r) for r in full.position],
                                            'rotation_covariance': [list(r) for r in full.rotation]}
         return out
+
+
+def check_settings(settings: Any) -> Settings:
+    """
+    Return ``settings`` if it is a ``Settings``; refuse anything else in one line.
+
+    Raises
+    ------
+    ConfigError
+        Naming the type given and how to build the settings.
+
+    """
+    if not isinstance(settings, Settings):
+        raise ConfigError(f'settings must be a coreg_ros.Settings, e.g. Settings(sigma_a=(2e-4, '
+                          f'5e-4), method="ols"), got {type(settings).__name__}; a dict of '
+                          f'parameters: settings_from_mapping(d)')
+    return settings
+
+
+def _check_number(name: str, value: Any, integer: bool) -> None:
+    """Refuse a value of ``name`` that is not a finite (integer) number, naming an example."""
+    kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, kinds) or not np.isfinite(
+            value):
+        example = {'max_gap': 0.05, 'time_offset': 0.0, 'min_pairs': 30,
+                   'max_iterations': 100}[name]
+        raise ConfigError(f'{name} must be a finite {"integer" if integer else "number"}, got '
+                          f'{value!r}; e.g. {name}={example}')
 
 
 def settings_from_mapping(values: Mapping[str, Any], base: Settings | None = None) -> Settings:

@@ -365,6 +365,10 @@ class CalibrationResult:
         With directions held: the joint covariance of the part the motion determines (the
         published one less what it says along them). What propagates through the model
         (``cov_for_propagation``), which a held direction does not change.
+    refusals : tuple of str
+        Checks that refuse a converged fit whatever its chi-square, by name:
+        ``'devices_swapped'`` when the messages' frame ids say that A and B are swapped and
+        the user has not confirmed the roles. Empty when none refuses.
     noise : calibration.noise_verdict.NoiseEstimate, optional
         Each device's noise estimated jointly with the calibration (``noise: auto``), which
         the fit then used; None when the noise was stated.
@@ -400,6 +404,18 @@ class CalibrationResult:
     unobservable: tuple = ()
     cov_determined: Optional[np.ndarray] = None
     noise: Optional[object] = None
+    refusals: tuple = ()
+
+    @property
+    def flagged(self) -> bool:
+        """
+        Tell whether the fit converged but is not to be used as it stands.
+
+        The data contradict it (``fit_consistent`` False: a bad chi-square or a disagreeing
+        prior) or a check refuses it (``refusals``): ``coreg calibrate`` exits 3 and the node
+        does not publish it.
+        """
+        return self.status > 0 and (self.fit_consistent is False or bool(self.refusals))
 
     @property
     def reduced_chi2(self) -> float:

@@ -18,6 +18,7 @@ from pathlib import Path
 import re
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.verdict import unit_mismatch
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
@@ -26,7 +27,7 @@ import numpy as np
 #: Quaternion column orders accepted by ``--quaternion-order``.
 QUATERNION_ORDERS = ('xyzw', 'wxyz')
 #: Position units accepted by ``--units`` and their size in metres.
-UNITS = {'m': 1.0, 'mm': 1e-3}
+UNITS = {'m': 1.0, 'cm': 1e-2, 'mm': 1e-3}
 #: Time units accepted by ``--time-unit`` and their size in nanoseconds.
 TIME_UNITS = {'s': 10**9, 'ms': 10**6, 'us': 10**3, 'ns': 1}
 #: A header stamp (builtin_interfaces/Time, int32 seconds) holds times below this, ns.
@@ -124,7 +125,7 @@ def read_pose_csv(path, *, quaternion_order: str = 'xyzw', units: str = 'm',
         whitespace; an optional header line first; blank lines and ``#`` comments skipped.
     quaternion_order : {'xyzw', 'wxyz'}
         Order of the four quaternion columns.
-    units : {'m', 'mm'}
+    units : {'m', 'cm', 'mm'}
         Unit of the positions.
     invert : bool
         Invert every pose (``T → T⁻¹``): for an export of the base frame in the tracked frame.
@@ -274,16 +275,10 @@ def read_pose_csv(path, *, quaternion_order: str = 'xyzw', units: str = 'm',
                      nonnegative_columns=nonnegative)
 
 
-#: Ratio of two streams' position spreads (or time spans) taken as a unit factor of 1000.
+#: Ratio of two streams' time spans taken as a time unit factor of 1000.
 FACTOR_1000 = (300.0, 3000.0)
 #: Relative residual below which A's and B's relative rotations agree (``rotation_agreement``).
 ROTATION_AGREE = 0.05
-
-
-def _spread(stream: PoseStream) -> float:
-    """RMS distance of the positions from their mean, in the stream's unit."""
-    pos = np.asarray(stream.position, dtype=float)
-    return float(np.sqrt(np.mean(np.sum((pos - pos.mean(axis=0)) ** 2, axis=1))))
 
 
 def _span(stream: PoseStream) -> float:
@@ -355,8 +350,9 @@ def check_conventions(a: CsvStream, b: CsvStream, *, units=('m', 'm'), time_unit
     """
     Test the cheap explanations of a recording that will fit badly; return what they find.
 
-    Checks, without a fit: a unit factor of 1000 between the streams (the spread of their
-    positions, which for one rigidly linked body differs by far less), a time unit (their time
+    Checks, without a fit: a unit factor (mm or cm against m) between the streams
+    (``verdict.unit_mismatch``: the spread of their positions, which for one rigidly linked
+    body differs by far less, told which units the files were read in), a time unit (their time
     spans), and the quaternion column order (``rotation_agreement`` under the given and the
     other orders, for each file).
 
@@ -373,19 +369,9 @@ def check_conventions(a: CsvStream, b: CsvStream, *, units=('m', 'm'), time_unit
         One line each, naming the option that fixes it; empty when nothing is suspicious.
 
     """
-    findings = []
     sa, sb = a.stream, b.stream
-    spread_a, spread_b = _spread(sa), _spread(sb)
-    if spread_a > 0 and spread_b > 0:
-        ratio = spread_a / spread_b
-        for big, small, r, k in (('A', 'B', ratio, 0), ('B', 'A', 1.0 / ratio, 1)):
-            if FACTOR_1000[0] <= r <= FACTOR_1000[1]:
-                side = big.lower() if units[k] == 'm' else small.lower()
-                unit = 'mm' if units[k] == 'm' else 'm'
-                findings.append(
-                    f"{big}'s positions spread {r:.0f}x more than {small}'s "
-                    f'({max(spread_a, spread_b):.4g} vs {min(spread_a, spread_b):.4g} after '
-                    f'conversion): a unit factor of 1000; pass --units-{side} {unit}')
+    # the same check as a calibration's verdict, told which units each file was read in
+    findings = [f for f in (unit_mismatch(sa, sb, units),) if f]
     span_a, span_b = _span(sa), _span(sb)
     if span_a > 0 and span_b > 0:
         ratio = span_a / span_b

@@ -32,7 +32,8 @@ def _warn_once(line: str) -> None:
         print(f'coreg: warning: {line}', file=sys.stderr)
 
 
-def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dict:
+def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once,
+                    warn_section=None) -> dict:
     """
     Read and check the ``ros__parameters`` of ``node_name`` from a ROS parameter YAML file.
 
@@ -50,6 +51,9 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
     warn : callable
         Gets one line per unknown key (with the nearest valid name); by default printed to
         stderr once.
+    warn_section : callable, optional
+        Gets the line saying that the file is empty or has no section of the node (default:
+        ``warn``).
 
     Returns
     -------
@@ -93,7 +97,7 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
         raise ConfigError(f'config file {path} is not valid YAML: {e}; compare with '
                           f'config/coreg.yaml') from e
     values, found = {}, False
-    for key in ('/**', node_name, '/' + node_name):
+    for key in dict.fromkeys(('/**', node_name.lstrip('/'), '/' + node_name.lstrip('/'))):
         section = doc.get(key) if isinstance(doc, dict) else None
         if section is None:
             continue
@@ -105,8 +109,12 @@ def load_parameters(path, node_name: str = 'coreg_node', warn=_warn_once) -> dic
         found = True
     if not found:
         # as ROS does for the node: a file for other nodes sets nothing here (said, not fatal)
-        warn(f'config file {path} has no "{node_name}: ros__parameters:" section: the '
-             f'defaults apply; see config/coreg.yaml')
+        sections = ', '.join(map(str, doc)) if isinstance(doc, dict) else ''
+        (warn_section or warn)(
+            f'config file {path} is empty: the defaults apply; see config/coreg.yaml' if not doc
+            else f'config file {path} has no "{node_name}: ros__parameters:" section (it has '
+                 f'{sections}): nothing in it applies to {node_name}, the defaults do; name the '
+                 f'section after the node (see config/coreg.yaml)')
         return {}
     checked, warnings = check_parameters(values, where=f'{path}: ')
     for line in warnings:

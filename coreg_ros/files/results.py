@@ -19,6 +19,8 @@ Layout (relied upon by checks)::
      "markers": [[x, y, z], ...],
      "unobservable": [{"direction": [12 numbers], "description", "held_at", "by", "determine"}]
                      (the directions the motion does not determine: empty for a free rig),
+     "data_sketch": {"samples", "hashes"} (added by coreg calibrate and the node: which
+                    samples it was calibrated on, ``core.provenance``),
      "noise": {"device_a": {"position_sigma_m", "rotation_sigma_rad", "estimated",
                             "sigma_of_estimate", "stated", ...}, "device_b": {...},
                "statements", "verdict"} (noise: auto; ``noise_verdict.estimate_dict``)}
@@ -58,7 +60,9 @@ def pose_from_dict(d: Mapping[str, Any]) -> UncertainPose:
         cov = None if cov is None else np.array(cov, dtype=float).reshape(6, 6)
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(
-            f'stored pose is malformed ({e!r}); delete the file and recalibrate') from e
+            f'pose is malformed ({e!r}): a pose needs position [x, y, z], orientation {{w, x, '
+            f'y, z}} and covariance (36 numbers, 6×6 ROS layout) or none; a stored result '
+            f'that is malformed: delete the file and recalibrate') from e
     return UncertainPose(position, quat, cov)
 
 
@@ -177,7 +181,9 @@ def prior_from_dict(doc: Mapping[str, Any]) -> Prior:
         joint[unknown, unknown] = np.inf
     else:
         joint = None
-    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'), joint)
+    sketch = doc.get('data_sketch')
+    return Prior(poses.get('base_to_base'), poses.get('tool_to_marker'), joint,
+                 data_sketch=dict(sketch) if isinstance(sketch, Mapping) else None)
 
 
 def load_prior(path) -> Prior:

@@ -331,3 +331,119 @@ class GapCounter:
         """Forget the last stamp (after a reset: the next stamps start afresh)."""
         self._last = None
         self._early = np.zeros(0, np.int64)
+
+
+class SequenceCounter:
+    """
+    Count the messages a publisher sent that the node never took, from their sequence numbers.
+
+    The middleware numbers each publisher's messages 1, 2, 3, ... (the message info's
+    ``publication_sequence_number``), so a hole between two messages taken is exactly what was
+    lost on the way: in the transport (best effort under load) or overwritten in the
+    subscription's history before the node took it (a node still starting up, a stream thread
+    held). Unlike the stamps, this also sees the messages lost *before the first one taken*
+    (``head``): they are counted when the publisher began after this counter was made, which
+    is told from its publishing rate (the first message taken, numbered ``s``, was sent
+    ``(s - 1) / rate`` after the publisher's first); a publisher that was already running sent
+    its earlier messages to nobody here. Nothing can count messages lost after the last one
+    taken.
+
+    Sequence numbers are per publisher and the message info does not say which publisher
+    sent a message: a number that does not increase (two publishers on the topic, or one
+    restarted) makes the count unusable, and ``why_not`` says so (the stamps count instead).
+
+    Parameters
+    ----------
+    created_ns : int
+        When the subscription was made (system clock, ns: the clock of ``source_timestamp``).
+
+    Attributes
+    ----------
+    between : int
+        Messages missing between two messages taken.
+    head : int
+        Messages sent after ``created_ns`` but before the first one taken.
+    why_not : str
+        Empty while the count is usable; else why it is not.
+
+    """
+
+    #: Messages taken before the publishing rate (and so ``head``) is trusted.
+    RATE_AFTER = 10
+    #: Why the count cannot be used.
+    NO_NUMBERS = 'the middleware gives no publication sequence numbers'
+    INTERLEAVED = ('sequence numbers do not increase: several publishers on the topic (or one '
+                   'restarted)')
+
+    def __init__(self, created_ns: int):
+        self.created_ns = int(created_ns)
+        self.between = 0
+        self.head = 0
+        self.why_not = ''
+        self._first: tuple | None = None  # (number, source ns) of the first message taken
+        self._last: int | None = None
+        self._head_decided = False
+
+    @property
+    def counting(self) -> bool:
+        """Tell whether the count is usable and a message was taken."""
+        return not self.why_not and self._first is not None
+
+    @property
+    def lost(self) -> int:
+        """Return the messages lost: between those taken and before the first (int)."""
+        return self.between + self.head
+
+    def update(self, infos: list) -> None:
+        """Take the message infos (rclpy dicts) of the next messages taken, in order."""
+        if self.why_not or not infos:
+            return
+        numbers = [i.get('publication_sequence_number') if i else None for i in infos]
+        if None in numbers:
+            self.why_not = self.NO_NUMBERS
+            return
+        seq = np.asarray(numbers, dtype=np.int64)
+        joined = seq if self._last is None else np.concatenate(([self._last], seq))
+        steps = np.diff(joined)
+        if np.any(steps <= 0):
+            self.why_not = self.INTERLEAVED
+            return
+        if self._first is None:
+            self._first = (int(seq[0]), infos[0].get('source_timestamp'))
+        self.between += int(np.sum(steps - 1))
+        self._last = int(seq[-1])
+        if not self._head_decided:
+            self._decide_head(infos[-1].get('source_timestamp'))
+
+    def update_one(self, info: dict) -> None:
+        """Take one message's info (the plain intake: plain Python, no numpy per message)."""
+        if self.why_not:
+            return
+        number = info.get('publication_sequence_number') if info else None
+        if number is None:
+            self.why_not = self.NO_NUMBERS
+            return
+        if self._last is None:
+            self._first = (number, info.get('source_timestamp'))
+        elif number <= self._last:
+            self.why_not = self.INTERLEAVED
+            return
+        else:
+            self.between += number - self._last - 1
+        self._last = number
+        if not self._head_decided:
+            self._decide_head(info.get('source_timestamp'))
+
+    def _decide_head(self, last_source_ns) -> None:
+        """Count the messages before the first taken if the publisher began after us."""
+        first, first_source_ns = self._first
+        if first == 1:
+            self._head_decided = True
+            return
+        if (self._last - first < self.RATE_AFTER or not first_source_ns or not last_source_ns
+                or last_source_ns <= first_source_ns):
+            return  # not enough messages yet to tell the publisher's rate
+        per_ns = (self._last - first) / (last_source_ns - first_source_ns)
+        began_ns = first_source_ns - (first - 1) / per_ns
+        self.head = first - 1 if began_ns >= self.created_ns else 0
+        self._head_decided = True

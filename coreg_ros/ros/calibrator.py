@@ -30,6 +30,7 @@ from typing import Optional
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.estimator.priors import Prior
+from coreg_ros.core.provenance import data_sketch, shared_samples
 from coreg_ros.core.types import TimeOffset
 from coreg_ros.files.results import load_prior
 from coreg_ros.ros import persistence
@@ -124,7 +125,8 @@ class Calibrator:
             response.success, response.message = self._refused(e, 'calibrate')
             return response
         response.success, response.message = self._publish(inputs[0], result, report,
-                                                           time.monotonic() - t0, 'calibrate')
+                                                           time.monotonic() - t0, 'calibrate',
+                                                           inputs[2])
         return response
 
     def calibrate_and_publish(self, streams: Optional[dict] = None, prior=None,
@@ -153,13 +155,13 @@ class Calibrator:
             result, report = self._fit(*inputs)
         except Exception as e:
             return self._refused(e, what)
-        return self._publish(inputs[0], result, report, time.monotonic() - t0, what)
+        return self._publish(inputs[0], result, report, time.monotonic() - t0, what, inputs[2])
 
     def _inputs(self, streams: Optional[dict], prior) -> tuple:
         """Return (settings, prior, streams) of a calibration now (defaults filled in)."""
         settings = self.params.settings()
-        prior = self._prior() if prior is None else prior
         streams = self.store.snapshot() if streams is None else streams
+        prior = self._prior([streams[t] for t in settings.topic_b]) if prior is None else prior
         return settings, prior, streams
 
     def _fit(self, settings, prior, streams: dict) -> tuple:
@@ -167,7 +169,8 @@ class Calibrator:
         with self._fit_lock:
             return calibrate_streams(
                 streams[settings.topic_a], [streams[t] for t in settings.topic_b], settings,
-                prior, frames=(self.config.frame_base_a, self.config.frame_base_b))
+                prior, frames=(self.config.frame_base_a, self.config.frame_base_b),
+                roles_confirmed=bool(self.params('roles_confirmed')))
 
     def _in_worker(self, fit: Callable, *args) -> Future:
         """Run ``fit(*args)`` in a daemon thread; return the Future a coroutine awaits."""
@@ -196,12 +199,14 @@ class Calibrator:
         self.logger.error(f'{what} failed: {trace}')
         return False, f'internal error ({type(error).__name__}: {error}); see the node log'
 
-    def _prior(self):
+    def _prior(self, streams_b: list):
         """
-        Return the prior of the next calibration.
+        Return the prior of the next calibration, of the samples ``streams_b`` of B.
 
         prior_file, else the stored result (``use_last_result_as_prior``), with the gravity
-        alignment of ``gravity_aligned_sigma`` when it is set.
+        alignment of ``gravity_aligned_sigma`` when it is set. A stored result calibrated on
+        samples that are still held is left out (it would count them twice: the pipeline
+        refuses such a prior when the user gives it as prior_file).
         """
         prior = None
         path = str(self.params('prior_file')).strip()
@@ -210,12 +215,17 @@ class Calibrator:
             prior = load_prior(os.path.expanduser(path))
         elif bool(self.params('use_last_result_as_prior')) and stored.is_file():
             prior = load_prior(stored)
+            if shared_samples(prior.data_sketch, streams_b) is not None:
+                self.logger.info('the stored result is not used as the prior: it was calibrated '
+                                 'on samples held now (it would count them twice)')
+                prior = None
         gravity = float(self.params('gravity_aligned_sigma'))
         if gravity > 0:
             prior = replace(prior or Prior(), gravity_sigma=gravity)
         return prior
 
-    def _publish(self, settings, result, report, seconds: float, what: str) -> tuple[bool, str]:
+    def _publish(self, settings, result, report, seconds: float, what: str,
+                 streams: dict) -> tuple[bool, str]:
         """Judge a fit; publish, hand on and store it if it passes; return the answer."""
         chi2_dof = result.chi2 / result.dof if result.dof > 0 else float('nan')
         timing = result.time_offset
@@ -227,14 +237,17 @@ class Calibrator:
                         'time_offset_s': None if timing is None else timing.value_s,
                         'time_offset_sigma_s': None if timing is None else timing.sigma_s,
                         'verdict': result.verdict}
-        inconsistent = result.fit_consistent is False and result.status > 0
-        publish_anyway = inconsistent and bool(self.params('publish_inconsistent'))
+        inconsistent = result.flagged
+        # a swap is refused whatever publish_inconsistent says: roles_confirmed lifts it
+        publish_anyway = (inconsistent and not result.refusals
+                          and bool(self.params('publish_inconsistent')))
         if not result.success and not publish_anyway:
+            fix = ('set roles_confirmed:=true if topic_a and topic_b are right' if
+                   result.refusals else 'set publish_inconsistent:=true to publish it anyway')
             message = (
-                f'not published: {result.verdict} ({report.summary()}); set '
-                f'publish_inconsistent:=true to publish it anyway' if inconsistent else
-                f'no convergence after {result.iterations} iterations: {result.message}; '
-                f'{report.summary()}')
+                f'not published: {result.verdict} ({report.summary()}); {fix}' if inconsistent
+                else f'no convergence after {result.iterations} iterations: {result.message}; '
+                     f'{report.summary()}')
             self.logger.warning(f'{what}: {message}')
             return False, message
         stamp_ns = self._publish_result(result.base_to_base, result.tool_to_marker)
@@ -243,14 +256,19 @@ class Calibrator:
             listener.set_result(result)
         try:
             with self.io_lock:
+                document = stored_result_dict(result)
+                # which samples: a calibration of the same ones refuses it as its prior
+                document['data_sketch'] = data_sketch([streams[t] for t in settings.topic_b])
                 path = persistence.save_result(
-                    self.config.storage_dir, stored_result_dict(result), self.config.frames,
+                    self.config.storage_dir, document, self.config.frames,
                     settings.as_dict(), name=self.result_name,
                     extra={'node': self.node_fqn, 'config_key': self.config_key,
                            'stamp_ns': stamp_ns})
-            stored = f'stored in {path}'
+            stored, kept = f'stored in {path}', True
         except OSError as e:
-            stored = f'NOT stored: {self.alerts.storage_failed("store the result", e)}'
+            # published, but a restart would not have it: not a success (README, the node)
+            failed = self.alerts.storage_failed('store the result', e)
+            stored, kept = f'published but NOT stored: {failed}', False
         p0 = result.base_to_base.position
         p1 = result.tool_to_marker.position
         offset = '' if timing is None else (
@@ -270,7 +288,7 @@ class Calibrator:
             message += '; held (the motion cannot show it, covariance unknown along it): ' + \
                 '; '.join(u.description for u in result.held)
         self.logger.info(f'calibrated ({what}): {message}')
-        return not inconsistent, message
+        return not inconsistent and kept, message
 
     def _publish_result(self, base_to_base, tool_to_marker,
                         stamp_ns: Optional[int] = None) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import os
+import sys
 
 from coreg_ros.core.config_schema import (
     check_parameters,
@@ -101,6 +102,10 @@ PARAMETERS = (
     ('publish_inconsistent', DEFAULTS['publish_inconsistent'],
      _desc('publish a calibration whose fit contradicts the stated noise (it is refused by '
            'default: ~/calibrate answers success=false with the reason)')),
+    ('roles_confirmed', DEFAULTS['roles_confirmed'],
+     _desc('topic_a and topic_b are devices A and B as configured, whatever the frame ids of '
+           'their messages say (frame ids that name the other base frame, swapped devices, '
+           'refuse a calibration by default: ~/calibrate answers success=false)')),
     ('buffer_capacity', DEFAULTS['buffer_capacity'],
      _desc('samples kept per topic; the oldest are dropped when full', read_only=True,
            ints=_int_range(*RANGES['buffer_capacity']))),
@@ -282,14 +287,33 @@ def params_files(args: list[str]) -> list[str]:
     return files
 
 
-def check_params_files(args: list[str], node_name: str) -> None:
+def node_name_of(args: list[str], default: str) -> str:
+    """Return the node's name after the ``--ros-args`` remaps (``-r __node:=NAME``, ``__ns``)."""
+    name, namespace, in_ros = default, '', False
+    for k, arg in enumerate(args):
+        if arg == '--ros-args':
+            in_ros = True
+        elif arg == '--':
+            in_ros = False
+        elif in_ros and arg in ('-r', '--remap') and k + 1 < len(args):
+            key, _, value = args[k + 1].partition(':=')
+            if key in ('__node', '__name') and value:
+                name = value
+            elif key == '__ns' and value:
+                namespace = value.strip('/')
+    return f'{namespace}/{name}' if namespace else name
+
+
+def check_params_files(args: list[str], node_name: str, warn=None) -> None:
     """
     Check the parameter files of a command line before ROS parses them.
 
     ROS refuses an unparseable file, or a value of the wrong type, with a long traceback; this
     runs the check of ``coreg --config`` (``files.parameters.load_parameters``) on each file with a
-    section for ``node_name`` first. Unknown keys are not reported here (the node reports them
-    from its overrides).
+    section for the node (``node_name``, or the name a ``__node`` remap gives it) first. A file
+    that is empty or has no section of the node, which ROS ignores silently, is said through
+    ``warn`` (default: one line on stderr). Unknown keys are not reported here (the node reports
+    them from its overrides).
 
     Raises
     ------
@@ -299,8 +323,12 @@ def check_params_files(args: list[str], node_name: str) -> None:
     """
     from coreg_ros.files.parameters import load_parameters
 
+    if warn is None:
+        def warn(line: str) -> None:
+            print(f'coreg_node: warning: {line}', file=sys.stderr)
+    name = node_name_of(args, node_name)
     for path in params_files(args):
-        load_parameters(path, node_name, warn=lambda line: None)
+        load_parameters(path, name, warn=lambda line: None, warn_section=warn)
 
 
 def _plain(value):

@@ -53,12 +53,15 @@ class RawIntake:
         Told of bytes that are not a PoseStamped.
     pace_s : float
         Pause after each burst, s (see ``PACE_S``).
+    sequences : dict of str to SequenceCounter, optional
+        Topic -> counter told of every message's info (the messages lost on the way).
 
     """
 
     def __init__(self, buffers: dict, on_rejected: Callable, on_undecodable: Callable,
-                 pace_s: float = PACE_S):
+                 pace_s: float = PACE_S, sequences: dict | None = None):
         self.buffers = buffers
+        self.sequences = sequences or {}
         self.on_rejected = on_rejected
         self.on_undecodable = on_undecodable
         self.pace_s = float(pace_s)
@@ -73,7 +76,7 @@ class RawIntake:
     def callback(self, topic: str) -> Callable:
         """Return the subscription callback of ``topic`` (gets the CDR bytes and info)."""
         def on_raw(data: bytes, info: dict) -> None:  # two arguments: rclpy passes the info
-            first = {topic: ([data], [_received(info)])}
+            first = {topic: ([data], [_received(info)], [info])}
             self.drain(first)
         return on_raw
 
@@ -81,12 +84,14 @@ class RawIntake:
         """Take what waits on every subscription, store it, pause; return messages taken."""
         batches = {}
         for topic, sub in self.subscriptions.items():
-            blobs, recv = first.get(topic, ([], [])) if first else ([], [])
-            _take_all(sub, blobs, recv)
+            blobs, recv, infos = first.get(topic, ([], [], [])) if first else ([], [], [])
+            _take_all(sub, blobs, recv, infos)
             if blobs:
-                batches[topic] = (blobs, recv)
+                batches[topic] = (blobs, recv, infos)
         n = 0
-        for topic, (blobs, recv) in batches.items():
+        for topic, (blobs, recv, infos) in batches.items():
+            if topic in self.sequences:
+                self.sequences[topic].update(infos)
             self._store(topic, blobs, recv)
             n += len(blobs)
         if n:
@@ -130,8 +135,8 @@ def _received(info) -> int:
     return int(t) if t else time.time_ns()
 
 
-def _take_all(sub, blobs: list, recv: list) -> None:
-    """Append every waiting message of ``sub`` (bytes) and its reception time, in order."""
+def _take_all(sub, blobs: list, recv: list, infos: list) -> None:
+    """Append every waiting message of ``sub`` (bytes), its reception time and info, in order."""
     take = sub.handle.take_message
     msg_type = sub.msg_type
     now = time.time_ns
@@ -143,5 +148,6 @@ def _take_all(sub, blobs: list, recv: list) -> None:
                     return
                 blobs.append(got[0])
                 recv.append(got[1].get('received_timestamp') or now())
+                infos.append(got[1])
     except Exception:  # the subscription is being destroyed (shutdown): nothing more to take
         return

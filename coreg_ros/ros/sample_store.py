@@ -30,7 +30,7 @@ from typing import Optional
 from coreg_ros.core.errors import BagError, CoregError
 from coreg_ros.ros import persistence
 from coreg_ros.ros.alerts import Alerts, os_reason
-from coreg_ros.ros.buffer import GapCounter, reason_hint, StreamBuffer
+from coreg_ros.ros.buffer import GapCounter, reason_hint, SequenceCounter, StreamBuffer
 from coreg_ros.ros.interface import POSE_TYPE
 from coreg_ros.ros.messages import pose_stamped_values
 from coreg_ros.ros.parameters import NodeConfig
@@ -73,6 +73,8 @@ class SampleStore:
         Messages missing from the stamps, per topic.
     lost : dict of str to int
         Messages the middleware reported lost, per topic.
+    sequences : dict of str to SequenceCounter
+        Messages lost on the way, from the publishers' sequence numbers, per topic.
     intake : RawIntake or None
         The bulk intake (None on the plain path).
     journal : persistence.SampleJournal or None
@@ -95,9 +97,12 @@ class SampleStore:
         self.buffers = {t: StreamBuffer(config.buffer_capacity) for t in self.topics}
         self.gaps = {t: GapCounter() for t in self.topics}
         self.lost = dict.fromkeys(self.topics, 0)   # middleware message-lost events
+        created = time.time_ns()  # before the subscriptions: what is sent after, is for us
+        self.sequences = {t: SequenceCounter(created) for t in self.topics}
         self.intake: Optional[RawIntake] = None
         if raw:
-            self.intake = RawIntake(self.buffers, self._warn_rejected, self._warn_undecodable)
+            self.intake = RawIntake(self.buffers, self._warn_rejected, self._warn_undecodable,
+                                    sequences=self.sequences)
         self.journal: Optional[persistence.SampleJournal] = None
         self.left_over: list = []
         self.last_save_error: Optional[str] = None  # why the last save went to the fallback
@@ -119,10 +124,12 @@ class SampleStore:
         if self.intake is not None:
             return self.intake.callback(topic)
         push = self.buffers[topic].push
+        sequence = self.sequences[topic].update_one
         time_ns = time.time_ns
 
-        def on_pose(msg: PoseStamped) -> None:
-            # Cheap on purpose: scalars into a preallocated ring, no numpy, no logging.
+        def on_pose(msg: PoseStamped, info: dict) -> None:  # two arguments: rclpy passes info
+            # Cheap on purpose: scalars into a preallocated ring, no logging.
+            sequence(info)
             stamp, x, y, z, qw, qx, qy, qz = pose_stamped_values(msg)
             reason = push(stamp, time_ns(), x, y, z, qw, qx, qy, qz, msg.header.frame_id)
             if reason is not None:
@@ -140,6 +147,33 @@ class SampleStore:
         def lost(status) -> None:
             self.lost[topic] += int(status.total_count_change)
         return lost
+
+    def loss(self, topic: str) -> tuple:
+        """
+        Return the messages lost on the way to ``topic``'s subscription and how they were counted.
+
+        From the publisher's sequence numbers where the middleware gives them and one publisher
+        sends (exact, the messages before the first one taken included); else the larger of the
+        middleware's message-lost events and the holes in the stamps (neither sees messages
+        lost before the first one taken).
+
+        Returns
+        -------
+        lost : int
+            Messages lost.
+        how : str
+            How they were counted, for /diagnostics.
+
+        """
+        seq = self.sequences[topic]
+        if seq.counting:
+            return seq.lost, (f'publication sequence numbers ({seq.between} between messages, '
+                              f'{seq.head} before the first)')
+        events, stamps = self.lost[topic], self.gaps[topic].missing
+        why = seq.why_not or 'no message yet'
+        if events >= stamps:
+            return events, f"the middleware's message-lost events ({why})"
+        return stamps, f'holes in the stamps ({why})'
 
     def undecodable(self, topic: str) -> int:
         """Messages on ``topic`` that were not a serialized PoseStamped."""

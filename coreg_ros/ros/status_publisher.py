@@ -124,7 +124,9 @@ class StatusPublisher:
         state['next_time'] = now + max(1.0, 20.0 * spent)
 
     def check_frames(self) -> Optional[str]:
-        """Name swapped devices from the header frame ids (warned, throttled)."""
+        """Name swapped devices from the frame ids (warned, throttled; not if roles_confirmed)."""
+        if bool(self.params('roles_confirmed')):
+            return None
         base_a, base_b = self.config.frame_base_a, self.config.frame_base_b
         topic_a, topic_b = self.config.settings.topic_a, self.config.settings.topic_b[0]
         buffers = self.store.buffers
@@ -169,7 +171,8 @@ class StatusPublisher:
             rejected = sum(b.rejected.values())
             missing = store.gaps[topic].missing
             undecodable = store.undecodable(topic)
-            problems += rejected + b.dropped + store.lost[topic] + missing + undecodable
+            lost, counted = store.loss(topic)
+            problems += rejected + b.dropped + lost + missing + undecodable
             values += [KeyValue(key=f'{topic} received', value=str(b.received)),
                        KeyValue(key=f'{topic} accepted', value=str(b.accepted)),
                        KeyValue(key=f'{topic} rejected', value=str(rejected))]
@@ -180,6 +183,8 @@ class StatusPublisher:
                        KeyValue(key=f'{topic} buffer fill',
                                 value=f'{len(b) / b.capacity:.3f}'),
                        KeyValue(key=f'{topic} dropped oldest', value=str(b.dropped)),
+                       KeyValue(key=f'{topic} lost', value=str(lost)),
+                       KeyValue(key=f'{topic} lost counted from', value=counted),
                        KeyValue(key=f'{topic} lost in middleware',
                                 value=str(store.lost[topic])),
                        KeyValue(key=f'{topic} missing from stamps', value=str(missing)),
@@ -223,8 +228,8 @@ class StatusPublisher:
             if problems > self._prev_problems:  # held a while, so a 1 Hz reader sees it
                 self._warn_until = time.monotonic() + WARN_HOLD
             status.level = DiagnosticStatus.WARN
-            status.message = ('rejecting, dropping or losing samples (see the counts: lost in '
-                              'middleware, missing from stamps, rejected, dropped oldest)')
+            status.message = ('rejecting, dropping or losing samples (see the counts: lost, '
+                              'missing from stamps, rejected, dropped oldest)')
         else:
             status.level = DiagnosticStatus.OK
             status.message = (f'{min(len(b) for b in store.buffers.values())} samples held'

@@ -18,11 +18,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-import os
 from typing import Optional, Union
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.errors import ConfigError, InputError
+from coreg_ros.core.errors import ConfigError
+from coreg_ros.core.memory import check_memory
 from coreg_ros.core.settings import DEFAULT_TOPIC_A, DEFAULT_TOPIC_B, DEFAULT_TOPICS_B_THREE_MARKER
 from coreg_ros.core.types import MODELS, Pairs, PoseStream
 from coreg_ros.sim.device_noise import add_device_noise
@@ -44,9 +44,6 @@ MIN_PAIRS_DURATION = 60.0
 #: Peak bytes the simulator allocates per sample of one stream (measured: 200-290 B with the
 #: motion, the noise and the copies; rounded up).
 BYTES_PER_SAMPLE = 320
-#: Largest allocation a simulation may plan, bytes: 4 GiB, or half the machine's memory if
-#: that is less (``memory_limit``).
-MAX_BYTES = 4 * 2**30
 
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -99,34 +96,13 @@ class SimRecording:
         return tuple(self.streams[t] for t in self.topics_b)
 
 
-def memory_limit() -> int:
-    """Return the largest allocation a simulation may plan: ``MAX_BYTES`` or half the RAM."""
-    try:
-        ram = os.sysconf('SC_PHYS_PAGES') * os.sysconf('SC_PAGE_SIZE')
-    except (AttributeError, ValueError, OSError):  # not a POSIX system
-        return MAX_BYTES
-    return int(min(MAX_BYTES, ram // 2)) if ram > 0 else MAX_BYTES
-
-
-def _gb(n_bytes: float) -> str:
-    return f'{n_bytes / 1e9:.3g} GB'
-
-
 def check_allocation(n_samples: float, what: str, fix: str,
                      max_bytes: Optional[int] = None) -> None:
     """
-    Refuse a simulation that would allocate more than ``max_bytes``, before it allocates.
+    Refuse a simulation of ``n_samples`` samples that would not fit in memory (before it runs).
 
-    Parameters
-    ----------
-    n_samples : float
-        Samples of all streams together (a float: the estimate may be astronomically large).
-    what : str
-        What is simulated, for the message (e.g. ``'a recording of 1 s at 1e+09 Hz'``).
-    fix : str
-        The options to lower, for the message.
-    max_bytes : int, optional
-        The limit; default ``memory_limit()``.
+    ``core.memory.check_memory`` at ``BYTES_PER_SAMPLE``; ``what`` and ``fix`` name the
+    recording and the options to lower; ``max_bytes`` defaults to ``memory_limit()``.
 
     Raises
     ------
@@ -134,11 +110,7 @@ def check_allocation(n_samples: float, what: str, fix: str,
         One line with the estimate and the limit.
 
     """
-    limit = memory_limit() if max_bytes is None else max_bytes
-    need = float(n_samples) * BYTES_PER_SAMPLE
-    if need > limit:
-        raise InputError(f'{what} has ~{n_samples:.3g} samples and would need ~{_gb(need)} of '
-                         f'memory (limit {_gb(limit)}); lower {fix}')
+    check_memory(n_samples, BYTES_PER_SAMPLE, what, fix, max_bytes)
 
 
 def _check_seed(seed) -> int:

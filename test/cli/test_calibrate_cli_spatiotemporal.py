@@ -49,7 +49,10 @@ def test_offset_auto_and_fixed_in_the_json(tmp_path, rec, capsys):
 def test_prior_file_refines_and_bad_prior_is_one_line(tmp_path, rec, capsys):
     bag = _bag(tmp_path, rec)
     first = tmp_path / 'first.json'
-    assert main(['calibrate', bag, '--json', str(first)]) == 0
+    # the prior: an earlier recording of the same rig (a prior from these very samples would
+    # count them twice, and is refused: test_new_user_faults.py)
+    earlier = simulate_recording(72, 20.0, truth=rec.truth)
+    assert main(['calibrate', _bag(tmp_path, earlier, 'earlier'), '--json', str(first)]) == 0
     capsys.readouterr()
     assert main(['calibrate', bag, '--prior', str(first), '--json', '-']) == 0
     data = json.loads(capsys.readouterr().out)

@@ -56,9 +56,9 @@ def start_node_here(ros_domain, tmp_path, capfd):
     output = Output(capfd)
     nodes = []
 
-    def start(params=None, name='node') -> InProcessNode:
+    def start(params=None, name='node', spin=True) -> InProcessNode:
         node = InProcessNode(ros_domain, tmp_path, dict(params or {}), output,
-                             name=f'{name}{len(nodes)}')
+                             name=f'{name}{len(nodes)}', spin=spin)
         nodes.append(node)
         return node
 

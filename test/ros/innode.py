@@ -41,10 +41,13 @@ class InProcessNode:
     coreg_node in this process, with the interface of ``rosproc.NodeProcess``.
 
     ``params`` go to a parameter file that the node reads as the executable does
-    (``--params-file``); ``storage_dir`` defaults to a folder of the test.
+    (``--params-file``); ``storage_dir`` defaults to a folder of the test. With
+    ``spin=False`` the node is made (subscribed) but takes nothing until ``spin()``: a node
+    still starting up.
     """
 
-    def __init__(self, domain, folder: Path, params: dict, output: Output, name: str = 'node'):
+    def __init__(self, domain, folder: Path, params: dict, output: Output, name: str = 'node',
+                 spin: bool = True):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.storage = Path(params.setdefault('storage_dir', str(self.folder / 'store')))
@@ -61,10 +64,15 @@ class InProcessNode:
             self.node = CoregNode(context=self.context,
                                   cli_args=['--ros-args', '--params-file', str(self.params_file)])
             self.executors = NodeExecutors(self.node)
-            self.executors.start(streams=True)
+            if spin:
+                self.spin()
         except BaseException:
             shutdown_quietly(self.context)
             raise
+
+    def spin(self) -> None:
+        """Start both executors' threads (once)."""
+        self.executors.start(streams=True)
 
     def alive(self) -> bool:
         """Tell whether the node still runs (its context is up and both threads spin)."""

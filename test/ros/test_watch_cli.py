@@ -161,3 +161,34 @@ def test_once_times_out_with_one_line(ros_domain):
     assert proc.returncode == 1
     assert proc.stderr.strip().startswith('coreg watch: error: no status of coreg_node')
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize('terminal', [False, True])
+def test_ctrl_c_ends_watch_with_130_as_play_and_echo(ros_domain, ros_session, terminal):
+    # Issue 25.4: the dashboard exited 0 on Ctrl-C (play and echo: 130); on a pipe, a Ctrl-C
+    # before any status was a TypeError traceback.
+    import os
+    import pty
+    import signal
+
+    if terminal:  # the live dashboard: stdout is a terminal
+        leader, follower = pty.openpty()
+        out = follower
+    else:
+        out = subprocess.PIPE
+    proc = subprocess.Popen([sys.executable, '-m', 'coreg_ros.cli.watch'], env=ros_domain.env(),
+                            stdout=out, stderr=subprocess.PIPE, text=True)
+    try:
+        # waiting for statuses (nothing publishes them on this domain) once its node is up
+        assert ros_session.spin_until(
+            lambda: 'coreg_watch' in ros_session.node.get_node_names(), 60.0)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+        if terminal:
+            os.close(leader)
+            os.close(follower)
+    assert proc.returncode == 130, err
+    assert err.strip() == 'coreg watch: interrupted', err

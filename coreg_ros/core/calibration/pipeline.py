@@ -14,6 +14,7 @@ from dataclasses import replace
 from typing import Optional, Union
 
 from coreg_ros.core.calibration.auto_noise import calibrate_with_noise
+from coreg_ros.core.calibration.clock_check import clock_problem
 from coreg_ros.core.calibration.offset_search import fit_at_offset, fit_with_offset_search
 from coreg_ros.core.calibration.pairing import stream_list
 from coreg_ros.core.calibration.stream_directions import (
@@ -21,16 +22,29 @@ from coreg_ros.core.calibration.stream_directions import (
     check_directions,
     DirectionReport,
 )
-from coreg_ros.core.calibration.verdict import judge, unit_mismatch
-from coreg_ros.core.errors import ConvergenceError, InconsistentDataError, UnobservableError
+from coreg_ros.core.calibration.verdict import (
+    cheap_causes,
+    CONSISTENT_P,
+    judge,
+    orientation_missing,
+    unit_mismatch,
+)
+from coreg_ros.core.errors import (
+    ConvergenceError,
+    InconsistentDataError,
+    InputError,
+    UnobservableError,
+)
 from coreg_ros.core.estimator.priors import Prior
-from coreg_ros.core.settings import Settings
+from coreg_ros.core.provenance import shared_samples
+from coreg_ros.core.settings import check_settings, Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream, TimeOffset
 
 
 def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence[PoseStream]],
                       settings: Settings, prior: Optional[Prior] = None,
-                      frames: Optional[tuple] = None, direction_check: bool = True
+                      frames: Optional[tuple] = None, direction_check: bool = True,
+                      roles_confirmed: bool = False
                       ) -> tuple[CalibrationResult, PairingReport]:
     """
     Pair device A and device B samples, estimate the clock offset (if asked), calibrate, judge.
@@ -38,7 +52,10 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
     After a fit the data contradict (p below ``stream_directions.CHECK_BELOW_P``), and when the
     data are refused as a whole, the stream directions are checked (``check_directions``): a
     stream given the wrong way round (``T_tool_base`` for ``T_base_tool``) makes every fit bad,
-    and is named instead of the symptom.
+    and is named instead of the symptom. A bad fit that neither this nor the streams' cheap
+    causes explain (``verdict.cheap_causes``) is checked for a clock problem
+    (``clock_check.clock_problem``: a wrong fixed offset, a drift, a step), named with the
+    option that models it.
 
     Parameters
     ----------
@@ -55,17 +72,21 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         Prior knowledge of the parameters, added to the fit.
     frames : (str, str), optional
         The configured base frames of A and B, to recognise swapped devices from the
-        messages' frame ids when the fit is bad.
+        messages' frame ids: a swap is named as the cause of a bad fit, and refuses a good
+        one (``verdict.judge``).
     direction_check : bool
         Check the stream directions after a bad fit (False fits the data as given).
+    roles_confirmed : bool
+        The user confirms that the topics are A and B as configured: frame ids that say
+        otherwise refuse nothing.
 
     Returns
     -------
     result : CalibrationResult
-        With ``time_offset``, ``rejected_stamps``, ``fit_consistent``, ``verdict`` and
-        ``direction_check`` (the check's report when it ran); ``success`` only if the
-        estimator converged, the fit matches the stated noise and no stream fits far better
-        inverted.
+        With ``time_offset``, ``rejected_stamps``, ``fit_consistent``, ``verdict``,
+        ``refusals`` and ``direction_check`` (the check's report when it ran); ``success``
+        only if the estimator converged, the fit matches the stated noise, no stream fits far
+        better inverted and the devices are not swapped.
     report : PairingReport
 
     Raises
@@ -79,7 +100,13 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         With its ``directions``, whatever this layer adds to its message.
 
     """
+    check_settings(settings)
+    if prior is not None and not isinstance(prior, Prior):
+        raise InputError(f'prior must be a coreg_ros.Prior, got {type(prior).__name__}; read a '
+                         f'file or a dict with coreg_ros.load_prior or prior_from_dict '
+                         f'(coreg_ros.calibrate loads them itself)')
     streams_b = stream_list(streams_b)
+    same_data_prior(prior, streams_b)
     try:
         if settings.noise == 'auto':  # the noise estimated with the fit, and the fit at it
             result, report, settings = calibrate_with_noise(stream_a, streams_b, settings,
@@ -90,10 +117,12 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
             result, report = fit_at_offset(stream_a, streams_b, settings, prior,
                                            TimeOffset(settings.time_offset, message='given'))
     except (UnobservableError, InconsistentDataError, ConvergenceError) as e:
-        # positions in other units make every fit fail somehow: name the cause, not the symptom
-        units = unit_mismatch(stream_a, streams_b[0])
-        error = e.with_message(f'{e}; but first: {units}') if (
-            units and 'likely in' not in str(e)) else e
+        # positions in other units, or a position-only B taken for a full pose, make every
+        # fit fail somehow: name the cause, not the symptom
+        first = '; '.join(c for c in (
+            unit_mismatch(stream_a, streams_b[0]) if 'likely in' not in str(e) else None,
+            orientation_missing(stream_a, streams_b[0], settings.model)) if c)
+        error = e.with_message(f'{e}; but first: {first}') if first else e
         if isinstance(e, InconsistentDataError) and direction_check:
             # refused as a whole: a stream given the wrong way round is a cheap explanation
             check = check_directions(stream_a, streams_b, settings)
@@ -102,13 +131,53 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
         if error is e:
             raise
         raise error from e
-    result = judge(result, stream_a, streams_b, settings, prior, frames)
-    if result.noise is not None:  # which device's noise was misstated, and how
-        said = result.noise.verdict()
-        result = replace(result, verdict='; '.join(v for v in (result.verdict, said) if v))
+    fitted = result
+    result = with_noise_verdict(judge(fitted, stream_a, streams_b, settings, prior,
+                                      frames, roles_confirmed))
+    check = None
     if direction_check and not float(result.p_value) >= CHECK_BELOW_P:  # NaN checks too
-        result = with_direction_check(result, check_directions(stream_a, streams_b, settings))
+        check = check_directions(stream_a, streams_b, settings)
+        result = with_direction_check(result, check)
+    if (float(result.p_value) < CONSISTENT_P and not (check is not None and check.flagged)
+            and not cheap_causes(stream_a, streams_b, settings, frames, roles_confirmed)):
+        # a bad fit nothing cheaper explains: is it the clock? (a few block fits)
+        clock = clock_problem(stream_a, streams_b, settings)
+        if clock:
+            result = with_noise_verdict(judge(fitted, stream_a, streams_b, settings, prior,
+                                              frames, roles_confirmed, clock))
+            if check is not None:
+                result = with_direction_check(result, check)
     return result, report
+
+
+def with_noise_verdict(result: CalibrationResult) -> CalibrationResult:
+    """Return the result with the noise estimate's verdict (noise: auto) added to its own."""
+    if result.noise is None:
+        return result
+    said = result.noise.verdict()  # which device's noise was misstated, and how
+    return replace(result, verdict='; '.join(v for v in (result.verdict, said) if v))
+
+
+def same_data_prior(prior: Optional[Prior], streams_b: Sequence[PoseStream]) -> None:
+    """
+    Refuse a prior calibrated on these same samples: it would count them twice.
+
+    Raises
+    ------
+    InputError
+        Naming the shares of the samples in common and the fix.
+
+    """
+    shared = shared_samples(prior.data_sketch, streams_b) if (
+        prior is not None and prior.data_sketch) else None
+    if shared is None:
+        return
+    of_prior, of_this = shared
+    raise InputError(
+        f'the prior was calibrated on these same samples (about {of_this:.0%} of this '
+        f"recording's B samples are among its, {of_prior:.0%} of its here): it would count "
+        f'them twice (σ too small by up to √2, the prior agreeing by construction); '
+        f'calibrate without the prior (`prior`), or take one from another recording')
 
 
 def with_direction_check(result: CalibrationResult, check: DirectionReport

@@ -28,22 +28,88 @@ from scipy import stats
 CONSISTENT_P = 1e-3
 
 
+#: Position-spread ratios of the two devices that mean a unit between them (the spreads of
+#: one rigidly linked body differ by far less): mm against m, cm against m.
+UNIT_FACTORS = {'mm': (300.0, 3000.0), 'cm': (50.0, 300.0)}
+#: Spread (m) of a tracked tool's positions about their median in a calibration recording:
+#: of the two devices, the one farther from it (by a factor) is the one in other units.
+TYPICAL_SPREAD = 0.2
+#: Rotation (rad) within which a device's orientation counts as constant: a tracker that
+#: measures its orientation never repeats it exactly, its noise alone moves it more.
+CONSTANT_ROTATION = 1e-9
+#: Rotation (rad) of A's tool beyond which a constant orientation of B cannot be the motion.
+MOVING_ROTATION = 0.1
+
+
 def _spread(position: np.ndarray) -> float:
     p = np.asarray(position, dtype=float).reshape(-1, 3)
     return float(np.median(np.linalg.norm(p - np.median(p, axis=0), axis=1)))
 
 
-def unit_mismatch(stream_a: PoseStream, stream_b: PoseStream) -> Optional[str]:
-    """Name a unit mismatch if the position spreads differ by ~1000 (mm) or ~100 (cm)."""
-    sa, sb = _spread(stream_a.position), _spread(stream_b.position)
-    if not (sa > 0 and sb > 0):
+def unit_mismatch(stream_a: PoseStream, stream_b: PoseStream,
+                  units: Sequence[str] = ('m', 'm')) -> Optional[str]:
+    """
+    Name a device whose positions are in other units, and the ``coreg convert`` option to fix.
+
+    The spreads of the two devices' positions (median distance from their median) differ by
+    a unit factor (``UNIT_FACTORS``). The device to blame: the one converted from other units
+    than metres (``units``, what ``coreg convert`` was given), else the one whose spread is
+    farther from a tracked tool's (``TYPICAL_SPREAD``): 200 m against 0.2 m is a device in
+    mm, 0.2 mm against 0.2 m one scaled down.
+
+    Parameters
+    ----------
+    stream_a, stream_b : PoseStream
+        The two devices' streams (B: its first).
+    units : (str, str)
+        The units the positions were converted from (A, B): ``m`` when not known.
+
+    Returns
+    -------
+    str or None
+        One line naming the device and the option (``--units-a``/``--units-b`` of ``coreg
+        convert``: m, cm, mm); None when the spreads agree.
+
+    """
+    spreads = {'A': _spread(stream_a.position), 'B': _spread(stream_b.position)}
+    if not (spreads['A'] > 0 and spreads['B'] > 0):
         return None
-    for big, small, r in (('B', 'A', sb / sa), ('A', 'B', sa / sb)):
-        unit = 'mm' if 300.0 < r < 3000.0 else 'cm' if 50.0 < r <= 300.0 else None
-        if unit:
-            return (f"device {big}'s positions spread {r:.0f}× more than device {small}'s: "
-                    f'{big} is likely in {unit} (convert it to metres, e.g. coreg convert '
-                    f'--units-{big.lower()} {unit})')
+    big, small = ('A', 'B') if spreads['A'] > spreads['B'] else ('B', 'A')
+    ratio = spreads[big] / spreads[small]
+    unit = next((u for u, (lo, hi) in UNIT_FACTORS.items() if lo < ratio <= hi), None)
+    if unit is None:
+        return None
+    given = dict(zip('AB', units, strict=True))
+    head = (f"device {big}'s positions spread {ratio:.0f}× more than device {small}'s "
+            f'({spreads[big]:.3g} against {spreads[small]:.3g})')
+    if given[small] != 'm':  # converted from other units although in metres
+        return (f'{head}: {small} is likely in metres but was converted as {given[small]} (its '
+                f'positions {ratio:.0f}× too small); convert it again with --units-'
+                f'{small.lower()} m')
+    if given[big] != 'm':
+        return (f'{head}: a unit factor between the devices; check the units of both '
+                f'exports (coreg convert --units-a, --units-b: m, cm, mm)')
+    off = {k: abs(np.log(v / TYPICAL_SPREAD)) for k, v in spreads.items()}
+    if off[big] >= off[small]:
+        return (f'{head}: {big} is likely in {unit} (convert it to metres, e.g. coreg convert '
+                f'--units-{big.lower()} {unit})')
+    return (f'{head}: {small} is likely in metres but was scaled as if in {unit} (its '
+            f'positions {ratio:.0f}× too small); convert it again with --units-'
+            f'{small.lower()} m')
+
+
+def orientation_missing(stream_a: PoseStream, stream_b: PoseStream,
+                        model: str) -> Optional[str]:
+    """Name a position-only device B calibrated with a model that uses B's orientation."""
+    if model != 'full_pose' or len(stream_a) < 2 or len(stream_b) < 2:
+        return None
+    turn = {name: float(np.max(quat.angle_between(s.quat_wxyz, s.quat_wxyz[:1])))
+            for name, s in (('A', stream_a), ('B', stream_b))}
+    if turn['B'] < CONSTANT_ROTATION and turn['A'] > MOVING_ROTATION:
+        return (f"device B's orientation is the same in every message while A's tool turns by "
+                f'up to {np.degrees(turn["A"]):.0f}°: B is likely a position-only tracker '
+                f'(one marker): calibrate with the position_only model (coreg calibrate '
+                f"--model position_only; the node's model parameter)")
     return None
 
 
@@ -56,7 +122,9 @@ def swapped_frames(stream_a: PoseStream, stream_b: PoseStream,
     if stream_a.frame_id == base_b and stream_b.frame_id == base_a and base_a != base_b:
         return (f'the messages on topic A are in frame {base_b!r} and those on topic B in '
                 f'{base_a!r}, the configured base frames the other way round: the devices are '
-                f'swapped (exchange topic_a and topic_b)')
+                f'swapped (exchange topic_a and topic_b), and the transforms are their '
+                f'inverses; if the topics are right and only the frame ids mislead, confirm '
+                f'the roles (`roles_confirmed`)')
     return None
 
 
@@ -117,21 +185,37 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
     return {'chi2': chi2, 'dof': dof, 'p_value': p, 'consistent': p >= CONSISTENT_P}
 
 
+def cheap_causes(stream_a: PoseStream, streams_b: Sequence[PoseStream], settings: Settings,
+                 frames: Optional[Sequence[str]] = None,
+                 roles_confirmed: bool = False) -> list:
+    """Return what the streams alone say is wrong (units, a position-only B, a swap)."""
+    swap = None if roles_confirmed else swapped_frames(stream_a, streams_b[0], frames)
+    return [c for c in (unit_mismatch(stream_a, streams_b[0]),
+                        orientation_missing(stream_a, streams_b[0], settings.model), swap) if c]
+
+
 def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[PoseStream],
           settings: Settings, prior: Optional[Prior] = None,
-          frames: Optional[Sequence[str]] = None) -> CalibrationResult:
+          frames: Optional[Sequence[str]] = None,
+          roles_confirmed: bool = False, clock: Optional[str] = None) -> CalibrationResult:
     """
     Return the result with ``fit_consistent``, ``verdict``, ``prior_check`` and ``success`` set.
 
-    ``success`` stays True only if the estimator converged, the fit matches the stated noise
-    and the prior (if any) agrees with the data.
+    ``success`` stays True only if the estimator converged, the fit matches the stated noise,
+    the prior (if any) agrees with the data and no check refuses it: devices swapped according
+    to the messages' frame ids (``swapped_frames``) are refused whatever the fit
+    (``refusals``), since swapped devices fit as well as the right ones, with the inverse
+    transforms, unless ``roles_confirmed`` says the topics are right. ``clock``, the clock
+    story that explains a bad fit (``clock_check.clock_problem``), is named as its cause.
     """
     checks = prior_check(result, prior) if prior is not None else None
+    swap = None if roles_confirmed else swapped_frames(stream_a, streams_b[0], frames)
     p = float(result.p_value)
     reasons = []
     if np.isfinite(p) and p < CONSISTENT_P:
-        causes = [c for c in (unit_mismatch(stream_a, streams_b[0]),
-                              swapped_frames(stream_a, streams_b[0], frames)) if c]
+        causes = cheap_causes(stream_a, streams_b, settings, frames, roles_confirmed)
+        if clock:
+            causes.append(clock)
         if not causes and settings.method == 'ols':
             causes.append("OLS leaves device A's noise (sigma_a) out of the fit, where it "
                           'shows as excess; --method tls includes it')
@@ -147,10 +231,13 @@ def judge(result: CalibrationResult, stream_a: PoseStream, streams_b: Sequence[P
             f'or the prior covariance is too small; recalibrate without --prior')
     consistent = not reasons
     verdict = '' if consistent else '; '.join(reasons) + '; run coreg diagnose for details'
-    warnings = [w for w in (roles_swapped(result, stream_a),
-                            None if not consistent else swapped_frames(
-                                stream_a, streams_b[0], frames)) if w]
-    for w in warnings:
-        verdict = '; '.join(v for v in (verdict, 'warning: ' + w) if v)
+    refusals = ()
+    if swap:
+        refusals = ('devices_swapped',)
+        if consistent:  # else the swap is already named as the cause of the bad fit
+            verdict = f'not used although the fit matches the noise: {swap}'
+    warning = roles_swapped(result, stream_a)
+    if warning:
+        verdict = '; '.join(v for v in (verdict, 'warning: ' + warning) if v)
     return replace(result, fit_consistent=consistent, verdict=verdict, prior_check=checks,
-                   success=bool(result.success and consistent))
+                   refusals=refusals, success=bool(result.success and consistent and not swap))

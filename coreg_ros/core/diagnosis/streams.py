@@ -19,7 +19,7 @@ from coreg_ros.core.diagnosis.engine import diagnose, Diagnosis
 from coreg_ros.core.diagnosis.options import Options, Progress
 from coreg_ros.core.diagnosis.report import Pairing
 from coreg_ros.core.diagnosis.stamps import stamps_report
-from coreg_ros.core.settings import Settings
+from coreg_ros.core.settings import check_settings, Settings
 from coreg_ros.core.types import Pairs, PoseStream
 import numpy as np
 
@@ -43,6 +43,7 @@ def diagnose_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequence
     """
     bs = list(streams_b) if isinstance(streams_b, (list, tuple)) else [streams_b]
     context = {'stamps': stamps_report(stream_a, bs)}
+    check_settings(settings)
     pairs, paired = pair_for(stream_a, bs, settings)
     use_settings = settings
     shift = coarse_shift(stream_a, bs, settings, pairs)

@@ -69,12 +69,29 @@ class Prior:
     z, within that σ of tilt, whatever its yaw (``gravity_term``). With it a yaw-only
     alignment (4 DOF: the translation and the yaw) is determined by a motion that turns
     about z alone.
+
+    ``data_sketch``, when the prior is a previous result that carries one
+    (``core.provenance.data_sketch``), identifies the samples it was calibrated on, so that a
+    calibration of the same samples refuses it rather than count them twice.
     """
 
     base_to_base: Optional[UncertainPose] = None
     tool_to_marker: Optional[UncertainPose] = None
     joint_cov: Optional[np.ndarray] = None
     gravity_sigma: Optional[float] = None
+    data_sketch: Optional[dict] = None
+
+    def __post_init__(self):
+        """Refuse what is not a prior in one line naming the fix (shapes, NaN)."""
+        for name in ('base_to_base', 'tool_to_marker'):
+            pose = getattr(self, name)
+            if pose is not None and not isinstance(pose, UncertainPose):
+                raise InputError(f'the prior {name} must be an UncertainPose (position, '
+                                 f'quat_wxyz, 6×6 covariance), got {type(pose).__name__}')
+            if pose is not None and pose.covariance is not None:
+                _check_covariance(pose.covariance, 6, f'the prior covariance of {name}')
+        if self.joint_cov is not None:
+            _check_covariance(self.joint_cov, 12, 'the prior joint covariance (T0, T1)')
 
     def poses(self) -> list:
         """(which, pose) for the poses given: 0 for T0, 1 for T1."""
@@ -104,12 +121,24 @@ class Prior:
         out = [] if self.gravity_sigma is None else [gravity_term(spec, self.gravity_sigma)]
         if not self.poses():
             return out
+        for w, p in self.poses():
+            if not len(constrained_axes(p, spec, w)):
+                raise InputError(
+                    f'the prior on {("base_to_base", "tool_to_marker")[w]} constrains nothing '
+                    f'{spec.name} estimates (every variance is negative, infinite or of an '
+                    f'orientation the model does not estimate); give a variance > 0 for each '
+                    f'axis it knows, or leave that pose out')
         keep = self.axes(spec)
         cov = self.covariance()[np.ix_(keep, keep)]
         try:
             L = np.linalg.inv(np.linalg.cholesky(cov))
         except np.linalg.LinAlgError as e:
-            raise InputError('prior covariance is not positive definite; fix it') from e
+            low = float(np.min(np.linalg.eigvalsh(0.5 * (cov + cov.T))))
+            raise InputError(
+                f'the prior covariance is not positive definite (smallest eigenvalue {low:.3g} '
+                f'over the axes it constrains); give a symmetric covariance whose eigenvalues '
+                f'are all > 0 (a previous result, or sigma per axis), np.inf on the diagonal '
+                f'for an axis left free') from e
         rows = [(w, _pose_rows(p, spec, w)) for w, p in self.poses()]
 
         def term(params: Parameters):
@@ -120,6 +149,19 @@ class Prior:
             return L @ e[keep], L @ J[keep]
 
         return [term] + out
+
+
+def _check_covariance(cov, n: int, what: str) -> None:
+    """Refuse a covariance that is not n×n (or n² numbers) or holds NaN."""
+    shape = np.shape(cov)
+    if int(np.prod(shape)) != n * n:
+        raise InputError(f'{what} must be {n}×{n} (ROS layout: x y z, rotation about x y z'
+                         f'{" of T0, then T1" if n == 12 else ""}) or {n * n} numbers; got '
+                         f'shape {shape}: for axes the prior does not know put np.inf on the '
+                         f'diagonal')
+    if np.isnan(np.asarray(cov, dtype=float)).any():
+        raise InputError(f'{what} holds NaN; give numbers (np.inf on the diagonal for an axis '
+                         f'left free)')
 
 
 def gravity_term(spec: ModelSpec, sigma: float):

@@ -30,6 +30,7 @@ from typing import Optional
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibration import observability
 from coreg_ros.core.errors import InputError, UnobservableError
+from coreg_ros.core.memory import check_memory
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.planning.crlb import CRLB_DIMENSION, fisher_information, model_jacobians
 from coreg_ros.core.types import MODELS
@@ -39,6 +40,32 @@ import numpy as np
 ADDED_ROTATION = (0.8, 0.1)
 #: Factor on the position excursions of the ``wider_translation`` candidate.
 WIDER_FACTOR = 2.0
+#: Peak bytes of a plan per pair of its largest motion (the recording plus ``extra``):
+#: measured 2.1-2.2 kB (``coreg plan --duration 1000``, 50 Hz, extra 0.1 to 2), rounded up.
+BYTES_PER_PAIR = 2500
+
+
+def check_plan_memory(n_pairs: float, extra: float, what: str, fix: str) -> None:
+    """
+    Refuse a plan whose motions would not fit in memory, before anything is simulated.
+
+    Parameters
+    ----------
+    n_pairs : float
+        Pairs of the recording (a float: ``duration × rate`` may be astronomically large).
+    extra : float
+        Time each candidate adds, as a fraction of the recording.
+    what, fix : str
+        The recording and the options to lower, for the message (``core.memory``).
+
+    Raises
+    ------
+    InputError
+        One line with the estimate and the limit.
+
+    """
+    check_memory(float(n_pairs) * (1.0 + float(extra)), BYTES_PER_PAIR, what, fix,
+                 unit='pairs (with the candidates)')
 
 
 @dataclass(frozen=True)
@@ -311,6 +338,8 @@ def plan_recording(model: str, p0, q0, markers, pos_a, quat_a, cov_a, cov_b, rat
     if not (extra > 0 and rate > 0):
         raise InputError('rate and extra must be positive')
     n = len(pos_a)
+    check_plan_memory(n, extra, f'a plan of {n} pairs with candidates {extra:g} longer',
+                      '--extra or the recording')
 
     def predict(p, q):
         try:

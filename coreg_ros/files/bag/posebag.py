@@ -32,6 +32,7 @@ from coreg_ros.files.bag.light_open import open_light
 from coreg_ros.files.bag.per_message import describe as _describe
 from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
 from coreg_ros.files.bag.per_message import typestore as _typestore
+from coreg_ros.files.output_paths import check_new_bag
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 import yaml
@@ -409,12 +410,7 @@ def write_pose_bag(path: PathLike, streams: Mapping[str, PoseStream],
     path = Path(path)
     if storage not in STORAGES:
         raise BagError(f'unknown storage {storage!r}; use one of {", ".join(STORAGES)}')
-    if path.exists() or path.is_symlink():
-        raise BagError(f'{str(path)!r} exists already and will not be overwritten; choose a new '
-                       f'bag name or remove the old one')
-    if not path.parent.is_dir():
-        raise BagError(f'cannot write bag {str(path)!r}: directory {str(path.parent)!r} does '
-                       f'not exist; create it first')
+    check_new_bag(path)
 
     topics = list(streams)
     checked = [_check_stream(topic, streams[topic]) for topic in topics]
