@@ -6,15 +6,17 @@ PoseStamped bags at memory speed (issue 15): bulk path against rosbags' per-mess
   ``bulk=True`` and with ``bulk=False`` (rosbags message by message, the path before issue
   15), in the same run; messages/s, the ratio, and a check that both reads give identical
   arrays (stamps exactly, floats bit for bit). Goal: ≥ 1M messages/s read and ≥ 10×.
-- **Whole command**: ``coreg calibrate`` on a 2M-pair recording (``coreg simulate``, A and
-  B at 1 kHz for 2000 s, 4M messages, written to a temporary directory and deleted), wall
-  time and peak memory of the child process, with ``COREG_BAG_BULK=0`` (before) and
-  without (after).
+- **Whole command** (issue 25, item 5): ``coreg calibrate`` on a 2M-pair recording
+  (``coreg simulate``, A and B at 1 kHz for 2000 s, 4M messages, written to a temporary
+  directory and deleted), wall time, CPU time and peak memory of the child process: this
+  tree with ``COREG_BAG_BULK=0`` (rosbags per message, issue 15's before), the code at
+  ``BEFORE_COMMIT`` (a git worktree under /tmp: issue 25's before) and this tree, in the same
+  run. The children get the user's environment (no BLAS pinning), as users call the command.
+  Goals: within ``GOAL_CALIBRATE_S`` and ``GOAL_PEAK_BYTES``.
 
 ``python bench/bag_bench.py [--n N] [--seconds S] [--calibrate-storages sqlite3 mcap]
-[--no-calibrate] [--repeat R]`` (reads alternate, best of R each) prints the tables and
-writes ``bench/results/bag_bench.json``; ``run()``
-returns the dict.
+[--no-calibrate] [--repeat R] [--before-commit C]`` (reads alternate, best of R each) prints
+the tables and writes ``bench/results/bag_bench.json``; ``run()`` returns the dict.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -39,6 +42,13 @@ import numpy as np  # noqa: E402
 #: Goals of issue 15 (read path).
 GOAL_READ_MSG_PER_S = 1_000_000
 GOAL_RATIO = 10.0
+#: Goals of issue 25 (``coreg calibrate`` of the 4M-message recording): wall s, peak RSS.
+GOAL_CALIBRATE_S = 6.0
+GOAL_PEAK_BYTES = 1.2 * 2**30
+#: The code before issue 25's long-recording work (the "before" of the whole command).
+BEFORE_COMMIT = 'c1de503'
+#: BLAS pinning that bench/run.py sets for its own timings, not passed to the user's command.
+_PINNING = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS')
 STORAGES = ('sqlite3', 'mcap')
 COREG = str(Path(sys.executable).with_name('coreg'))
 
@@ -49,8 +59,9 @@ _MEASURE = (
     't = time.perf_counter()\n'
     'p = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n'
     'wall = time.perf_counter() - t\n'
-    'rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024\n'
-    'print(json.dumps({"wall_s": wall, "peak_rss_bytes": rss, "returncode": p.returncode,'
+    'use = resource.getrusage(resource.RUSAGE_CHILDREN)\n'
+    'print(json.dumps({"wall_s": wall, "cpu_s": use.ru_utime + use.ru_stime,'
+    ' "peak_rss_bytes": use.ru_maxrss * 1024, "returncode": p.returncode,'
     ' "stderr_tail": p.stderr[-300:]}))\n'
 )
 
@@ -119,13 +130,23 @@ def _read_write(n: int, topics: int, storage: str, tmp: Path, repeat: int = 1) -
     }
 
 
-def _measure(cmd: list[str], env: dict) -> dict:
+def _measure(cmd: list[str], env: dict, cwd: Optional[Path] = None) -> dict:
     out = subprocess.run([sys.executable, '-c', _MEASURE, *cmd], capture_output=True,
-                         text=True, env=env, check=True)
+                         text=True, env=env, check=True, cwd=cwd)
     return json.loads(out.stdout)
 
 
-def _calibrate(storage: str, seconds: float, rate: float, tmp: Path) -> dict:
+def _coreg_of(tree: Path, env: dict) -> tuple[list, dict]:
+    """Return the ``coreg`` command of the code in ``tree`` and its environment."""
+    env = {k: v for k, v in env.items() if k not in _PINNING}
+    env['PYTHONPATH'] = os.pathsep.join([str(tree)] + (
+        [env['PYTHONPATH']] if env.get('PYTHONPATH') else []))
+    return [sys.executable, '-m', 'coreg_ros.cli.main'], env
+
+
+def _calibrate(storage: str, seconds: float, rate: float, tmp: Path,
+               before: Optional[tuple] = None) -> dict:
+    """Time ``coreg calibrate`` per message, at ``before`` = (commit, its tree) and now."""
     bag = tmp / f'calib_{storage}'
     env = dict(os.environ)
     gen = _measure([COREG, 'simulate', '--seed', '15', '--duration', str(seconds),
@@ -137,25 +158,40 @@ def _calibrate(storage: str, seconds: float, rate: float, tmp: Path) -> dict:
     t_read, streams = _timed(read_pose_bag, bag, ['/device_a/pose', '/device_b/pose'])
     messages = sum(len(s) for s in streams.values())
     del streams
-    cmd = [COREG, 'calibrate', str(bag), '--json', str(tmp / 'result.json')]
-    before = _measure(cmd, {**env, BULK_ENV: '0'})
-    after = _measure(cmd, {**env, BULK_ENV: '1'})
-    for run in (before, after):
+    args = ['calibrate', str(bag), '--json', str(tmp / 'result.json')]
+    now_cmd, now_env = _coreg_of(ROOT, env)
+    runs = {'before': _measure(now_cmd + args, {**now_env, BULK_ENV: '0'}, ROOT)}
+    if before is not None:
+        old_cmd, old_env = _coreg_of(before[1], env)
+        runs['commit'] = _measure(old_cmd + args, old_env, before[1])
+    runs['after'] = _measure(now_cmd + args, {**now_env, BULK_ENV: '1'}, ROOT)
+    for run in runs.values():
         if run['returncode']:
             raise RuntimeError(f'coreg calibrate failed: {run["stderr_tail"]}')
-    return {
-        'storage': storage, 'seconds': seconds, 'rate_hz': rate, 'messages': messages,
-        'bag_bytes': size, 'simulate_wall_s': gen['wall_s'], 'read_bulk_s': t_read,
-        'calibrate_before_s': before['wall_s'], 'calibrate_after_s': after['wall_s'],
-        'calibrate_ratio': before['wall_s'] / after['wall_s'],
-        'peak_rss_before_bytes': before['peak_rss_bytes'],
-        'peak_rss_after_bytes': after['peak_rss_bytes'],
-    }
+    after = runs['after']
+    out = subprocess.run([sys.executable, str(ROOT / 'bench' / 'calibrate_phases.py'), *args[1:]],
+                         capture_output=True, text=True, env=now_env, cwd=ROOT, check=True)
+    phases = json.loads(out.stdout.strip().splitlines()[-1])
+    row = {'storage': storage, 'seconds': seconds, 'rate_hz': rate, 'messages': messages,
+           'bag_bytes': size, 'simulate_wall_s': gen['wall_s'], 'read_bulk_s': t_read,
+           'load_average': os.getloadavg()[0],
+           'goal_met': after['wall_s'] <= GOAL_CALIBRATE_S
+           and after['peak_rss_bytes'] <= GOAL_PEAK_BYTES, 'profile': phases}
+    for key, run in runs.items():
+        row[f'calibrate_{key}_s'] = run['wall_s']
+        row[f'calibrate_{key}_cpu_s'] = run['cpu_s']
+        row[f'peak_rss_{key}_bytes'] = run['peak_rss_bytes']
+    row['calibrate_ratio'] = runs['before']['wall_s'] / after['wall_s']
+    if 'commit' in runs:
+        row['before_commit'] = before[0]
+        row['commit_ratio'] = runs['commit']['wall_s'] / after['wall_s']
+    return row
 
 
 def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = True,
         seconds: float = 2000.0, rate: float = 1000.0,
-        calibrate_storages=('sqlite3',), repeat: int = 1) -> dict:
+        calibrate_storages=('sqlite3',), repeat: int = 1,
+        before_commit: Optional[str] = BEFORE_COMMIT) -> dict:
     """
     Measure the bulk and per-message paths in one run.
 
@@ -176,6 +212,8 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
         Rate of A and of B in that recording, Hz.
     calibrate_storages : sequence of str
         Storages the calibrate benchmark writes the recording in (one row each).
+    before_commit : str, optional
+        The commit whose ``coreg calibrate`` is the "before" of issue 25 (None: not run).
 
     Returns
     -------
@@ -191,8 +229,12 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
         for storage in storages:
             result['io'].append(_read_write(n, topics, storage, Path(tmp), repeat))
         if calibrate:
+            before = None
+            if before_commit:
+                from bench.calibrate_speed_bench import before_worktree
+                before = (before_commit, before_worktree(before_commit))
             for storage in calibrate_storages:
-                result['calibrate'].append(_calibrate(storage, seconds, rate, Path(tmp)))
+                result['calibrate'].append(_calibrate(storage, seconds, rate, Path(tmp), before))
     return result
 
 
@@ -217,19 +259,47 @@ def table(result: dict) -> str:
     if result['calibrate']:
         lines += [
             '',
-            '| `coreg calibrate` | messages | bag | read (bulk, in-process) | before '
-            '(COREG_BAG_BULK=0) | after | ratio | peak RSS before | peak RSS after |',
-            '|---|---:|---:|---:|---:|---:|---:|---:|---:|',
+            f'`coreg calibrate` of the whole recording, wall / CPU s and peak RSS of the child, '
+            f'same run: rosbags per message (`COREG_BAG_BULK=0`), the code at '
+            f'{result["calibrate"][0].get("before_commit", "–")} (before issue 25) and now. '
+            f'Goal (issue 25): ≤ {GOAL_CALIBRATE_S:g} s and ≤ {GOAL_PEAK_BYTES / 2**30:g} GiB.',
+            '',
+            '| recording | messages | bag | read (bulk, in-process) | per message | before '
+            '| now | × before | peak RSS per message | before | now | goal | load |',
+            '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|',
         ]
         for r in result['calibrate']:
+            def cell(key, r=r):
+                return (f'{r[f"calibrate_{key}_s"]:.1f} / {r[f"calibrate_{key}_cpu_s"]:.1f} s'
+                        if f'calibrate_{key}_s' in r else '–')
+
+            def rss(key, r=r):
+                v = r.get(f'peak_rss_{key}_bytes')
+                return '–' if v is None else f'{v / 2**30:.2f} GiB'
+            ratio = f'{r["commit_ratio"]:.1f}×' if 'commit_ratio' in r else '–'
             lines.append(
                 f'| {r["storage"]}, {r["rate_hz"]:.0f} Hz × {r["seconds"]:.0f} s | '
                 f'{r["messages"]:,} | {r["bag_bytes"] / 2**20:.0f} MiB | '
-                f'{r["read_bulk_s"]:.1f} s | {r["calibrate_before_s"]:.1f} s | '
-                f'{r["calibrate_after_s"]:.1f} s | {r["calibrate_ratio"]:.1f}× | '
-                f'{r["peak_rss_before_bytes"] / 2**30:.2f} GiB | '
-                f'{r["peak_rss_after_bytes"] / 2**30:.2f} GiB |')
+                f'{r["read_bulk_s"]:.1f} s | {cell("before")} | {cell("commit")} | '
+                f'{cell("after")} | {ratio} | {rss("before")} | {rss("commit")} | '
+                f'{rss("after")} | {"met" if r.get("goal_met") else "missed"} | '
+                f'{r.get("load_average", float("nan")):.1f} |')
+        lines += ['', 'Where the time and memory go now (`python bench/calibrate_phases.py BAG`, '
+                      'CPU s per phase, inner phases inside outer ones; peak RSS by phase):', '']
+        for r in result['calibrate']:
+            lines.append(f'- {r["storage"]}: ' + _profile_text(r.get('profile')))
     return '\n'.join(lines)
+
+
+def _profile_text(profile: Optional[dict]) -> str:
+    """One line of ``calibrate_phases``' result: CPU per phase, the three highest RSS peaks."""
+    if not profile:
+        return 'not measured'
+    cpu = ', '.join(f'{name} {p["cpu_s"]:.2f} s ({p["calls"]}×)'
+                    for name, p in profile['phases'].items())
+    peaks = '; '.join(f'{v / 2**30:.2f} GiB in {k}'
+                      for k, v in list(profile['peak_rss_by_phase'].items())[:3])
+    return f'total {profile["total_cpu_s"]:.2f} s: {cpu}. Peaks: {peaks}'
 
 
 def main() -> None:
@@ -242,12 +312,14 @@ def main() -> None:
     parser.add_argument('--calibrate-storages', nargs='+', default=['sqlite3'],
                         choices=STORAGES)
     parser.add_argument('--no-calibrate', action='store_true')
+    parser.add_argument('--before-commit', default=BEFORE_COMMIT,
+                        help='the commit whose coreg calibrate is the "before" ("" skips it)')
     parser.add_argument('--repeat', type=int, default=1,
                         help='reads of each path, alternating; the best of each counts')
     args = parser.parse_args()
     result = run(args.n, args.topics, calibrate=not args.no_calibrate, seconds=args.seconds,
                  rate=args.rate, calibrate_storages=args.calibrate_storages,
-                 repeat=args.repeat)
+                 repeat=args.repeat, before_commit=args.before_commit or None)
     print(table(result))
     out = ROOT / 'bench' / 'results' / 'bag_bench.json'
     out.parent.mkdir(parents=True, exist_ok=True)

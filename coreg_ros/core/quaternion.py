@@ -68,7 +68,9 @@ def validate_quaternions(q, name: str = 'quaternion') -> np.ndarray:
             f'{name}: {int(bad.sum())} quaternion(s) are not unit length (first at index '
             f'{first}, norm {norm.reshape(-1)[first]:.4g}); check the field order '
             f'(w, x, y, z inside, x, y, z, w in ROS messages) and drop zero quaternions')
-    return canonical(q / norm[..., None])
+    # stored row by row whatever the input's layout (a bag's columns come transposed): every
+    # later pass reads whole quaternions, which a column layout scatters 4 × N apart
+    return canonical(np.divide(q, norm[..., None], order='C'))
 
 
 def unit_quaternions(q, name: str = 'quaternion') -> np.ndarray:

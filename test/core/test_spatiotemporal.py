@@ -326,3 +326,67 @@ def test_swapped_roles_are_flagged():
                                                        result.tool_to_marker.covariance))
     judged = judge(far, a, bs, Settings())
     assert 'swap roles' in judged.verdict and '--invert-a --invert-b' in judged.verdict
+
+
+@pytest.mark.parametrize('model', ['full_pose', 'position_only'])
+@pytest.mark.parametrize('drift', [False, True])
+@pytest.mark.parametrize('scaled', [False, True])
+def test_closed_form_offset_sums_equal_the_generic_ones(model, drift, scaled):
+    from coreg_ros.core.calibration.initialize import initialize
+    from coreg_ros.core.clock import timing
+    from coreg_ros.core.clock.offset_sums import structured_offset_sums
+    from coreg_ros.core.estimator import noise_covariance, output_covariance
+    from coreg_ros.core.estimator.linearized import PairData
+    from coreg_ros.core.models import SPECS
+    from coreg_ros.sim import simulate_pairs
+
+    rng = np.random.default_rng(31 + 2 * drift + scaled)
+    n = 20_000  # more than two chunks
+    sigma_a = (rng.uniform(1e-4, 1e-3), rng.uniform(1e-3, 1e-2))
+    sigma_b = (rng.uniform(1e-4, 1e-3), rng.uniform(1e-3, 1e-2))
+    pairs, _, _ = simulate_pairs(rng, n, model, sigma_a=sigma_a, sigma_b=sigma_b)
+    spec = SPECS[model]
+    qa = quat.validate_quaternions(pairs.quat_a)
+    qb = None if pairs.quat_b is None else quat.validate_quaternions(pairs.quat_b)
+    data = PairData(np.asarray(pairs.pos_a), qa, np.asarray(pairs.pos_b), qb,
+                    noise_covariance(sigma_a), output_covariance(noise_covariance(sigma_b), spec),
+                    rng.uniform(0.5, 1.0, n) if scaled else None, True)
+    # at the closed-form start, a little off the minimum: every sum is non-trivial
+    params = initialize(spec, data.pos_a, qa, data.pos_b, qb)
+    velocity = rng.normal(size=(n, 6)) * [0.3, 0.3, 0.3, 1.0, 1.0, 1.0]
+    velocity[rng.random(n) < 0.05] = 0.0  # unknown velocity (a gap) gives zero
+    since = rng.uniform(-100.0, 100.0, n) if drift else None
+    k = 1 + drift
+    factor = 1e-3 * np.eye(6)
+    h_tt, h_pt, g_t, noise = timing._generic_sums(params, data, velocity, since, k,
+                                                  spec.n_params, None, factor)
+    got = structured_offset_sums(params, data, velocity, since)
+    assert got is not None
+    for mine, ref in zip(got, (h_tt, h_pt, g_t), strict=True):
+        np.testing.assert_allclose(mine, ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
+    # the noise share, on the pairs it uses only: the very same number
+    assert timing._velocity_noise(params, data, velocity, factor) == noise
+
+
+def test_closed_form_offset_sums_leave_other_cases_to_the_generic_path():
+    from coreg_ros.core.calibration.initialize import initialize
+    from coreg_ros.core.clock.offset_sums import structured_offset_sums
+    from coreg_ros.core.estimator import noise_covariance, output_covariance
+    from coreg_ros.core.estimator.linearized import PairData
+    from coreg_ros.core.models import SPECS
+    from coreg_ros.sim import simulate_pairs
+
+    rng = np.random.default_rng(5)
+    sigma = (2e-4, 5e-3)
+    for model, cov_a, tls in [('three_marker', noise_covariance(sigma), True),
+                              ('full_pose', np.diag([1e-4, 2e-4, 1e-4, 1e-3, 1e-3, 1e-3]) ** 2,
+                               True),
+                              ('full_pose', noise_covariance(sigma), False)]:
+        pairs, _, _ = simulate_pairs(rng, 200, model, sigma_a=sigma, sigma_b=sigma)
+        spec = SPECS[model]
+        qb = None if pairs.quat_b is None else np.asarray(pairs.quat_b)
+        data = PairData(np.asarray(pairs.pos_a), np.asarray(pairs.quat_a),
+                        np.asarray(pairs.pos_b), qb, cov_a,
+                        output_covariance(noise_covariance(sigma), spec), None, tls)
+        params = initialize(spec, data.pos_a, data.quat_a, data.pos_b, qb)
+        assert structured_offset_sums(params, data, np.ones((200, 6)), None) is None

@@ -103,9 +103,10 @@ class _Context:
         a, bs = validated_streams(stream_a, streams_b, settings.model == 'full_pose')
         origin = int(a.stamps[0])
         t = (a.stamps - np.int64(origin)).astype(float) * 1e-9
-        step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        trajectory = Trajectory(t, a.position, a.quat_wxyz)
+        step = trajectory.median_step() if len(t) > 1 else 0.0
         ref = (int(bs[0].stamps[0]) + int(bs[0].stamps[-1])) // 2
-        return cls(a, bs, settings, prior, Trajectory(t, a.position, a.quat_wxyz), origin, ref,
+        return cls(a, bs, settings, prior, trajectory, origin, ref,
                    max(VELOCITY_HALF_WINDOW, 1.5 * step),
                    settings.cov_a, output_covariance(settings.cov_b, spec))
 

@@ -195,6 +195,21 @@ def _lerp(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, alpha: np.ndarray)
     return out
 
 
+def _paired_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """
+    ``values[idx]`` for increasing indices: a view when they are one run of C-contiguous rows.
+
+    B's samples are mostly all paired: at 2M samples this spares copies of B. Otherwise (or
+    for rows not C-contiguous) a C-contiguous copy, as indexing gives it, so that what is
+    computed on the pairs does not depend on how they are stored.
+    """
+    if idx.size and int(idx[-1]) - int(idx[0]) + 1 == idx.size:
+        view = values[int(idx[0]):int(idx[-1]) + 1]
+        if view.flags['C_CONTIGUOUS']:
+            return view
+    return values[idx]
+
+
 def validated_streams(stream_a: PoseStream, markers: list, with_orientation_b: bool):
     """Validate A and the B stream(s) as pairing needs them: (A, [B or markers 1-3])."""
     a = validate_stream(stream_a, 'stream_a')
@@ -323,8 +338,8 @@ def pair_streams(stream_a: PoseStream,
             pos_b[:, k, :] = _lerp(m.position, m_lo[idx], m_hi[idx], m_alpha[idx])
         quat_b = None
     else:
-        pos_b = b.position[idx]
-        quat_b = b.quat_wxyz[idx] if with_orientation_b else None
+        pos_b = _paired_rows(b.position, idx)
+        quat_b = _paired_rows(b.quat_wxyz, idx) if with_orientation_b else None
 
     used = np.zeros(n_a, dtype=bool)
     used[lo_k] = True
@@ -334,7 +349,7 @@ def pair_streams(stream_a: PoseStream,
         unpaired={'before_first_a': int(before.sum()), 'after_last_a': int(after.sum()),
                   'gap_too_large': int(gap.sum()), 'marker_missing': int(missing.sum())},
         n_a_unused=int(n_a - used.sum()))
-    pairs = Pairs(stamps=b.stamps[idx], pos_a=pos_a, quat_a=quat_a, pos_b=pos_b,
+    pairs = Pairs(stamps=_paired_rows(b.stamps, idx), pos_a=pos_a, quat_a=quat_a, pos_b=pos_b,
                   quat_b=quat_b, a_var_scale=a_var_scale)
     return pairs, report
 

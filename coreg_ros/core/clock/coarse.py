@@ -77,7 +77,7 @@ def _speed(stream_or_streams, origin_ns: int, step: float, angular: bool,
         traj = Trajectory(grid, pts[0], _frame_of_markers(*pts))
     else:
         traj = trajectory or Trajectory(t, first.position, first.quat_wxyz)
-    v, w = traj.velocity(grid, half)
+    v, w = traj.velocity(grid, half, linear=not angular, angular=angular)
     return grid, np.linalg.norm(w if angular else v, axis=1)
 
 

@@ -30,8 +30,10 @@ from coreg_ros.core.clock.coarse import (  # noqa: F401 (importers of its first 
     speed_correlation,
     SpeedCorrelation,
 )
+from coreg_ros.core.clock.offset_sums import structured_offset_sums
 from coreg_ros.core.clock.trajectory import Trajectory
 from coreg_ros.core.estimator.linearized import Chunk, chunks, PairData
+from coreg_ros.core.estimator.problem import CHUNK
 from coreg_ros.core.models import Parameters
 import numpy as np
 
@@ -171,31 +173,16 @@ def _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_co
     P = param_cov.shape[0]
     lam, vec = np.linalg.eigh(noise_velocity_cov)
     noise_factor = vec * np.sqrt(np.clip(lam, 0.0, None))  # Σ_v = F Fᵀ
-    h_tt = np.zeros((k, k))
-    h_pt = np.zeros((P, k))
     h_pp = None if own_information is None else own_information.copy()
-    g_t = np.zeros(k)
-    noise_tt = 0.0
-    for ch in chunks(params, data):
-        c = -np.einsum('nij,nj->ni', ch.j_x, velocity[ch.sl])
-        cols = c[:, :, None] if k == 1 else np.stack(
-            [c, c * since_ref[ch.sl, None]], axis=2)
-        if h_pp is None:
-            wc = ch.weighted(cols)
-        else:
-            w = ch.weighted(np.concatenate([cols, ch.j_phi], axis=2))
-            wc = w[:, :, :k]
-            h_pp += np.einsum('nmp,nmq->pq', ch.j_phi, w[:, :, k:])
-        h_tt += np.einsum('nmi,nmj->ij', cols, wc)
-        h_pt += np.einsum('nmp,nmk->pk', ch.j_phi, wc)
-        g_t += np.einsum('nm,nmk->k', ch.e, wc)
-        # tr(Σ⁻¹ F_x Σ_v F_xᵀ) on every NOISE_STRIDE-th pair whose velocity is known: only a
-        # threshold depends on it
-        pick = np.arange(0, c.shape[0], NOISE_STRIDE)
-        pick = pick[np.any(velocity[ch.sl][pick] != 0.0, axis=1)]
-        jl = ch.j_x[pick] @ noise_factor
-        sub = Chunk(ch.sl, ch.e, ch.j_phi, ch.j_x, ch.cov if ch.cov.ndim == 2 else ch.cov[pick])
-        noise_tt += NOISE_STRIDE * float(np.einsum('nmk,nmk->', jl, sub.weighted(jl)))
+    sums = None
+    if h_pp is None:
+        sums = structured_offset_sums(params, data, velocity, since_ref)
+    if sums is not None:  # closed form (offset_sums); the noise share on the generic path
+        h_tt, h_pt, g_t = sums
+        noise_tt = _velocity_noise(params, data, velocity, noise_factor)
+    else:
+        h_tt, h_pt, g_t, noise_tt = _generic_sums(params, data, velocity, since_ref, k, P,
+                                                  h_pp, noise_factor)
     h_inv = param_cov
     if h_pp is not None:
         try:
@@ -263,3 +250,59 @@ def velocity_step(trajectory: Trajectory, t_a: np.ndarray, half: float,
         if candidate.cov is not None and candidate.signal_to_noise >= LONG_WINDOW_SIGNAL_TO_NOISE:
             step, used = candidate, longer
     return step, used
+
+
+def _generic_sums(params, data, velocity, since_ref, k: int, P: int,
+                  h_pp: Optional[np.ndarray], noise_factor: np.ndarray) -> tuple:
+    """
+    h_ττ, h_φτ, g_τ and the noise share from every pair's Jacobians (``linearized``).
+
+    Any model and noise; with ``h_pp`` (P×P, updated in place) also Σ J_φᵀ W J_φ.
+    """
+    h_tt = np.zeros((k, k))
+    h_pt = np.zeros((P, k))
+    g_t = np.zeros(k)
+    noise_tt = 0.0
+    for ch in chunks(params, data):
+        c = -np.einsum('nij,nj->ni', ch.j_x, velocity[ch.sl])
+        cols = c[:, :, None] if k == 1 else np.stack(
+            [c, c * since_ref[ch.sl, None]], axis=2)
+        if h_pp is None:
+            wc = ch.weighted(cols)
+        else:
+            w = ch.weighted(np.concatenate([cols, ch.j_phi], axis=2))
+            wc = w[:, :, :k]
+            h_pp += np.einsum('nmp,nmq->pq', ch.j_phi, w[:, :, k:])
+        h_tt += np.einsum('nmi,nmj->ij', cols, wc)
+        h_pt += np.einsum('nmp,nmk->pk', ch.j_phi, wc)
+        g_t += np.einsum('nm,nmk->k', ch.e, wc)
+        noise_tt += _noise_share(ch, velocity[ch.sl], noise_factor)
+    return h_tt, h_pt, g_t, noise_tt
+
+
+def _noise_share(ch: Chunk, velocity: np.ndarray, noise_factor: np.ndarray) -> float:
+    """
+    NOISE_STRIDE Σ tr(Σ⁻¹ F_x Σ_v F_xᵀ) over every NOISE_STRIDE-th pair of the chunk.
+
+    Only the pairs whose velocity is known count; only a threshold depends on it.
+    """
+    pick = np.arange(0, ch.j_x.shape[0], NOISE_STRIDE)
+    pick = pick[np.any(velocity[pick] != 0.0, axis=1)]
+    jl = ch.j_x[pick] @ noise_factor
+    sub = Chunk(ch.sl, ch.e, ch.j_phi, ch.j_x, ch.cov if ch.cov.ndim == 2 else ch.cov[pick])
+    return NOISE_STRIDE * float(np.einsum('nmk,nmk->', jl, sub.weighted(jl)))
+
+
+def _velocity_noise(params, data: PairData, velocity: np.ndarray,
+                    noise_factor: np.ndarray) -> float:
+    """Return the noise share of ``_generic_sums`` alone, linearising only the pairs it uses."""
+    noise_tt = 0.0
+    for start in range(0, len(data), CHUNK):
+        idx = np.arange(start, min(start + CHUNK, len(data)), NOISE_STRIDE)
+        idx = idx[np.any(velocity[idx] != 0.0, axis=1)]
+        if not idx.size:
+            continue
+        (ch,) = chunks(params, data.take(idx), chunk=idx.size)
+        jl = ch.j_x @ noise_factor
+        noise_tt += NOISE_STRIDE * float(np.einsum('nmk,nmk->', jl, ch.weighted(jl)))
+    return noise_tt

@@ -16,6 +16,8 @@ import numpy as np
 
 #: Half-width of the finite-difference window for velocities, s (at least two A samples).
 VELOCITY_HALF_WINDOW = 0.04
+#: Times whose velocities are computed at once (bounds the temporaries; cache-sized).
+VELOCITY_CHUNK = 1 << 16
 
 
 class Trajectory:
@@ -34,16 +36,24 @@ class Trajectory:
     """
 
     def __init__(self, t: np.ndarray, position: np.ndarray, quat_wxyz: np.ndarray):
-        order = np.argsort(t, kind='stable')
-        t = np.asarray(t, dtype=float)[order]
-        keep = np.concatenate([[True], np.diff(t) > 0])
-        self.t = t[keep]
-        self.position = np.asarray(position, dtype=float)[order][keep]
-        q = np.asarray(quat_wxyz, dtype=float)[order][keep].copy()
-        # continuous sign along the trajectory, so that neighbours interpolate the short way
+        t = np.asarray(t, dtype=float)
+        position = np.asarray(position, dtype=float)
+        q = np.asarray(quat_wxyz, dtype=float)
+        if not np.all(np.diff(t) > 0):  # out of order or repeated: sorted, the first kept
+            order = np.argsort(t, kind='stable')
+            t = t[order]
+            keep = np.concatenate([[True], np.diff(t) > 0])
+            t, position, q = t[keep], position[order][keep], q[order][keep]
+        # samples already in order are held, not copied (a long recording's A is 2M samples)
+        self.t, self.position, self.quat = t, position, q
+        # continuous sign along the trajectory, so that neighbours interpolate the short way:
+        # the signs are kept (8 bytes a sample) and applied to the samples a query reads
         dots = np.einsum('ij,ij->i', q[1:], q[:-1])
-        flips = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
-        self.quat = q * flips[:, None]
+        self._sign: Optional[np.ndarray] = None
+        if np.any(dots < 0.0):
+            self._sign = np.concatenate([[1.0], np.cumprod(np.where(dots < 0.0, -1.0, 1.0))])
+        self._step: Optional[float] = None
+        self._segments: dict = {}
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -55,17 +65,39 @@ class Trajectory:
         Orientation by normalised lerp between neighbours (equal to slerp to O(θ³) for the
         small angles between successive samples).
         """
-        t = np.asarray(t, dtype=float)
-        k = np.clip(np.searchsorted(self.t, t, side='right') - 1, 0, len(self) - 2)
-        span = self.t[k + 1] - self.t[k]
-        a = ((t - self.t[k]) / span)[:, None]
-        pos = self.position[k] + a * (self.position[k + 1] - self.position[k])
-        q = self.quat[k] + a * (self.quat[k + 1] - self.quat[k])
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
-        return pos, quat.canonical(q)
+        pos, q, _ = self._interpolated(np.asarray(t, dtype=float))
+        return pos, q
+
+    def _interpolated(self, t: np.ndarray, position: bool = True, orientation: bool = True
+                      ) -> tuple[Optional[np.ndarray], Optional[np.ndarray], np.ndarray]:
+        """
+        Return ``pose(t)``'s parts asked (None for the others) and each time's bracket.
+
+        The bracket is the index of the last sample at or before the time (-1: none).
+        """
+        before = np.searchsorted(self.t, t, side='right') - 1
+        k = np.clip(before, 0, len(self) - 2)
+        k1 = k + 1
+        # np.take: several times faster than fancy indexing on rows, the same numbers
+        t_lo = np.take(self.t, k)
+        span = np.take(self.t, k1) - t_lo
+        a = ((t - t_lo) / span)[:, None]
+        pos = q = None
+        if position:
+            p_lo = np.take(self.position, k, axis=0)
+            pos = p_lo + a * (np.take(self.position, k1, axis=0) - p_lo)
+        if orientation:
+            q_lo, q_hi = np.take(self.quat, k, axis=0), np.take(self.quat, k1, axis=0)
+            if self._sign is not None:
+                q_lo *= np.take(self._sign, k)[:, None]
+                q_hi *= np.take(self._sign, k1)[:, None]
+            q = q_lo + a * (q_hi - q_lo)
+            q /= np.linalg.norm(q, axis=1, keepdims=True)
+            q = quat.canonical(q)
+        return pos, q, before
 
     def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW,
-                 max_gap: Optional[float] = None):
+                 max_gap: Optional[float] = None, linear: bool = True, angular: bool = True):
         """
         Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
 
@@ -73,22 +105,51 @@ class Trajectory:
         as the input perturbation of the models does. With ``max_gap`` (s), a window
         ``[t-h, t+h]`` that reaches past either end or spans a gap between samples longer
         than ``max_gap`` gives zero: no velocity is known there (interpolating across a
-        tracking dropout or between recorded still poses would invent one).
+        tracking dropout or between recorded still poses would invent one). ``linear`` or
+        ``angular`` False: that part is not computed (None), as the coarse offset search,
+        which needs one speed, asks.
         """
         t = np.asarray(t, dtype=float)
         if len(self) > 1:
-            step = float(np.median(np.diff(self.t)))
-            half = max(half, 1.5 * step)
-        p1, q1 = self.pose(t + half)
-        p0, q0 = self.pose(t - half)
-        v = (p1 - p0) / (2.0 * half)
-        w = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
+            half = max(half, 1.5 * self.median_step())
+        v = np.empty((t.shape[0], 3)) if linear else None
+        w = np.empty((t.shape[0], 3)) if angular else None
+        # in chunks: each time's velocity is its own, and a 2M-pair recording's temporaries
+        # (two poses a time) would otherwise take ~600 MB at the peak of the offset search
+        for start in range(0, t.shape[0], VELOCITY_CHUNK):
+            sl = slice(start, start + VELOCITY_CHUNK)
+            self._velocity_into(t[sl], half, max_gap, None if v is None else v[sl],
+                                None if w is None else w[sl])
+        return v, w
+
+    def _velocity_into(self, t: np.ndarray, half: float, max_gap: Optional[float],
+                       v: Optional[np.ndarray], w: Optional[np.ndarray]) -> None:
+        """Write ``velocity``'s linear part into v and its angular part into w (None: skip)."""
+        p1, q1, _ = self._interpolated(t + half, v is not None, w is not None)
+        p0, q0, lo = self._interpolated(t - half, v is not None, w is not None)
+        if v is not None:
+            v[:] = (p1 - p0) / (2.0 * half)
+        if w is not None:
+            w[:] = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
         if max_gap is not None:
-            gaps = np.concatenate([[0], np.cumsum(np.diff(self.t) > max_gap)])
-            lo = np.searchsorted(self.t, t - half, side='right') - 1
+            gaps = self._segment_ids(max_gap)
             hi = np.searchsorted(self.t, t + half, side='left')
             known = (lo >= 0) & (hi < len(self))
             known[known] &= gaps[hi[known]] == gaps[lo[known]]
-            v[~known] = 0.0
-            w[~known] = 0.0
-        return v, w
+            for x in (v, w):
+                if x is not None:
+                    x[~known] = 0.0
+
+    def median_step(self) -> float:
+        """Median interval between the samples, s (computed once)."""
+        if self._step is None:
+            self._step = float(np.median(np.diff(self.t)))
+        return self._step
+
+    def _segment_ids(self, max_gap: float) -> np.ndarray:
+        """Per sample, how many gaps longer than ``max_gap`` (s) precede it (computed once)."""
+        ids = self._segments.get(max_gap)
+        if ids is None:
+            ids = np.concatenate([[0], np.cumsum(np.diff(self.t) > max_gap)])
+            self._segments[max_gap] = ids
+        return ids

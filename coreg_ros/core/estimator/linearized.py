@@ -63,6 +63,14 @@ class PairData:
     def __len__(self) -> int:
         return int(self.pos_a.shape[0])
 
+    def take(self, idx: np.ndarray) -> PairData:
+        """Return the pairs ``idx`` (indices, shape (K,)) with the same noise, a copy."""
+        def sub(x):
+            return None if x is None else np.take(x, idx, axis=0)
+
+        return PairData(sub(self.pos_a), sub(self.quat_a), sub(self.pos_b), sub(self.quat_b),
+                        self.cov_a, self.cov_b, sub(self.a_scale), self.tls)
+
 
 @dataclass(frozen=True)
 class Chunk:

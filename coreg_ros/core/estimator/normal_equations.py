@@ -113,7 +113,24 @@ class _Frame:
 
     def gram(self, F: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """``Σ B_pᵀ Q B_p`` (P×P, φ' coordinates) from the moments F = Σ f fᵀ."""
-        return np.einsum('akl,ab,bjm,lm->kj', self.xi, Q, self.xi, F, optimize=True)
+        path = _gram_path(self.xi.shape, Q.shape, F.shape)
+        return np.einsum(_GRAM, self.xi, Q, self.xi, F, optimize=path)
+
+
+_GRAM = 'akl,ab,bjm,lm->kj'
+
+
+@functools.cache
+def _gram_path(xi_shape: tuple, q_shape: tuple, f_shape: tuple) -> list:
+    """
+    Return the contraction order ``np.einsum(optimize=True)`` picks for ``gram``'s shapes.
+
+    Found once: the same order, so the same numbers; searching it anew cost more than the
+    contraction on a small fit (the offset search fits 1.5k-pair subsamples several times).
+    """
+    xi = np.empty(xi_shape)
+    return np.einsum_path(_GRAM, xi, np.empty(q_shape), xi, np.empty(f_shape),
+                          optimize=True)[0]
 
 
 @functools.cache  # a constant per P; read-only, shared by every linearisation

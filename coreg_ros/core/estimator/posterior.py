@@ -60,10 +60,10 @@ class Solution:
     chi2 : float
     n_rows : int
         Residual rows beyond the input blocks: N·m plus prior rows.
-    residuals : ndarray, shape (N, m)
-        Whitened output residuals.
+    residuals : ndarray, shape (N, m), or None
+        Whitened output residuals (None for a paused fit, whose refit gives them).
     input_residuals : ndarray, shape (N, 6) or None
-        Whitened input residuals (TLS).
+        Whitened input residuals (TLS; None for a paused fit).
     iterations : int
     status : int
         How the iterations ended (``lm.MESSAGES``): 1 step small, 2 cost change small,
@@ -81,7 +81,7 @@ class Solution:
     info: np.ndarray
     chi2: float
     n_rows: int
-    residuals: np.ndarray
+    residuals: Optional[np.ndarray]
     input_residuals: Optional[np.ndarray]
     iterations: int
     status: int

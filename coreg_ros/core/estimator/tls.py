@@ -283,7 +283,8 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             if seed.kept is not None:
                 step = np.take(step, seed.kept, axis=1)
             trial = (trial.recharted(), x.stepped(step))
-            seed.factors.clear()  # spent: free them before the trial's are made
+            step = None  # spent, as the factors: freed before the trial's are made
+            seed.factors.clear()
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
@@ -314,6 +315,8 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         # below DAMPING_SHARE), which saves a pass over the pairs.
         info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
         sums, factors = TlsSums(last.info, last.rhs, last.cost, lam), last.factors
+        if paused:  # goes on (a refit) before anything reads them: not kept
+            res_y = res_x = last.residuals = None
     else:
         last = None
         info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
