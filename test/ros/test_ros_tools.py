@@ -120,7 +120,7 @@ def test_node_reads_config_file_and_refuses_bad_changes(ros_domain, tmp_path):
         tilt = node.set_parameters([Parameter('gravity_aligned_sigma', value=-1.0)])[0]
         assert not tilt.successful
         assert node.set_parameters([Parameter('gravity_aligned_sigma', value=0.01)])[0].successful
-        assert node.calibrator._prior().gravity_sigma == 0.01
+        assert node.calibrator._prior([]).gravity_sigma == 0.01
         node.destroy_node()
     finally:
         session.close()
