@@ -49,7 +49,7 @@ from coreg_ros.core.estimator import (
     without_pairs,
 )
 from coreg_ros.core.estimator.linearized import PairData, reference_squares
-from coreg_ros.core.estimator.priors import Prior, prior_rows
+from coreg_ros.core.estimator.priors import gauge_terms, Prior, prior_rows
 from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
@@ -231,7 +231,7 @@ class _Fitter:
         idx = np.flatnonzero(keep)
         idx = idx[::max(1, len(idx) // OBSERVABILITY_SAMPLE)]
         try:
-            return solve_ols(self.everything.subset(idx, gauge.terms(self.spec)), start,
+            return solve_ols(self.everything.subset(idx, gauge_terms(gauge, self.spec)), start,
                              max_iterations=self.settings.max_iterations, xtol=XTOL).params
         except (np.linalg.LinAlgError, ValueError, ConvergenceError):
             return start  # the fit of all pairs starts from what there is
@@ -240,7 +240,7 @@ class _Fitter:
         """Hold ``found``'s undetermined directions at ``start`` in every later fit."""
         prior, self.held_components = hold_prior(found, start)
         self.found = found
-        self.gauge = prior.terms(self.spec) if prior is not None else []
+        self.gauge = gauge_terms(prior, self.spec) if prior is not None else []
         # the masked OLS refits weigh all pairs: the gauge goes with them
         self.everything = replace(self.everything, priors=list(self.gauge))
 

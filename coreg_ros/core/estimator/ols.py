@@ -19,7 +19,7 @@ from coreg_ros.core.estimator.lm import (
     XTOL,
 )
 from coreg_ros.core.estimator.posterior import covariance, Solution
-from coreg_ros.core.estimator.priors import prior_rows
+from coreg_ros.core.estimator.priors import gauge_diagonal, prior_rows
 from coreg_ros.core.estimator.problem import pair_last, Problem
 from coreg_ros.core.estimator.state import NormalEquations
 from coreg_ros.core.models import linearize, Parameters
@@ -132,7 +132,9 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return Linearization(H + lam * np.diag(np.diag(H)), -g, cost, propose)
+        # Marquardt's scale: the data's and the user's prior's diagonal, not the gauge's pins
+        scale = np.diag(H) - gauge_diagonal(problem, state)
+        return Linearization(H + lam * np.diag(scale), -g, cost, propose)
 
     params, status, it, _, _ = levenberg_marquardt(params, linearize, max_iterations, xtol,
                                                    ftol)

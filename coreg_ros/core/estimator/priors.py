@@ -251,3 +251,48 @@ def _pose_rows(pose: UncertainPose, spec: ModelSpec, which: int):
         return e, J
 
     return rows
+
+
+def gauge_terms(gauge: Prior, spec: ModelSpec) -> list:
+    """
+    Return the prior terms of a gauge: pins that hold what the data leave free, not knowledge.
+
+    The same rows as ``gauge.terms`` (``calibration.observability.hold_prior``), marked so
+    that Marquardt's damping leaves them out of its scale (``gauge_diagonal``).
+    """
+    terms = gauge.terms(spec)
+    for term in terms:
+        term.gauge = True
+    return terms
+
+
+def gauge_diagonal(problem, params: Parameters) -> np.ndarray:
+    """
+    Return diag(JᵀJ) of the gauge's rows (``Gauge``), to leave out of Marquardt's damping scale.
+
+    A gauge's pins are a convention chosen far tighter than the data (``HOLD_TIGHTNESS``);
+    damped like information, λ·(1/σ_pin²) on a pinned component is λ/tightness² times what
+    the data give it (1e-6 · 1e6: the data's own information at the first λ), a second
+    stiffness the steps then crawl against (a turntable, whose held turn couples to every
+    component, converged linearly: one pass more than a full-rank rig). The data's diagonal
+    still damps that component, as on a full-rank rig.
+
+    Parameters
+    ----------
+    problem : Problem
+        Its ``priors`` (a gauge's terms are marked by ``gauge_terms``).
+    params : Parameters
+        Where the rows are taken.
+
+    Returns
+    -------
+    ndarray, shape (P,)
+        Zero when the problem has no gauge.
+
+    """
+    out = np.zeros(problem.spec.n_params)
+    for term in problem.priors:
+        if getattr(term, 'gauge', False):
+            _, J = term(params)
+            out += np.einsum('ij,ij->j', J, J)
+    return out

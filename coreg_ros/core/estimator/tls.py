@@ -30,7 +30,7 @@ from coreg_ros.core.estimator.lm import (
     XTOL,
 )
 from coreg_ros.core.estimator.posterior import covariance, Solution
-from coreg_ros.core.estimator.priors import prior_rows
+from coreg_ros.core.estimator.priors import gauge_diagonal, prior_rows
 from coreg_ros.core.estimator.problem import chunk_slices, pair_last, Problem
 from coreg_ros.core.estimator.state import InputState, TlsResume, TlsSeed, TlsSums
 from coreg_ros.core.models import error_rotation_jacobian, linearize, Parameters
@@ -205,7 +205,9 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
     schur = normal_equations_tls.tls_schur if normal_equations.applies(problem) else _tls_schur
     S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
     r_prior, j_prior = prior_rows(problem, params)
-    damping = lam * (v_diag + np.einsum('ij,ij->j', j_prior, j_prior))
+    # Marquardt's scale: the data's and the user's prior's diagonal, not the gauge's pins
+    damping = lam * (v_diag + np.einsum('ij,ij->j', j_prior, j_prior)
+                     - gauge_diagonal(problem, params))
     S = S + j_prior.T @ j_prior + np.diag(damping)
     b = b - j_prior.T @ r_prior
     share = float(np.max(damping / np.diag(S))) if lam > 0 else 0.0
