@@ -328,3 +328,31 @@ def test_unit_quaternions_fast_path_matches_the_full_check():
     bad[4] = 0.0
     with pytest.raises(InputError, match='device A orientation'):
         quat.unit_quaternions(bad, 'device A orientation')
+
+
+def test_lm_from_an_undamped_start_raises_the_damping_after_a_rejected_step():
+    # a start at λ = 0 (a seed's undamped sums) whose step is rejected must damp it, not retry
+    # the same step forever (a fuzzed recording hung coreg calibrate so): r(x) = x² - 0.5 from
+    # x = 0.8 with a normal matrix of a twentieth of JᵀJ, so that the undamped step overshoots
+    from coreg_ros.core.estimator.lm import levenberg_marquardt, Linearization
+    calls = []
+
+    def cost(x):
+        return float((x[0] ** 2 - 0.5) ** 2)
+
+    def linearize(x, lam):
+        calls.append(lam)
+        assert len(calls) < 10_000, 'the damping never rose'
+        j = np.array([[2.0 * x[0]]])
+        info = 0.05 * (j.T @ j) * (1.0 + lam)
+
+        def propose(delta, lam_next):
+            trial = x + delta
+            return trial, cost(trial), linearize(trial, lam_next)
+
+        return Linearization(info, -j.T @ np.array([x[0] ** 2 - 0.5]), cost(x), propose)
+
+    x, status, iterations, _, _ = levenberg_marquardt(np.array([0.8]), linearize, 20, 1e-9,
+                                                      1e-15, damping=0.0)
+    assert max(calls) > 0.0  # damped after the first rejection
+    assert cost(x) < cost(np.array([0.8]))  # and went downhill

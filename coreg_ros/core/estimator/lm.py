@@ -143,7 +143,9 @@ def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: f
             if lam * 10.0 > 1e16:
                 return state, -1, it, lin, lam
             rejected = True
-            lam *= 10.0
+            # from the floor, not from 0: a start at λ = 0 (a seed's sums made undamped)
+            # would otherwise stay undamped and retry the same step forever
+            lam = max(lam, 1e-12) * 10.0
             lin = None
             lin = linearize(state, lam)
         state, old, lam = trial, lin, lam_next
