@@ -206,11 +206,13 @@ def _diagnosis_outputs(out: dict, quick: bool) -> None:
     import coreg_ros as cr
     from coreg_ros.sim import parse_effect, simulate_recording
     from coreg_ros.sim.injected import ALL_EFFECT_NAMES
+    from coreg_ros.sim.injected.registry import _EXAMPLES
 
     values = {'time_offset': '0.02', 'clock_drift': '300', 'timestamp_jitter': '0.005',
               'field_distortion': '5', 'distance_noise': '2', 'scale': '0.01',
               'link_flex': '2', 'outliers': '0.03', 'backlash': '0.5', 'noise_scale': '2',
               'non_stationary': '4', 'shared_clock': '0.02'}
+    values = {**_EXAMPLES, **values}  # effects added since: their --effect examples
     names = ['none'] + list(ALL_EFFECT_NAMES)
     models = ('full_pose',) if quick else ('full_pose', 'position_only', 'three_marker')
     for model in models:
