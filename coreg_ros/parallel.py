@@ -68,6 +68,9 @@ def _terminate_as_interrupt() -> Iterator[None]:
         return
 
     def stop(signum, frame):
+        if _SPAWNING.depth:  # raised when the workers have started (_spawning_workers)
+            _SPAWNING.pending = True
+            return
         raise Terminated()
 
     signal.signal(signal.SIGTERM, stop)
@@ -75,6 +78,35 @@ def _terminate_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+class _Spawning:
+    """Whether workers are being spawned, and a SIGTERM held back meanwhile."""
+
+    depth = 0
+    pending = False
+
+
+_SPAWNING = _Spawning()
+
+
+@contextlib.contextmanager
+def _spawning_workers() -> Iterator[None]:
+    """
+    Hold a SIGTERM back while worker processes are spawned; raise it (``Terminated``) after.
+
+    A spawned worker reads its start-up data from a pipe the parent is still writing: a
+    ``Terminated`` raised in the middle cuts it off, and the worker dies printing an EOFError
+    traceback instead of being stopped cleanly with the others.
+    """
+    _SPAWNING.depth += 1
+    try:
+        yield
+    finally:
+        _SPAWNING.depth -= 1
+    if not _SPAWNING.depth and _SPAWNING.pending:
+        _SPAWNING.pending = False
+        raise Terminated()
 
 
 @dataclass(frozen=True)
@@ -317,7 +349,7 @@ def _run_local(fn: Callable, chunks: list, args: tuple, workers: int, tally: _Ta
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context('spawn'),
                                initializer=_init_worker)
     try:
-        with _single_threaded_blas():
+        with _single_threaded_blas(), _spawning_workers():
             pending = {pool.submit(_run_chunk, fn, chunk, args): k
                        for k, chunk in enumerate(chunks)}
         while pending:
