@@ -43,6 +43,7 @@ from geometry_msgs.msg import (
     TransformStamped,
 )
 import numpy as np
+import pytest
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosproc import publishers, wait_counts
 
@@ -264,32 +265,37 @@ def _run_cli(bag, params):
                            str(params)], capture_output=True, text=True, timeout=120)
 
 
-def test_parameter_files_node_and_cli_agree(ros_domain, tmp_path):
+@pytest.mark.parametrize('body, expected', REFUSED)
+def test_parameter_files_the_node_and_the_cli_refuse_alike(ros_domain, tmp_path, body, expected):
     bag = tmp_path / 'rec'
     write_pose_bag(bag, simulate_recording(3, 3.0).streams)
-    for body, expected in REFUSED:
-        params = _params_file(tmp_path, body)
-        code, out = _run_node(ros_domain, params, 30)
-        assert code == 1, (body, out)
-        assert 'Traceback' not in out and expected in out, (body, out)
-        lines = [line for line in out.splitlines() if line.strip()]
-        assert len(lines) == 1 and lines[0].startswith('coreg_node: '), (body, out)
-        if 'YAML' not in expected:
-            assert 'e.g. ' in out, out
-        cli = _run_cli(bag, params)
-        assert cli.returncode == 1 and 'Traceback' not in cli.stderr, (body, cli.stderr)
-        assert expected in cli.stderr, (body, cli.stderr)
-        # the same one-line reason from both
-        assert out.strip().split(expected, 1)[1] == cli.stderr.strip().split(expected, 1)[1]
-    for body, warning in ACCEPTED:
-        params = _params_file(tmp_path, body)
-        code, out = _run_node(ros_domain, params, 6)
-        assert code in (None, 0) and 'Traceback' not in out and 'listening' in out, (body, out)
-        cli = _run_cli(bag, params)
-        assert cli.returncode == 0 and 'Traceback' not in cli.stderr, (body, cli.stderr)
-        if warning:
-            assert warning in out, (body, out)
-            assert warning in cli.stderr, (body, cli.stderr)
+    params = _params_file(tmp_path, body)
+    code, out = _run_node(ros_domain, params, 30)
+    assert code == 1, (body, out)
+    assert 'Traceback' not in out and expected in out, (body, out)
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith('coreg_node: '), (body, out)
+    if 'YAML' not in expected:
+        assert 'e.g. ' in out, out
+    cli = _run_cli(bag, params)
+    assert cli.returncode == 1 and 'Traceback' not in cli.stderr, (body, cli.stderr)
+    assert expected in cli.stderr, (body, cli.stderr)
+    # the same one-line reason from both
+    assert out.strip().split(expected, 1)[1] == cli.stderr.strip().split(expected, 1)[1]
+
+
+@pytest.mark.parametrize('body, warning', ACCEPTED)
+def test_parameter_files_the_node_and_the_cli_accept_alike(ros_domain, tmp_path, body, warning):
+    bag = tmp_path / 'rec'
+    write_pose_bag(bag, simulate_recording(3, 3.0).streams)
+    params = _params_file(tmp_path, body)
+    code, out = _run_node(ros_domain, params, 6)
+    assert code in (None, 0) and 'Traceback' not in out and 'listening' in out, (body, out)
+    cli = _run_cli(bag, params)
+    assert cli.returncode == 0 and 'Traceback' not in cli.stderr, (body, cli.stderr)
+    if warning:
+        assert warning in out, (body, out)
+        assert warning in cli.stderr, (body, cli.stderr)
 
 
 def test_minus_p_override_of_the_wrong_type_is_one_line(ros_domain, tmp_path):
