@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import Optional
 
 
 def _float(text: str) -> float:
@@ -46,6 +47,21 @@ def finite(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f'must be finite, got {text}')
     return value
+
+
+def add_sigma_arguments(parser, defaults: Optional[tuple] = None) -> None:
+    """
+    Add ``--sigma-a POS_M ROT_RAD`` and ``--sigma-b POS_M ROT_RAD`` (each device's noise).
+
+    ``defaults``: ((pos, rot) of A, (pos, rot) of B) named in the help, if the command has them.
+    """
+    for k, device in enumerate('ab'):
+        default = '' if defaults is None else (
+            f' (default {defaults[k][0]:g} {defaults[k][1]:g})')
+        parser.add_argument(f'--sigma-{device}', nargs=2, type=positive,
+                            metavar=('POS_M', 'ROT_RAD'),
+                            help=f"device {device.upper()}'s noise, 1 sigma per axis: position m, "
+                                 f'rotation rad{default}')
 
 
 def add_storage_option(parser) -> None:

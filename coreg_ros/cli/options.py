@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from coreg_ros.cli.argtypes import finite, positive
+from coreg_ros.cli.argtypes import add_sigma_arguments, finite, positive
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import METHODS, MODELS
 
@@ -38,12 +38,7 @@ def add_calibration_options(p: argparse.ArgumentParser, bag: bool = True) -> Non
     p.add_argument('--model', choices=MODELS, help='measurement model (default full_pose)')
     p.add_argument('--method', choices=METHODS, help='estimator (default tls)')
     default = Settings()
-    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
-                   help='device A noise std: position m, rotation rad (default '
-                        f'{default.sigma_a[0]:g} {default.sigma_a[1]:g})')
-    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
-                   help='device B noise std: position m, rotation rad (default '
-                        f'{default.sigma_b[0]:g} {default.sigma_b[1]:g})')
+    add_sigma_arguments(p, (default.sigma_a, default.sigma_b))
     p.add_argument('--max-gap', type=positive, metavar='S',
                    help='largest time from a B stamp to the A samples it is paired with, s')
     p.add_argument('--time-offset', type=offset_or_auto, metavar='auto|S',

@@ -10,7 +10,7 @@ model (``coreg_ros.core.planning.plan``).
 
 from __future__ import annotations
 
-from coreg_ros.cli.argtypes import positive
+from coreg_ros.cli.argtypes import add_sigma_arguments, positive
 from coreg_ros.cli.options import add_noise_option
 from coreg_ros.core.types import MODELS
 import numpy as np
@@ -21,11 +21,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         'plan', help='predict the calibration accuracy (Cramér-Rao bound) and the best '
                      'motion to add')
-    p.add_argument('--sigma-a', nargs=2, type=positive,
-                   metavar=('POS_M', 'ROT_RAD'), help='device A noise std: position m, '
-                                                      'rotation rad')
-    p.add_argument('--sigma-b', nargs=2, type=positive,
-                   metavar=('POS_M', 'ROT_RAD'), help='device B noise std')
+    add_sigma_arguments(p)
     add_noise_option(p, auto=False)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument('--bag', help='a recording whose device A motion is used')

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from coreg_ros.cli.argtypes import add_storage_option, positive
+from coreg_ros.cli.argtypes import add_sigma_arguments, add_storage_option, positive
 from coreg_ros.cli.policy import PROG
 from coreg_ros.core.types import MODELS
 
@@ -68,12 +68,7 @@ def register(sub) -> None:
                         'turntable are rigs that cannot move in every direction')
     p.add_argument('--rate-a', type=positive, default=100.0, help='Hz (default 100)')
     p.add_argument('--rate-b', type=positive, default=50.0, help='Hz (default 50)')
-    p.add_argument('--sigma-a', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
-                   help="device A's noise, 1 sigma per axis: position m, rotation rad "
-                        f'(default {DEFAULT_SIGMA_A[0]:g} {DEFAULT_SIGMA_A[1]:g})')
-    p.add_argument('--sigma-b', nargs=2, type=positive, metavar=('POS_M', 'ROT_RAD'),
-                   help="device B's noise, 1 sigma per axis: position m, rotation rad "
-                        f'(default {DEFAULT_SIGMA_B[0]:g} {DEFAULT_SIGMA_B[1]:g})')
+    add_sigma_arguments(p, (DEFAULT_SIGMA_A, DEFAULT_SIGMA_B))
     p.add_argument('--effect', action='append', metavar='NAME=VALUE',
                    help='inject an unmodelled effect (repeatable), e.g. time_offset=0.012 (s), '
                         'clock_drift=100 (ppm), timestamp_jitter=0.005 (s), '

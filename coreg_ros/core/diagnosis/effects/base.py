@@ -171,6 +171,15 @@ class FitReading:
         i = names.index(param)
         return float(np.sqrt(max(self.var_cov[i, i], 0.0) * self.inflation))
 
+    def noise_factor(self, param: str) -> tuple[float, float]:
+        """
+        Return the factor on the noise σ that a fitted log variance ``param`` gives, and its σ.
+
+        f = exp(ℓ / 2) with ℓ the fitted log variance factor; σ_f = f σ_ℓ / 2 (delta method).
+        """
+        f = float(np.exp(0.5 * getattr(self.var, param)))
+        return f, 0.5 * f * self.var_sd(param)
+
 
 def ms_text(value_s: float, sigma_s: float) -> str:
     """Return a time and its uncertainty as text in ms, e.g. ``'12.10 ± 0.30 ms'``."""

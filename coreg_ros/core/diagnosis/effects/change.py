@@ -126,8 +126,7 @@ class NoiseStepCandidate(CandidateEffect):
     @classmethod
     def size(cls, reading):
         """Read f from the fitted log variance factor, the instant from the located one."""
-        f = float(np.exp(0.5 * reading.var.log_f))
-        s = 0.5 * f * reading.var_sd('log_f')
+        f, s = reading.noise_factor('log_f')
         found = reading.model.data.cache.get('noise_step')
         at = float(found.at_s) if found is not None else float('nan')
         return cls(factor=f, sigma=s, at_s=at,

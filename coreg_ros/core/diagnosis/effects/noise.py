@@ -44,8 +44,7 @@ class NoiseScaleCandidate(CandidateEffect):
     @classmethod
     def size(cls, reading):
         """Read the factor from the fitted log variance factor."""
-        f = float(np.exp(0.5 * reading.var.log_s2))
-        s = 0.5 * f * reading.var_sd('log_s2')
+        f, s = reading.noise_factor('log_s2')
         return cls(factor=f, sigma=s, text=f'× {f:.3f} ± {s:.3f}')
 
 
