@@ -64,9 +64,10 @@ def cmd_record(args) -> int:
         # written as it goes (a killed recorder loses at most a second), merged at the end
         journal = SampleJournal(partial, storage='mcap')
         print(f'recording to {out} (written as it goes to {partial})')
-        # Ctrl-C stops the recording through ROS only: a KeyboardInterrupt could reach the
-        # main thread after the block that expects the stop, and the samples would not be
-        # written (what coreg_node does too, lifecycle.record_stop_signals)
+        # Ctrl-C stops the recording without a KeyboardInterrupt, which could reach the main
+        # thread after the block that expects the stop, and the samples would not be
+        # written: before the session, the signal is recorded (lifecycle.record_stop_signals);
+        # during it, the session takes it and ends its waits
         stops = record_stop_signals()
         try:
             with RosSession('coreg_record') as session:

@@ -5,12 +5,19 @@ Every tool (``coreg_ros.ros.tools``, ``coreg_ros.ros.echo``), ``coreg watch`` an
 demo work on a session, so the same code serves the ``coreg`` subcommands and the tests (which
 give every session its own ROS domain). A shutdown (Ctrl-C, SIGTERM) ends a session's waits
 quietly (``coreg_ros.ros.lifecycle``) and shows as ``not session.ok()``.
+
+A tool's session takes SIGINT and SIGTERM itself and only marks itself interrupted: every wait
+spins in steps of at most 0.1 s and checks ``ok()``, so the tool stops within a step, and the
+context is shut down by the main thread in ``close()``. rclpy's own handlers would shut the
+context down from their thread while the main thread may be inside rmw (a graph query, a wait
+set): a ``coreg echo`` interrupted while looking for publishers once ended in SIGSEGV.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 import math
+import signal
 import time
 from typing import Optional
 
@@ -38,30 +45,46 @@ class RosSession:
     domain_id : int, optional
         ROS domain; default ``ROS_DOMAIN_ID`` of the environment.
     signals : bool
-        Install rclpy's SIGINT/SIGTERM handlers (command-line tools: yes; tests: no).
+        Take SIGINT and SIGTERM while the session is open: they mark it interrupted
+        (command-line tools, from the main thread: yes; tests: no). The previous handlers
+        are restored by ``close()``.
 
     """
 
     def __init__(self, name: str, domain_id: Optional[int] = None, signals: bool = True):
         self.context = Context()
-        options = SignalHandlerOptions.ALL if signals else SignalHandlerOptions.NO
-        #: Set once a Ctrl-C (KeyboardInterrupt) or an external shutdown was seen.
+        #: Set once a Ctrl-C, a SIGTERM or an external shutdown was seen.
         self.interrupted = False
+        #: The signals this session took, in order.
+        self.signals: list = []
+        self._previous_handlers = {}
+        if signals:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous_handlers[sig] = signal.signal(sig, self._on_signal)
         try:
             rclpy.init(context=self.context, domain_id=domain_id,
-                       signal_handler_options=options)
+                       signal_handler_options=SignalHandlerOptions.NO)
             self.node = Node(name, context=self.context)
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
-        except RCLError as e:
-            stopped = not self.context.ok()
+        except RCLError:
             shutdown_quietly(self.context)
-            if stopped:  # a signal shut the context down while the node was being made
-                raise KeyboardInterrupt from e
+            self._restore_handlers()
             raise
         except BaseException:  # e.g. Ctrl-C right now: do not leave the context running
             shutdown_quietly(self.context)
+            self._restore_handlers()
             raise
+
+    def _on_signal(self, signum: int, frame) -> None:
+        """Python's handler for SIGINT/SIGTERM (main thread): mark the session interrupted."""
+        self.signals.append(signum)
+        self.interrupted = True
+
+    def _restore_handlers(self) -> None:
+        for sig, handler in self._previous_handlers.items():
+            signal.signal(sig, handler)
+        self._previous_handlers = {}
 
     def ok(self) -> bool:
         """Return False once interrupted (SIGINT) or the context is shut down."""
@@ -110,10 +133,13 @@ class RosSession:
         return False
 
     def close(self) -> None:
-        """Destroy the node and shut the context down."""
-        self.executor.shutdown()
-        self.node.destroy_node()
-        shutdown_quietly(self.context)
+        """Destroy the node, shut the context down and give the signals back."""
+        try:
+            self.executor.shutdown()
+            self.node.destroy_node()
+            shutdown_quietly(self.context)
+        finally:
+            self._restore_handlers()
 
     def __enter__(self) -> RosSession:
         return self
