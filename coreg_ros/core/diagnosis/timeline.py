@@ -5,8 +5,10 @@ Pairs an outlier model sets aside are grouped into runs in time (``flagged_runs`
 strikes a few samples and is gone (a marker occluded for a moment, a reflection); a change
 stays, or lasts seconds (metal brought near an EM sensor, a marker that slipped). So a run is
 a **change** when it lasts at least ``CHANGE_S`` and ``CHANGE_SAMPLES`` samples and is far
-denser in flagged pairs than random flagging at the overall share would make it; shorter runs
-are **bursts**, whose lengths are reported with the outliers. Runs are what is counted when
+denser than random glitches would make it: in glitch episodes (samples flagged in a row, the
+unit a glitch strikes in: a burst of five samples is one episode) at the recording's episode
+rate, or because a single episode itself lasts that long; shorter runs are **bursts**, whose
+lengths are reported with the outliers. Runs are what is counted when
 the flagged pairs are tested for clustering in time or in the workspace: a burst of five
 samples is one glitch episode, not five independent ones.
 """
@@ -116,15 +118,24 @@ def flagged_runs(t: np.ndarray, flagged: np.ndarray) -> FlaggedRuns:
         return FlaggedRuns(runs=0, merge_gap=gap, changes=[], median_length=0, max_length=0,
                            bursts=False)
     length = last - first + 1
-    counts = np.array([int(flagged[a:b + 1].sum()) for a, b in zip(first, last, strict=True)])
     span = t[last] - t[first]
-    # so dense a run anywhere in the recording by chance: binomial tail, times the places
-    tail = stats.binom.sf(counts - 1, length, share) * n
-    change = (span >= CHANGE_S) & (length >= CHANGE_SAMPLES) & (tail < CHANGE_P)
-    changes = [[float(t[a] - t[0]), float(t[b] - t[0])]
-               for a, b in zip(first[change], last[change], strict=True)]
+    # the episodes: samples flagged in a row. Glitches strike episodes at random (a burst of
+    # a few samples is one), so a run's density is judged in episodes at the episode rate:
+    # counted in samples, two bursts a second apart would read as a change
     a, b = run_bounds(flagged, 1)
     row = b - a + 1
+    lo = np.searchsorted(a, first, side='left')
+    episodes = np.searchsorted(a, last, side='right') - lo
+    # so many episodes in a run anywhere in the recording by chance: binomial tail, times
+    # the places
+    tail = stats.binom.sf(episodes - 1, length, a.size / max(n, 1)) * n
+    # a single episode of a change's number of samples is no glitch either: a glitch strikes
+    # a few (each run holds the episodes from lo on, in order)
+    lasting = row >= CHANGE_SAMPLES
+    dense = (tail < CHANGE_P) | (np.maximum.reduceat(lasting, lo) if lo.size else lasting[:0])
+    change = (span >= CHANGE_S) & (length >= CHANGE_SAMPLES) & dense
+    changes = [[float(t[f] - t[0]), float(t[la] - t[0])]
+               for f, la in zip(first[change], last[change], strict=True)]
     return FlaggedRuns(runs=int(first.size), merge_gap=gap, changes=changes,
                        median_length=int(np.median(row)), max_length=int(row.max()),
                        bursts=bool(not changes and np.median(row) >= 2))
