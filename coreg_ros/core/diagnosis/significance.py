@@ -21,7 +21,10 @@ An effect that passes is still only *found* when it matters at the stated noise
   whose sag lowers the position RMS while its tilt raises the rotation RMS);
 - a noise effect must change the noise's σ by at least ``NOISE_FLOOR`` (10 %) on at least
   ``NOISE_SHARE`` of the pairs;
-- outliers must be at least ``OUTLIER_FLOOR`` of the pairs.
+- outliers must be at least ``OUTLIER_FLOOR`` of the pairs;
+- a noise change at an instant (``noise_step``) must widen errors that are white: an excess
+  smooth in time (``structure.SMOOTH_LAG1``) follows the sensor's path, a structured error
+  there (metal brought near for a while), which the report names by what is left, not noise.
 
 Below that it is listed as ``not_significant``, with its size, never as found. The named
 effects are ordered by the share of the gap (the held-out excess at the stated noise) each
@@ -37,7 +40,9 @@ from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.gap import position_rotation_rows
 from coreg_ros.core.diagnosis.record import optional, Record
+from coreg_ros.core.diagnosis.residuals import base_errors
 from coreg_ros.core.diagnosis.selection import blocks_judged
+from coreg_ros.core.diagnosis.structure import SMOOTH_LAG1, smoothness
 import numpy as np
 from scipy import stats
 
@@ -349,6 +354,29 @@ def noise_change(fit, name: str) -> float:
     return float(np.expm1(q))
 
 
+def widened_smoothness(fit, name: str) -> Optional[float]:
+    """
+    Return the lag-one autocorrelation of the excess a noise change widens the noise for.
+
+    For a noise effect that changes at an instant (``changes_at``): the errors of the final
+    fit over their stated σ on the side the noise grew (after the instant for a factor above
+    one, before it below), against the other side (``structure.smoothness``, the other side's
+    own autocorrelation taken off). None for other effects or without pairs on both sides.
+    """
+    effect = CANDIDATES[name]
+    data = fit.model.data
+    found = data.cache.get(effect.changes_at) if effect.changes_at else None
+    if effect.kind != 'noise' or found is None:
+        return None
+    e, sd = base_errors(data, fit)[:2]
+    after = (data.t - data.t[0]) >= float(found.at_s)
+    grew = after if getattr(fit.state.var, effect.var_params[0]) >= 0.0 else ~after
+    if grew.sum() < 4 or (~grew).sum() < 4:
+        return None
+    z = e / sd
+    return smoothness(z[grew], z[~grew], rest_lag=True)
+
+
 def _noise_feature(reading, name: str) -> Optional[float]:
     """
     Return the relative size of what sets a noise effect apart from a noise level, or None.
@@ -408,6 +436,10 @@ def practical(reading, names: tuple, tests: dict) -> tuple:
                 size = feature
                 reasons.append(f'what sets it apart from a noise level changes σ by only '
                                f'{feature * 100:.1f} % (floor {floor * 100:g} %)')
+            smooth = widened_smoothness(reading.fit, name)
+            if smooth is not None and smooth >= SMOOTH_LAG1:
+                reasons.append(f'the errors it widens the noise for are smooth in time '
+                               f'(lag-one {smooth:.2f}): a structured error, not noise')
         if reasons:
             estimate = effect.size(reading)
             small.append(NotSignificant(

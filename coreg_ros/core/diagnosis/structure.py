@@ -73,7 +73,7 @@ class TimeWindow(Record):
     noise_factor : float
         √ of the window's variance over the rest's.
     lag1 : float
-        Lag-one autocorrelation of its errors' excess over the rest (``_smoothness``).
+        Lag-one autocorrelation of its errors' excess over the rest (``smoothness``).
     structured : bool
         Smooth in time: a structured error, not a change of the noise.
     likelihood_ratio : float
@@ -136,18 +136,23 @@ class Unexplained(Record):
     text: str
 
 
-def _smoothness(e: np.ndarray, rest: np.ndarray) -> float:
+def smoothness(e: np.ndarray, rest: np.ndarray, rest_lag: bool = False) -> float:
     """
     Lag-one autocorrelation of the excess of e (n, m) over the variance of ``rest`` (k, m).
 
     White noise has no lag-one autocovariance: what e has is its excess's, which over the
     excess variance (e's variance less the rest's, per channel) is one for an error that is
-    smooth in time and zero for noise that only grew.
+    smooth in time and zero for noise that only grew. With ``rest_lag`` the rest's own lag-one
+    autocovariance is taken off too (a smooth error left everywhere is not the excess's).
     """
     if len(e) < 4 or len(rest) < 4:
         return 0.0
-    x = e - e.mean(axis=0)
-    cov1 = float(np.sum(np.mean(x[1:] * x[:-1], axis=0)))
+
+    def lag_one(v):
+        x = v - v.mean(axis=0)
+        return float(np.sum(np.mean(x[1:] * x[:-1], axis=0)))
+
+    cov1 = lag_one(e) - (lag_one(rest) if rest_lag else 0.0)
     excess = float(np.sum(np.clip(np.var(e, axis=0) - np.var(rest, axis=0), 0.0, None)))
     return float(np.clip(cov1 / excess, -1.0, 1.0)) if excess > 0 else 0.0
 
@@ -214,7 +219,7 @@ def time_window(data, quad: np.ndarray, e_std: np.ndarray, counted: np.ndarray,
         kind = 'from'
     elif lo == 0:
         kind = 'until'
-    lag1 = _smoothness(e_std[idx[lo:hi]], e_std[np.concatenate([idx[:lo], idx[hi:]])])
+    lag1 = smoothness(e_std[idx[lo:hi]], e_std[np.concatenate([idx[:lo], idx[hi:]])])
     by_place = explained_by_place(excess[counted], data.b_points[counted, 0, :], inside[counted])
     return TimeWindow(from_s=float(t[lo]), to_s=float(t[hi - 1]), kind=kind,
                       noise_factor=float(np.sqrt(ratio)), lag1=lag1,
