@@ -80,7 +80,8 @@ class EffectTest(Record):
         The held-out excess at the stated noise (χ²/dof minus one) it takes off, as a share of
         the excess before any effect (0 for noise effects, which take none off).
     rms_gain_position, rms_gain_rotation : float, optional
-        Relative fall of the held-out position (rotation) RMS at the stated noise.
+        Relative fall of the held-out position (rotation) RMS at the stated noise, on the
+        blocks it is judged on (workspace cells for a spatial effect).
     passes : bool
         It keeps a practical held-out gain with the others present.
     reason : str
@@ -186,9 +187,15 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
     share = 0.0
     if CANDIDATES[name].kind == 'structured' and base_excess > 1e-9:
         share = float(np.clip((ex_without - ex_full) / base_excess, 0.0, 1.0))
+    # the channels' RMS on the blocks the effect is judged on: a field's fit is tried on
+    # unseen cells of the workspace, not on a time block that may visit a region no other
+    # block does (where any field model only extrapolates)
+    kept = h.p_in > 0.5
+    if not kept.any():
+        kept = np.ones_like(kept)
     gains = {}
     for key, rows, angle in (('position', pos, False), ('rotation', rot, True)):
-        a, b = _rms(ht.e, rows, counted, angle), _rms(h0t.e, rows, counted, angle)
+        a, b = _rms(h.e, rows, kept, angle), _rms(h0.e, rows, kept, angle)
         gains[key] = None if a is None or not b else float(1.0 - a / b)
     return EffectTest(name=name, held_out_gain=gain, blocks_improved=improved, blocks=blocks,
                       share_of_gap=share, rms_gain_position=gains['position'],
