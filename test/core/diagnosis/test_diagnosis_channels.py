@@ -1,12 +1,8 @@
 """Practical significance judged per channel: what an effect claims, and no channel made worse."""
 
 from coreg_ros.core.diagnosis import diagnose_streams
-from coreg_ros.core.diagnosis.significance import (
-    channel_reasons,
-    EffectTest,
-    MIN_RMS_GAIN,
-    SIZE_FLOOR,
-)
+from coreg_ros.core.diagnosis.channels import channel_reasons, MIN_RMS_GAIN, SIZE_FLOOR
+from coreg_ros.core.diagnosis.significance import EffectTest
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.injected import parse_effect
