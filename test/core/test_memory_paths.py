@@ -2,7 +2,7 @@
 The long recording's memory savings give the numbers of the copies they replace, bit for bit.
 
 ``Problem.subset(idx, lazy=True)`` (the robust TLS refit's pairs gathered chunk by chunk) and
-``offset_search._inliers_of`` (a round's inliers moved to the front of its own arrays) against
+``pairing.own_rows`` (a round's inliers moved to the front of its own arrays) against
 ``np.take``, on random draws; the robust ``calibrate`` (its refits on lazy rows, its last fit
 handed over) against the same with the lazy rows replaced by copies.
 """
@@ -10,7 +10,7 @@ handed over) against the same with the lazy rows replaced by copies.
 from __future__ import annotations
 
 from coreg_ros.core import estimator as est
-from coreg_ros.core.calibration import offset_search
+from coreg_ros.core.calibration import pairing
 from coreg_ros.core.calibration.calibrate import calibrate
 from coreg_ros.core.calibration.initialize import initialize
 from coreg_ros.core.estimator import problem as problem_module
@@ -61,17 +61,17 @@ def test_lazy_subset_fits_bit_for_bit(seed):
 @pytest.mark.parametrize('seed', [5, 6, 7])
 def test_inliers_moved_to_the_front_are_the_inliers(seed):
     rng = np.random.default_rng(seed)
-    n = int(rng.integers(1, 4 * offset_search._COMPACT_ROWS))
+    n = int(rng.integers(1, 4 * pairing._COMPACT_ROWS))
     own = rng.normal(size=(n, 4))
     expected = own.copy()
     keep = np.flatnonzero(rng.random(n) < rng.uniform(0.0, 1.0))
-    got = offset_search._inliers_of(own, keep)
+    got = pairing.own_rows(own, keep)
     np.testing.assert_array_equal(got, np.take(expected, keep, axis=0))
     # a view (B's rows of its stream) is copied, never written
     stream = rng.normal(size=(n + 5, 3))
     before = stream.copy()
     view = stream[2:n + 2]
-    np.testing.assert_array_equal(offset_search._inliers_of(view, keep),
+    np.testing.assert_array_equal(pairing.own_rows(view, keep),
                                   np.take(before[2:n + 2], keep, axis=0))
     np.testing.assert_array_equal(stream, before)
 

@@ -18,7 +18,7 @@ from typing import Optional
 
 from coreg_ros.core.calibration.calibrate import calibrate, MAX_REJECTED_SHARE
 from coreg_ros.core.calibration.observability import held_basis, result_covariances
-from coreg_ros.core.calibration.pairing import pair_for, validated_streams
+from coreg_ros.core.calibration.pairing import own_rows, pair_for, validated_streams
 from coreg_ros.core.clock.coarse import (
     clock_step,
     CoarsePeak,
@@ -167,9 +167,9 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     # the pairs are this round's own (pair_for made them): the inliers are moved to the front
     # of the arrays the pairing allocated instead of copied (the same values; B's rows may be
     # views of B's stream and are copied)
-    data = PairData(*(None if x is None else _inliers_of(x, keep) for x in (
+    data = PairData(*(None if x is None else own_rows(x, keep) for x in (
         pairs.pos_a, pairs.quat_a, pairs.pos_b, pairs.quat_b)), ctx.cov_a, ctx.cov_b,
-        None if pairs.a_var_scale is None else _inliers_of(pairs.a_var_scale, keep),
+        None if pairs.a_var_scale is None else own_rows(pairs.a_var_scale, keep),
         settings.method == 'tls')
     stamps = np.take(pairs.stamps, keep)
     del pairs
@@ -182,28 +182,6 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
                                _prior_information(ctx, params))
     return _Round(result, report, params, step, tau, kappa, half)
 
-
-#: Rows moved at a time by ``_inliers_of`` (a 2 MB buffer of (N, 4) floats).
-_COMPACT_ROWS = 65_536
-
-
-def _inliers_of(x: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """
-    Return the rows ``keep`` (increasing indices) of ``x``, moved to its front when it owns them.
-
-    An array that owns its C-contiguous data (made by the pairing for this round) is
-    compacted in place a block at a time (row j takes row keep[j] >= j, which no earlier block
-    overwrote) and its first rows returned: the values ``np.take`` gives, without a second
-    array of nearly all pairs. Anything else (a view of a stream) is copied by ``np.take``.
-    """
-    if not (x.flags.owndata and x.flags.c_contiguous):
-        return np.take(x, keep, axis=0)  # np.take: ~6× a boolean index on (N, 4)
-    if keep.size == len(x):
-        return x
-    for lo in range(0, keep.size, _COMPACT_ROWS):
-        rows = keep[lo:lo + _COMPACT_ROWS]
-        x[lo:lo + rows.size] = np.take(x, rows, axis=0)
-    return x[:keep.size]
 
 
 def _prior_information(ctx: _Context, params: Parameters) -> Optional[np.ndarray]:
