@@ -16,6 +16,7 @@ import inspect
 import traceback
 from typing import Optional
 
+from coreg_ros.ros.lifecycle import ended_by_shutdown
 from coreg_ros.ros.throttle import Throttle, WARN_PERIOD
 
 
@@ -44,6 +45,9 @@ class Alerts:
         The node's logger.
     storage_dir : str
         The configured ``storage_dir`` (named in the storage error).
+    context : rclpy.context.Context, optional
+        The node's context: a timer that fails because it was shut down meanwhile (the
+        shutdown race of ``ros.lifecycle``) is a normal stop, not an error.
 
     Attributes
     ----------
@@ -54,8 +58,9 @@ class Alerts:
 
     """
 
-    def __init__(self, logger, storage_dir: str):
+    def __init__(self, logger, storage_dir: str, context=None):
         self.logger = logger
+        self.context = context
         self.storage_dir = storage_dir
         self.storage_error: Optional[str] = None
         self.internal_error: Optional[str] = None
@@ -113,7 +118,11 @@ class Alerts:
         """Wrap a timer callback: an exception is logged (throttled) and shown in diagnostics."""
         def tick():
             try:
-                callback()
+                if self.context is None:
+                    callback()
+                else:
+                    with ended_by_shutdown(self.context):
+                        callback()
             except Exception as e:
                 self.internal_error = f'{name} failed: {type(e).__name__}: {os_reason(e)}'
                 self.throttled(('timer', name), f'{self.internal_error}\n'

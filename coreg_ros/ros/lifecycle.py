@@ -17,8 +17,9 @@ rclpy.try_shutdown()``; ``ended_by_shutdown`` is that ``except`` with the ``RCLE
 added, and ``shutdown_quietly`` is that ``finally``. ``coreg_ros.ros.node.main``, its services
 thread, and ``coreg_ros.ros.session.RosSession`` (hence every tool, ``coreg play/record/call/
 echo/watch`` and the demo) use them; a tool's session takes the signals itself, without
-rclpy's handlers, so for the tools only an external shutdown of the context is left. The node also keeps Python's KeyboardInterrupt out of its
-stop altogether (``record_stop_signals``): what it collected is saved after the spin.
+rclpy's handlers, so for the tools only an external shutdown of the context is left. The
+node also keeps Python's KeyboardInterrupt out of its stop altogether
+(``record_stop_signals``): what it collected is saved after the spin.
 """
 
 from __future__ import annotations

@@ -178,7 +178,7 @@ class CoregNode(Node):
         key = persistence.config_key({**settings.as_dict(), 'topic_b': list(topics_b), **(
             {'noise_file': stated} if stated else {})}, config.frames)
         io_lock = threading.Lock()  # the node's disk writes, one at a time
-        self.alerts = Alerts(log, config.storage_dir)
+        self.alerts = Alerts(log, config.storage_dir, self.context)
         raw = os.environ.get(PLAIN_ENV, '').strip() in ('', '0')
         self.store = SampleStore(config, name, key, self.alerts, log, io_lock, raw=raw,
                                  topics_b=topics_b)

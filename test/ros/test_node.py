@@ -305,8 +305,10 @@ def test_fuzzed_bad_input_is_counted_and_survived(ros_session, start_node_here):
         got = {r: int(values[f'{t} rejected {r}']) for r in REASON_KINDS}
         assert got == {r: expect[t][r] for r in REASON_KINDS}
         assert int(values[f'{t} rejected']) == sum(got.values())
-    ok, message = call_trigger(ros_session, CALIBRATE, timeout=30)
-    assert message  # answered either way
+    # answered either way; how fast is not the point here (5 s idle, several times that on a
+    # machine loaded by the rest of the suite)
+    ok, message = call_trigger(ros_session, CALIBRATE, timeout=120)
+    assert message
     assert node.alive(), node.log()
     assert 'Traceback' not in node.log()
     log = node.log()

@@ -21,6 +21,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 from coreg_ros.core.calibration.pipeline import calibrate_streams
@@ -246,18 +247,32 @@ def _params_file(folder, body):
     return path
 
 
-def _run_node(domain, params, seconds):
-    """Start the node; return (exit code or None if it ran ``seconds``, its output)."""
+def _run_node(domain, params, seconds, until=None):
+    """
+    Start the node; return (exit code, or None if it was still running, and its output).
+
+    It is stopped (SIGINT) ``seconds`` after it started, or one second after it printed
+    ``until``: a node that is starting on a loaded machine is not cut off before it could say
+    what it does with its parameters.
+    """
     proc = subprocess.Popen([PY, '-m', 'coreg_ros.ros.node', '--ros-args', '--params-file',
                              str(params)], env=domain.env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
-    try:
-        out, _ = proc.communicate(timeout=seconds)
-        return proc.returncode, out
-    except subprocess.TimeoutExpired:
+    lines: list = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    end = time.monotonic() + seconds
+    while proc.poll() is None and time.monotonic() < end:
+        if until is not None and any(until in line for line in list(lines)):
+            end = min(end, time.monotonic() + 1.0)
+            until = None
+        time.sleep(0.05)
+    code = proc.poll()
+    if code is None:
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=20)
-        return None, out
+        proc.wait(timeout=20)
+    reader.join(timeout=20)
+    return code, ''.join(lines)
 
 
 def _run_cli(bag, params):
@@ -289,7 +304,7 @@ def test_parameter_files_the_node_and_the_cli_accept_alike(ros_domain, tmp_path,
     bag = tmp_path / 'rec'
     write_pose_bag(bag, simulate_recording(3, 3.0).streams)
     params = _params_file(tmp_path, body)
-    code, out = _run_node(ros_domain, params, 6)
+    code, out = _run_node(ros_domain, params, 90, until='listening')
     assert code in (None, 0) and 'Traceback' not in out and 'listening' in out, (body, out)
     cli = _run_cli(bag, params)
     assert cli.returncode == 0 and 'Traceback' not in cli.stderr, (body, cli.stderr)

@@ -219,10 +219,18 @@ class _Fitter:
         axis = turn_axis(self.pos_a[idx], self.quat_a[idx])
         if axis is None:
             return start
+        candidates = turned(start, axis)
+        # a SCARA arm or a mobile robot turns about one axis too, but moves off the circle:
+        # half a turn no longer fits its data (the lever, ~0.1 m, against mm of noise), and
+        # the other turns need not be tried
+        data = self.everything.subset(idx)
+        half = candidates[len(candidates) // 2]
+        if ols_cost(data, half) > 4.0 * ols_cost(data, start) + 10.0 * len(idx):
+            return start
         problem = self.everything.subset(idx, self.priors)
-        costs = [ols_cost(problem, p) for p in turned(start, axis)]
+        costs = [ols_cost(problem, p) for p in candidates]
         best = int(np.argmin(costs))
-        return start if best == 0 else turned(start, axis)[best]
+        return start if best == 0 else candidates[best]
 
     def towards_prior(self, found: Undetermined, start: Parameters,
                       keep: np.ndarray) -> Parameters:
