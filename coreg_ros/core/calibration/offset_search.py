@@ -183,7 +183,6 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     return _Round(result, report, params, step, tau, kappa, half)
 
 
-
 def _prior_information(ctx: _Context, params: Parameters) -> Optional[np.ndarray]:
     """JᵀJ of the prior rows at φ (None without a prior)."""
     if ctx.prior is None:
