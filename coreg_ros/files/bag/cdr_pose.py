@@ -209,8 +209,9 @@ def decode_blocks(blocks: Sequence[np.ndarray]) -> Optional[PoseArrays]:
         if got is None or (frame_id is not None and got.frame_id != frame_id):
             return None
         frame_id, end = got.frame_id, at + len(block)
-        stamps[at:end], position[at:end], quat_wxyz[at:end] = (got.stamps_ns, got.position,
-                                                                got.quat_wxyz)
+        stamps[at:end] = got.stamps_ns
+        position[at:end] = got.position
+        quat_wxyz[at:end] = got.quat_wxyz
         at = end
     return PoseArrays(stamps_ns=stamps, frame_id=frame_id, position=position,
                       quat_wxyz=quat_wxyz)
