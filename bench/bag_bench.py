@@ -10,8 +10,10 @@ PoseStamped bags at memory speed (issue 15): bulk path against rosbags' per-mess
   (``coreg simulate``, A and B at 1 kHz for 2000 s, 4M messages, written to a temporary
   directory and deleted), wall time, CPU time and peak memory of the child process: this
   tree with ``COREG_BAG_BULK=0`` (rosbags per message, issue 15's before), the code at
-  ``BEFORE_COMMIT`` (a git worktree under /tmp: issue 25's before) and this tree, in the same
-  run. The children get the user's environment (no BLAS pinning), as users call the command.
+  ``BEFORE_COMMIT`` (a git worktree under /tmp: issue 25's before), the code at
+  ``ROUND_COMMIT`` (the start of the round on item 5's memory and sqlite3 reading) and this
+  tree, in the same run. The children get the user's environment (no BLAS pinning), as users
+  call the command.
   Goals: within ``GOAL_CALIBRATE_S`` and ``GOAL_PEAK_BYTES``.
 
 ``python bench/bag_bench.py [--n N] [--seconds S] [--calibrate-storages sqlite3 mcap]
@@ -47,6 +49,8 @@ GOAL_CALIBRATE_S = 6.0
 GOAL_PEAK_BYTES = 1.2 * 2**30
 #: The code before issue 25's long-recording work (the "before" of the whole command).
 BEFORE_COMMIT = 'c1de503'
+#: The code before the round that cut the fit's copies and the sqlite3 read's system time.
+ROUND_COMMIT = 'fe84e92'
 #: BLAS pinning that bench/run.py sets for its own timings, not passed to the user's command.
 _PINNING = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS')
 STORAGES = ('sqlite3', 'mcap')
@@ -145,8 +149,12 @@ def _coreg_of(tree: Path, env: dict) -> tuple[list, dict]:
 
 
 def _calibrate(storage: str, seconds: float, rate: float, tmp: Path,
-               before: Optional[tuple] = None) -> dict:
-    """Time ``coreg calibrate`` per message, at ``before`` = (commit, its tree) and now."""
+               before: Optional[tuple] = None, round_before: Optional[tuple] = None) -> dict:
+    """
+    Time ``coreg calibrate`` per message, at ``before`` and ``round_before`` and now.
+
+    ``before`` and ``round_before`` are (commit, its tree), or None (not run).
+    """
     bag = tmp / f'calib_{storage}'
     env = dict(os.environ)
     gen = _measure([COREG, 'simulate', '--seed', '15', '--duration', str(seconds),
@@ -164,6 +172,9 @@ def _calibrate(storage: str, seconds: float, rate: float, tmp: Path,
     if before is not None:
         old_cmd, old_env = _coreg_of(before[1], env)
         runs['commit'] = _measure(old_cmd + args, old_env, before[1])
+    if round_before is not None:
+        old_cmd, old_env = _coreg_of(round_before[1], env)
+        runs['round'] = _measure(old_cmd + args, old_env, round_before[1])
     runs['after'] = _measure(now_cmd + args, {**now_env, BULK_ENV: '1'}, ROOT)
     for run in runs.values():
         if run['returncode']:
@@ -185,13 +196,16 @@ def _calibrate(storage: str, seconds: float, rate: float, tmp: Path,
     if 'commit' in runs:
         row['before_commit'] = before[0]
         row['commit_ratio'] = runs['commit']['wall_s'] / after['wall_s']
+    if 'round' in runs:
+        row['round_commit'] = round_before[0]
     return row
 
 
 def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = True,
         seconds: float = 2000.0, rate: float = 1000.0,
         calibrate_storages=('sqlite3',), repeat: int = 1,
-        before_commit: Optional[str] = BEFORE_COMMIT) -> dict:
+        before_commit: Optional[str] = BEFORE_COMMIT,
+        round_commit: Optional[str] = ROUND_COMMIT) -> dict:
     """
     Measure the bulk and per-message paths in one run.
 
@@ -214,6 +228,8 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
         Storages the calibrate benchmark writes the recording in (one row each).
     before_commit : str, optional
         The commit whose ``coreg calibrate`` is the "before" of issue 25 (None: not run).
+    round_commit : str, optional
+        The commit before this round's work on item 5 (None: not run).
 
     Returns
     -------
@@ -229,12 +245,12 @@ def run(n: int = 500_000, topics: int = 2, storages=STORAGES, calibrate: bool = 
         for storage in storages:
             result['io'].append(_read_write(n, topics, storage, Path(tmp), repeat))
         if calibrate:
-            before = None
-            if before_commit:
-                from bench.calibrate_speed_bench import before_worktree
-                before = (before_commit, before_worktree(before_commit))
+            from bench.calibrate_speed_bench import before_worktree
+            before, round_before = (None if not c else (c, before_worktree(c))
+                                    for c in (before_commit, round_commit))
             for storage in calibrate_storages:
-                result['calibrate'].append(_calibrate(storage, seconds, rate, Path(tmp), before))
+                result['calibrate'].append(_calibrate(storage, seconds, rate, Path(tmp), before,
+                                                      round_before))
     return result
 
 
@@ -261,12 +277,15 @@ def table(result: dict) -> str:
             '',
             f'`coreg calibrate` of the whole recording, wall / CPU s and peak RSS of the child, '
             f'same run: rosbags per message (`COREG_BAG_BULK=0`), the code at '
-            f'{result["calibrate"][0].get("before_commit", "–")} (before issue 25) and now. '
-            f'Goal (issue 25): ≤ {GOAL_CALIBRATE_S:g} s and ≤ {GOAL_PEAK_BYTES / 2**30:g} GiB.',
+            f'{result["calibrate"][0].get("before_commit", "–")} (before issue 25), at '
+            f'{result["calibrate"][0].get("round_commit", "–")} (before the round on its '
+            f'memory and sqlite3 reading) and now. Goal (issue 25): ≤ {GOAL_CALIBRATE_S:g} s '
+            f'and ≤ {GOAL_PEAK_BYTES / 2**30:g} GiB.',
             '',
             '| recording | messages | bag | read (bulk, in-process) | per message | before '
-            '| now | × before | peak RSS per message | before | now | goal | load |',
-            '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|',
+            '| round before | now | × before | peak RSS per message | before | round before '
+            '| now | goal | load |',
+            '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|',
         ]
         for r in result['calibrate']:
             def cell(key, r=r):
@@ -281,8 +300,9 @@ def table(result: dict) -> str:
                 f'| {r["storage"]}, {r["rate_hz"]:.0f} Hz × {r["seconds"]:.0f} s | '
                 f'{r["messages"]:,} | {r["bag_bytes"] / 2**20:.0f} MiB | '
                 f'{r["read_bulk_s"]:.1f} s | {cell("before")} | {cell("commit")} | '
-                f'{cell("after")} | {ratio} | {rss("before")} | {rss("commit")} | '
-                f'{rss("after")} | {"met" if r.get("goal_met") else "missed"} | '
+                f'{cell("round")} | {cell("after")} | {ratio} | {rss("before")} | '
+                f'{rss("commit")} | {rss("round")} | {rss("after")} | '
+                f'{"met" if r.get("goal_met") else "missed"} | '
                 f'{r.get("load_average", float("nan")):.1f} |')
         lines += ['', 'Where the time and memory go now (`python bench/calibrate_phases.py BAG`, '
                       'CPU s per phase, inner phases inside outer ones; peak RSS by phase):', '']
@@ -314,12 +334,15 @@ def main() -> None:
     parser.add_argument('--no-calibrate', action='store_true')
     parser.add_argument('--before-commit', default=BEFORE_COMMIT,
                         help='the commit whose coreg calibrate is the "before" ("" skips it)')
+    parser.add_argument('--round-commit', default=ROUND_COMMIT,
+                        help='the commit before this round on item 5 ("" skips it)')
     parser.add_argument('--repeat', type=int, default=1,
                         help='reads of each path, alternating; the best of each counts')
     args = parser.parse_args()
     result = run(args.n, args.topics, calibrate=not args.no_calibrate, seconds=args.seconds,
                  rate=args.rate, calibrate_storages=args.calibrate_storages,
-                 repeat=args.repeat, before_commit=args.before_commit or None)
+                 repeat=args.repeat, before_commit=args.before_commit or None,
+                 round_commit=args.round_commit or None)
     print(table(result))
     out = ROOT / 'bench' / 'results' / 'bag_bench.json'
     out.parent.mkdir(parents=True, exist_ok=True)

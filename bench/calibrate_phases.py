@@ -31,7 +31,7 @@ PHASES = (
     ('coreg_ros.core.calibration.offset_search', '_candidates', 'coarse offset search'),
     ('coreg_ros.core.calibration.offset_search', 'pair_for', 'pairing'),
     ('coreg_ros.core.calibration.offset_search', 'calibrate', 'robust fit'),
-    ('coreg_ros.core.calibration.offset_search', 'offset_step', 'offset step'),
+    ('coreg_ros.core.calibration.offset_search', 'velocity_step', 'offset step'),
     ('coreg_ros.core.calibration.offset_search', '_round', 'offset round'),
     ('coreg_ros.core.calibration.pipeline', 'fit_with_offset_search', 'offset search'),
     ('coreg_ros.core.calibration.pipeline', 'fit_at_offset', 'fit at the given offset'),

@@ -15,7 +15,13 @@ from coreg_ros.core.errors import BagError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag import bulk_read, POSE_STAMPED, read_pose_bag, write_pose_bag
 from coreg_ros.files.bag.bulk_read import fetch
-from coreg_ros.files.bag.cdr_pose import decode_pose_stamped, encode_pose_stamped
+from coreg_ros.files.bag.cdr_pose import (
+    decode_blocks,
+    decode_pose_stamped,
+    decode_records,
+    encode_pose_stamped,
+    encode_records,
+)
 from coreg_ros.files.bag.posebag import read_fast
 import numpy as np
 import pytest
@@ -438,3 +444,28 @@ def test_corrupt_bytes_never_give_other_numbers(tmp_path, storage):
         data.write_bytes(bytes(damaged))
         errors += isinstance(assert_same_outcome(path, ['/t0', '/t1', '/t2']), str)
     assert errors > 0
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_blocks_decode_as_their_join(seed):
+    """decode_blocks of consecutive blocks: decode_records of the joined blocks, bit for bit."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 500))
+    q = rng.normal(size=(n, 4))
+    stamps = np.sort(rng.integers(0, 2**31 * 10**9, n))
+    records = encode_records(stamps, 'world', rng.normal(size=(n, 3)),
+                             q / np.linalg.norm(q, axis=1, keepdims=True))
+    rows = np.frombuffer(records, np.uint8).reshape(n, -1)
+    cuts = np.sort(rng.integers(0, n + 1, int(rng.integers(0, 6))))
+    blocks = np.split(rows, cuts)
+    got, whole = decode_blocks(blocks), decode_records(rows.copy(), n)
+    assert got.frame_id == whole.frame_id
+    for name in ('stamps_ns', 'position', 'quat_wxyz'):
+        a, b = getattr(got, name), getattr(whole, name)
+        assert a.dtype == b.dtype and a.flags.c_contiguous
+        np.testing.assert_array_equal(a.view(np.int64), b.view(np.int64))
+    # another frame in a later block: not one stream of fixed layout
+    other = np.frombuffer(encode_records(np.arange(3), 'wOrld', np.zeros((3, 3)),
+                                         np.tile([1.0, 0, 0, 0], (3, 1))), np.uint8)
+    assert decode_blocks([rows, other.reshape(3, -1)]) is None
+    assert decode_blocks([rows[:0]]) is None

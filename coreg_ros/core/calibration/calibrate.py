@@ -157,10 +157,17 @@ class _Fitter:
                                   np.ones(spec.n_params))
         self.gauge, self.held_components = [], []
 
-    def problem(self, keep: np.ndarray, with_priors: bool = True) -> Problem:
-        """Return the pairs in ``keep`` as a Problem (the arrays themselves if all are kept)."""
+    def problem(self, keep: np.ndarray, with_priors: bool = True,
+                lazy: bool = False) -> Problem:
+        """
+        Return the pairs in ``keep`` as a Problem (the arrays themselves if all are kept).
+
+        ``lazy``: gathered chunk by chunk as read (``Problem.subset``), for a fit that reads
+        them a few times, without a second copy of nearly all pairs.
+        """
         idx = None if keep.all() else np.flatnonzero(keep)
-        return self.everything.subset(idx, self.gauge + (self.priors if with_priors else []))
+        return self.everything.subset(idx, self.gauge + (self.priors if with_priors else []),
+                                      lazy=lazy)
 
     def undetermined_at(self, params: Parameters, keep: np.ndarray) -> Undetermined:
         """
@@ -339,10 +346,14 @@ class _Fitter:
             return screening.normalised_squares(self.everything, params, tls)
         return reference_squares(params, self.data)
 
-    def reject_outliers(self, sol: Solution, max_share: float = MAX_REJECTED_SHARE
+    def reject_outliers(self, handed: list, max_share: float = MAX_REJECTED_SHARE
                         ) -> tuple[np.ndarray, Solution]:
         """
         Reject pairs far outside the noise, refitting on the rest until the set settles.
+
+        ``handed`` is a one-item list holding the fit of all pairs, emptied here: no frame
+        keeps a fit once its refit has what it needs from it (its input state and residuals
+        are ~300 MB at 2M pairs; ``refit``).
 
         A pair is rejected when ``d² > s · χ²_m(1 - OUTLIER_ALPHA)`` with d² its normalised
         squared residual at the current fit (``linearized.reference_squares``) and
@@ -360,6 +371,7 @@ class _Fitter:
         goes on from its sums less the removed pairs: the pass that would have proved the fit
         of all pairs converged is not made.
         """
+        sol = handed.pop()
         keep = np.ones(len(self.pos_a), dtype=bool)
         # OLS of all pairs weighted 0/1: each fit gives every pair's residuals, hence its d²
         masked = self.paths.refit and weighable(sol, self.everything)
@@ -374,7 +386,9 @@ class _Fitter:
             if np.array_equal(new, keep) and not paused(sol):
                 break
             self._refuse_if_mostly_outside(~new, max_share)
-            sol = self.refit(sol, keep, new, masked)
+            handed.append(sol)
+            sol = None  # the refit frees the last fit as soon as it can
+            sol = self.refit(handed, keep, new, masked)
             keep = new
         if masked:
             # the residuals are stored pair-last (m, N): gather along the contiguous rows
@@ -390,10 +404,13 @@ class _Fitter:
         scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
         return d2 <= scale * limit
 
-    def refit(self, sol: Solution, fitted: np.ndarray, kept: np.ndarray,
+    def refit(self, handed: list, fitted: np.ndarray, kept: np.ndarray,
               masked: bool) -> Solution:
         """
         Fit the pairs ``kept`` again after ``sol``, a fit of the pairs ``fitted``.
+
+        ``sol`` comes as the one item of ``handed`` (taken out): it is dropped before the
+        refit's first pass, so that its inputs and residuals are not held beside the refit's.
 
         Going on from ``sol`` where it can (``FastPaths.refit``), so that the first step costs
         no pass over all pairs: OLS (``masked``) from its normal equations with the changed pairs
@@ -402,18 +419,21 @@ class _Fitter:
         Otherwise a warm fit of ``kept``, its inputs from ``sol``.
         """
         settings = self.settings
+        sol = handed.pop()
+        params = sol.params
         if masked:
             normal = reweighted(sol, self.everything, fitted, kept)
-            out = solve_ols(replace(self.everything, weights=kept.astype(float)), sol.params,
-                            max_iterations=settings.max_iterations, xtol=XTOL, normal=normal)
-        elif self.paths.refit and can_take_out(sol, fitted, kept):
+            del sol
+            return solve_ols(replace(self.everything, weights=kept.astype(float)), params,
+                             max_iterations=settings.max_iterations, xtol=XTOL, normal=normal)
+        if self.paths.refit and can_take_out(sol, fitted, kept):
             seed = without_pairs(sol, self.everything, fitted, kept)
-            out = solve_tls(self.problem(kept, with_priors=False), sol.params,
-                            max_iterations=settings.max_iterations, xtol=XTOL, seed=seed)
-        else:
-            return self.solve(kept, sol.params, warm=True, with_priors=False,
-                              inputs=self.carried(sol, fitted, kept))
-        return out
+            del sol
+            return solve_tls(self.problem(kept, with_priors=False, lazy=True), params,
+                             max_iterations=settings.max_iterations, xtol=XTOL, seed=seed)
+        inputs = self.carried(sol, fitted, kept)
+        del sol
+        return self.solve(kept, params, warm=True, with_priors=False, inputs=inputs)
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
         share = float(outside.mean())
@@ -515,7 +535,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
         for _ in range(HOLD_ROUNDS):
             if settings.robust:
                 # reject the pairs far outside the noise, refit the rest (from the last fit)
-                keep, sol = fitter.reject_outliers(sol, max_rejected_share)
+                handed, sol = [sol], None  # reject_outliers frees it when it can
+                keep, sol = fitter.reject_outliers(handed, max_rejected_share)
                 if prior is not None:  # the prior (B.3) joins the fit of the inliers
                     sol = fitter.solve(keep, sol.params, warm=True,
                                        inputs=fitter.carried(sol, keep, keep))

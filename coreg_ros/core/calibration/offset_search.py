@@ -18,7 +18,7 @@ from typing import Optional
 
 from coreg_ros.core.calibration.calibrate import calibrate, MAX_REJECTED_SHARE
 from coreg_ros.core.calibration.observability import held_basis, result_covariances
-from coreg_ros.core.calibration.pairing import pair_for, validated_streams
+from coreg_ros.core.calibration.pairing import own_rows, pair_for, validated_streams
 from coreg_ros.core.clock.coarse import (
     clock_step,
     CoarsePeak,
@@ -39,7 +39,7 @@ from coreg_ros.core.estimator.posterior import tangent_map
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.settings import Settings
-from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
+from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream, TimeOffset
 import numpy as np
 from scipy import stats
 
@@ -121,7 +121,6 @@ class _Round:
 
     result: CalibrationResult
     report: PairingReport
-    pairs: Pairs
     params: Parameters
     step: OffsetStep
     tau: float
@@ -164,14 +163,16 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
         raise TooFewPairsError(f'{e} ({report.summary()})') from e
     spec = SPECS[settings.model]
     params = Parameters(spec, result.params, list(result.charts))
-    keep = np.flatnonzero(result.inliers)  # np.take: ~6× a boolean index on (N, 4)
-
-    def sub(x):
-        return None if x is None else np.take(np.asarray(x), keep, axis=0)
-
-    data = PairData(sub(pairs.pos_a), sub(pairs.quat_a), sub(pairs.pos_b), sub(pairs.quat_b),
-                    ctx.cov_a, ctx.cov_b, sub(pairs.a_var_scale), settings.method == 'tls')
+    keep = np.flatnonzero(result.inliers)
+    # the pairs are this round's own (pair_for made them): the inliers are moved to the front
+    # of the arrays the pairing allocated instead of copied (the same values; B's rows may be
+    # views of B's stream and are copied)
+    data = PairData(*(None if x is None else own_rows(x, keep) for x in (
+        pairs.pos_a, pairs.quat_a, pairs.pos_b, pairs.quat_b)), ctx.cov_a, ctx.cov_b,
+        None if pairs.a_var_scale is None else own_rows(pairs.a_var_scale, keep),
+        settings.method == 'tls')
     stamps = np.take(pairs.stamps, keep)
+    del pairs
     t_a = query_seconds(stamps, tau, 0.0 if kappa is None else kappa, ctx.reference_ns,
                         ctx.origin_ns)
     since = None if kappa is None else (stamps - np.int64(ctx.reference_ns)).astype(
@@ -179,7 +180,7 @@ def _round(ctx: _Context, streams_b: list, tau: float, kappa: Optional[float],
     step, half = velocity_step(ctx.trajectory, t_a, ctx.half, settings.max_gap, params, data,
                                since, result.param_cov, ctx.cov_a,
                                _prior_information(ctx, params))
-    return _Round(result, report, pairs, params, step, tau, kappa, half)
+    return _Round(result, report, params, step, tau, kappa, half)
 
 
 def _prior_information(ctx: _Context, params: Parameters) -> Optional[np.ndarray]:

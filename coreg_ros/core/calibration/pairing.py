@@ -354,6 +354,30 @@ def pair_streams(stream_a: PoseStream,
     return pairs, report
 
 
+#: Rows moved at a time by ``own_rows`` (a 2 MB buffer of (N, 4) floats).
+_COMPACT_ROWS = 65_536
+
+
+def own_rows(x: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """
+    Return the rows ``keep`` (increasing indices) of ``x``, moved to its front when it owns them.
+
+    For the pairs' arrays once the pairs are spent (the offset search keeps a round's inliers).
+    An array that owns its C-contiguous data (``pair_streams`` allocated it) is
+    compacted in place a block at a time (row j takes row keep[j] >= j, which no earlier block
+    overwrote) and its first rows returned: the values ``np.take`` gives, without a second
+    array of nearly all pairs. Anything else (a view of a stream) is copied by ``np.take``.
+    """
+    if not (x.flags.owndata and x.flags.c_contiguous):
+        return np.take(x, keep, axis=0)  # np.take: ~6× a boolean index on (N, 4)
+    if keep.size == len(x):
+        return x
+    for lo in range(0, keep.size, _COMPACT_ROWS):
+        rows = keep[lo:lo + _COMPACT_ROWS]
+        x[lo:lo + rows.size] = np.take(x, rows, axis=0)
+    return x[:keep.size]
+
+
 __all__ = ['UNPAIRED_REASONS', 'pair_streams', 'validate_stream', 'validated_streams']
 
 

@@ -19,11 +19,13 @@ reporting) are read in bulk:
   indexed records are walked to prove that no message record was left out of the index.
   Order is rosbags' too: log time, ties by chunk position, then record position.
 
-The result is, per topic, the log times and the messages as one block of equal-size
-records, in exactly the order rosbags yields them; a topic whose messages differ in size
-gets None. Anything this module does not recognise (message-compressed bags, unindexed or
-inconsistent mcap files, SQLite errors, corrupt structure) makes ``fetch`` return None and
-the caller reads the bag through rosbags, which raises the usual errors for damaged files.
+The result is, per topic, the log times and the messages as blocks of equal-size records
+(one per SQLite page or mcap file: ``fetch_parts``, which readers decode block by block without
+joining them; ``fetch`` joins them), in exactly the order rosbags yields them; a topic whose
+messages differ in size gets None. Anything this module does not recognise
+(message-compressed bags, unindexed or inconsistent mcap files, SQLite errors, corrupt
+structure) makes ``fetch`` return None and the caller reads the bag through rosbags, which
+raises the usual errors for damaged files.
 """
 
 from __future__ import annotations
@@ -35,8 +37,11 @@ from typing import Any, Optional
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-#: Rows per SQLite query: bounds the concatenated blob (SQLite's limit is 1e9 bytes).
-_SQLITE_PAGE = 1 << 20
+#: Rows per SQLite query: bounds the concatenated blob (SQLite's limit is 1e9 bytes). Small
+#: enough that SQLite's growing group_concat string stays small: at 2**20 rows of PoseStamped
+#: (~130 MB a page) its reallocations cost 2.2 s of system time on 4M rows, at 2**16 0.3 s
+#: (bench/bag_bench.py); the pages' own queries cost little below that.
+_SQLITE_PAGE = 1 << 16
 
 #: Topic ids read in bulk are below this; a row's blob size and topic id travel as
 #: ``size * _TOPIC_ID_LIMIT + topic_id``.
@@ -58,6 +63,8 @@ _MSG_HEAD_DTYPE = np.dtype({
 #: Per topic: log times (int64 ns, (N,)) and the N messages as an (N, S) uint8 array, or
 #: None as the second item when the messages do not all have the same size S.
 Fetched = tuple[np.ndarray, Optional[np.ndarray]]
+#: As ``Fetched``, the messages as consecutive (n_i, S) blocks (sum of n_i = N), or None.
+Parts = tuple[np.ndarray, Optional[list]]
 
 
 class Unsupported(Exception):
@@ -83,13 +90,42 @@ def fetch(reader: Any, connections: Sequence[Any]) -> Optional[dict[str, Fetched
         None when the bag must be read through rosbags (unsupported layout, or damage).
 
     """
+    parts = fetch_parts(reader, connections)
+    if parts is None:
+        return None
+    out = {}
+    for topic, (logs, blocks) in parts.items():
+        if blocks is None:
+            out[topic] = (logs, None)
+        elif not blocks:
+            out[topic] = (logs, np.zeros((0, 0), np.uint8))
+        else:
+            out[topic] = (logs, np.concatenate(blocks) if len(blocks) > 1 else blocks[0])
+    return out
+
+
+def fetch_parts(reader: Any, connections: Sequence[Any]) -> Optional[dict[str, Parts]]:
+    """
+    ``fetch`` without joining the blocks: per topic, log times and a list of message blocks.
+
+    The blocks (one per SQLite page or mcap file, each (n_i, S) uint8, in order) are what
+    the storage gave; joining them would copy every message once more (0.6 s of a 4M-message
+    sqlite3 bag's 2.3 s) only for the decoder to copy the fields out again.
+
+    Returns
+    -------
+    parts : dict of str to (ndarray, list of ndarray or None), or None
+        Per topic: log times (int64 ns, (N,)) and the blocks (empty list: no messages; None:
+        sizes vary). None when the bag must be read through rosbags.
+
+    """
     try:
         return _fetch(reader, connections)
     except Exception:  # noqa: BLE001 - rosbags reads it again and reports the real problem
         return None
 
 
-def _fetch(reader: Any, connections: Sequence[Any]) -> dict[str, Fetched]:
+def _fetch(reader: Any, connections: Sequence[Any]) -> dict[str, Parts]:
     if reader.compression_mode == 'message':
         raise Unsupported('message-compressed bag')
     # A rosbag2 directory: rosbags' Reader delegates to a directory reader holding one
@@ -98,7 +134,7 @@ def _fetch(reader: Any, connections: Sequence[Any]) -> dict[str, Fetched]:
     if storages is None:
         raise Unsupported('not a rosbag2 directory reader')
     topics = list(dict.fromkeys(c.topic for c in connections))
-    parts: dict[str, list[Fetched]] = {t: [] for t in topics}
+    parts: dict[str, list[Parts]] = {t: [] for t in topics}
     for storage in storages:
         cids = _storage_topics(storage, connections)
         if not cids:
@@ -127,17 +163,17 @@ def _storage_topics(storage: Any, connections: Sequence[Any]) -> dict[int, str]:
     return out
 
 
-def _concat(parts: list[Fetched]) -> Fetched:
-    """Join one topic's parts (storage files in bag order, as rosbags yields them)."""
+def _concat(parts: list[Parts]) -> Parts:
+    """Join one topic's parts (pages, storage files: in bag order, as rosbags yields them)."""
     if not parts:
-        return np.zeros(0, np.int64), np.zeros((0, 0), np.uint8)
-    logs = np.concatenate([p[0] for p in parts])
-    blocks = [p[1] for p in parts if len(p[0])]
-    if not blocks:
-        return logs, np.zeros((0, 0), np.uint8)
-    if any(b is None for b in blocks) or len({b.shape[1] for b in blocks}) != 1:
+        return np.zeros(0, np.int64), []
+    logs = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
+    if any(p[1] is None for p in parts):
         return logs, None
-    return logs, np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
+    blocks = [b for p in parts for b in p[1] if len(b)]
+    if len({b.shape[1] for b in blocks}) > 1:
+        return logs, None
+    return logs, blocks
 
 
 def _ordered(logs: np.ndarray, ties: np.ndarray, block: Optional[np.ndarray]) -> Fetched:
@@ -151,7 +187,7 @@ def _ordered(logs: np.ndarray, ties: np.ndarray, block: Optional[np.ndarray]) ->
 
 # --- sqlite3 --------------------------------------------------------------------------------
 
-def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
+def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
     db = storage.dbconn
     if db is None:
         raise Unsupported('closed storage')
@@ -168,7 +204,7 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
               'ON messages.topic_id=topics.id WHERE topics.id IN '
               f"({','.join('?' * len(ids))}) ORDER BY timestamp")
     index = _index_walked(db, theirs, ids)
-    parts: dict[str, list[Fetched]] = {t: [] for t in cids.values()}
+    parts: dict[str, list[Parts]] = {t: [] for t in cids.values()}
     (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
     for lo, hi in _sqlite_pages(db, total):
         page = _sqlite_page(db, ids, lo, hi, index)
@@ -192,7 +228,7 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
                 block = mem.reshape(mine.size, -1)  # every row of the page: no copy
             elif np.all(mine == mine[0]):
                 block = _gather(mem, starts[pick], int(mine[0]))
-            parts[topic].append((log_ns[pick], block))
+            parts[topic].append((log_ns[pick], None if block is None else [block]))
     return {topic: _concat(items) for topic, items in parts.items()}
 
 
@@ -283,7 +319,7 @@ def _sqlite_page(
 
 # --- mcap -----------------------------------------------------------------------------------
 
-def _mcap_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
+def _mcap_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
     from rosbags.rosbag2.storage_mcap import decompress, read_exact  # noqa: PLC0415
 
     bio = storage.bio
@@ -326,7 +362,7 @@ def _mcap_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
     out = {}
     for topic in topics:
         if not logs[topic]:
-            out[topic] = (np.zeros(0, np.int64), np.zeros((0, 0), np.uint8))
+            out[topic] = (np.zeros(0, np.int64), [])
             continue
         log_ns = np.concatenate(logs[topic])
         blocks = rows[topic]
@@ -335,7 +371,8 @@ def _mcap_storage(storage: Any, cids: dict[int, str]) -> dict[str, Fetched]:
             block = np.concatenate(blocks)
         # Concatenation is in (chunk position, record position) order: a stable sort by log
         # time reproduces rosbags' heapq merge of time-sorted chunks.
-        out[topic] = _ordered(log_ns, np.arange(log_ns.size), block)
+        log_ns, block = _ordered(log_ns, np.arange(log_ns.size), block)
+        out[topic] = (log_ns, None if block is None else [block])
     return out
 
 

@@ -177,6 +177,46 @@ def decode_records(buffer: BytesLike, count: int) -> Optional[PoseArrays]:
                       quat_wxyz=pose[:, _WXYZ_COLUMNS])
 
 
+def decode_blocks(blocks: Sequence[np.ndarray]) -> Optional[PoseArrays]:
+    """
+    ``decode_records`` of consecutive blocks of messages, into one set of arrays.
+
+    Each block is decoded on its own and its fields are written into arrays made once for all
+    blocks, so the blocks need not be joined first (a copy of every message).
+
+    Parameters
+    ----------
+    blocks : sequence of ndarray, each (n_i, S) uint8
+        Serialized PoseStamped of equal size S, in order.
+
+    Returns
+    -------
+    arrays : PoseArrays or None
+        As ``decode_records`` of the joined blocks: None when they are empty, not all of the
+        fixed layout of one frame_id, or of other frames from block to block.
+
+    """
+    blocks = [b for b in blocks if len(b)]
+    n = sum(len(b) for b in blocks)
+    if n == 0:
+        return None
+    if len(blocks) == 1:  # one block (an mcap file's): its decoded arrays are the result
+        return decode_records(np.ascontiguousarray(blocks[0]), n)
+    stamps, position, quat_wxyz = np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 4))
+    frame_id, at = None, 0
+    for block in blocks:
+        got = decode_records(np.ascontiguousarray(block), len(block))
+        if got is None or (frame_id is not None and got.frame_id != frame_id):
+            return None
+        frame_id, end = got.frame_id, at + len(block)
+        stamps[at:end] = got.stamps_ns
+        position[at:end] = got.position
+        quat_wxyz[at:end] = got.quat_wxyz
+        at = end
+    return PoseArrays(stamps_ns=stamps, frame_id=frame_id, position=position,
+                      quat_wxyz=quat_wxyz)
+
+
 def decode_pose_stamped(blobs: Sequence[BytesLike]) -> Optional[PoseArrays]:
     """
     Decode serialized (CDR) ``geometry_msgs/msg/PoseStamped`` messages in bulk.

@@ -27,7 +27,7 @@ from typing import Any, Optional, Union
 from coreg_ros.core.errors import BagError, InputError
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag import bulk_read, bulk_write
-from coreg_ros.files.bag.cdr_pose import decode_records, encode_records
+from coreg_ros.files.bag.cdr_pose import decode_blocks, encode_records
 from coreg_ros.files.bag.light_open import open_light
 from coreg_ros.files.bag.per_message import describe as _describe
 from coreg_ros.files.bag.per_message import POSE_STAMPED, read_per_message, write_per_message
@@ -285,21 +285,22 @@ def _read_bulk(reader: Reader, connections: list, wanted: list[str]) -> dict[str
     CDR, a damaged or unusual storage file) are read message by message, which also gives
     the usual errors.
     """
-    fetched = bulk_read.fetch(reader, connections)
+    fetched = bulk_read.fetch_parts(reader, connections)
     if fetched is None:
         return {}
     streams = {}
     for topic in wanted:
-        logs, block = fetched[topic]
-        if block is None:
+        logs, blocks = fetched.pop(topic)  # freed before the next topic is decoded
+        if blocks is None:
             continue
         if not len(logs):
             streams[topic] = PoseStream(
                 stamps=np.zeros(0, np.int64), position=np.zeros((0, 3)),
                 quat_wxyz=np.zeros((0, 4)), frame_id='', receive_stamps=np.zeros(0, np.int64))
             continue
-        arrays = decode_records(np.ascontiguousarray(block), len(logs))
-        if arrays is not None:
+        arrays = decode_blocks(blocks)
+        del blocks
+        if arrays is not None and len(arrays.stamps_ns) == len(logs):
             streams[topic] = PoseStream(
                 stamps=arrays.stamps_ns, position=arrays.position, quat_wxyz=arrays.quat_wxyz,
                 frame_id=arrays.frame_id, receive_stamps=logs)
