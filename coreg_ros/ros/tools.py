@@ -29,11 +29,15 @@ from std_srvs.srv import Trigger
 
 #: What tools, tests and benchmarks import from here (the session and the interface too).
 __all__ = ['call_trigger', 'diagnostics_values', 'LATCHED_QOS', 'PLAY_QOS', 'play_streams',
-           'record_streams', 'RosSession', 'ToolError', 'wait_for_diagnostics',
+           'record_streams', 'RosSession', 'SETTLE_S', 'ToolError', 'wait_for_diagnostics',
            'wait_for_message', 'wait_for_result']
 
 
 # --- play ------------------------------------------------------------------------------------
+
+#: Seconds to wait after a publisher has matched its subscribers before sending (``play_streams``).
+SETTLE_S = 1.0
+
 
 def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate: float = 1.0,
                  wait_subscribers: float = 10.0, log: Callable[[str], None] = print) -> int:
@@ -82,8 +86,11 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
                        if p.get_subscription_count() == 0]
             raise ToolError(f'no subscriber on {", ".join(missing)} after {wait_subscribers:g} s; '
                             f'start coreg_node (same ROS_DOMAIN_ID) first or pass --wait 0')
-        # A matched writer may still be unknown to the reader for a moment; let both settle.
-        session.spin_until(lambda: False, 0.3)
+        # The writer has matched the reader, but the reader may not know the writer yet, and
+        # a best-effort reader (the node's default) drops what it sends meanwhile: 0.3 s lost
+        # the first 31 of 150 messages on a loaded machine. SETTLE_S is what discovery takes
+        # there (no ROS API says when the reader's side has matched).
+        session.spin_until(lambda: False, SETTLE_S)
     # Plain Python lists: building messages from numpy scalars is several times slower.
     order_t, order_k, order_i = [], [], []
     for k, t in enumerate(topics):

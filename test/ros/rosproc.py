@@ -14,7 +14,11 @@ import time
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 from coreg_ros.ros.interface import PLAY_QOS  # noqa: E402
-from coreg_ros.ros.tools import diagnostics_values, wait_for_diagnostics  # noqa: E402
+from coreg_ros.ros.tools import (  # noqa: E402
+    diagnostics_values,
+    SETTLE_S,
+    wait_for_diagnostics,
+)
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 import yaml  # noqa: E402
 
@@ -86,5 +90,5 @@ def publishers(session, topics, msg_type=PoseStamped, qos=PLAY_QOS) -> dict:
         assert session.spin_until(lambda: all(p.get_subscription_count()
                                               for p in pubs.values()), 20.0), \
             'node did not subscribe'
-        session.spin_until(lambda: False, 0.3)
+        session.spin_until(lambda: False, SETTLE_S)  # the node's reader matches too (tools)
     return pubs
