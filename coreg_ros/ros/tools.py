@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable, Mapping
 from contextlib import suppress
 import math
 import time
-from typing import Optional
+from typing import Any, Optional
 
 from coreg_ros.core.types import PoseStream
 from coreg_ros.ros.interface import LATCHED_QOS, matching_qos, NODE_NAME, PLAY_QOS
@@ -29,14 +29,35 @@ from std_srvs.srv import Trigger
 
 #: What tools, tests and benchmarks import from here (the session and the interface too).
 __all__ = ['call_trigger', 'diagnostics_values', 'LATCHED_QOS', 'PLAY_QOS', 'play_streams',
-           'record_streams', 'RosSession', 'SETTLE_S', 'ToolError', 'wait_for_diagnostics',
-           'wait_for_message', 'wait_for_result']
+           'record_streams', 'RosSession', 'ToolError', 'wait_for_diagnostics',
+           'wait_for_message', 'wait_for_result', 'wait_for_subscribers']
 
 
 # --- play ------------------------------------------------------------------------------------
 
-#: Seconds to wait after a publisher has matched its subscribers before sending (``play_streams``).
+#: Seconds to wait after a publisher has matched its subscribers before sending
+#: (``wait_for_subscribers``).
 SETTLE_S = 1.0
+
+
+def wait_for_subscribers(session: RosSession, publishers: Mapping[str, Any],
+                         timeout: float) -> list[str]:
+    """
+    Wait until every publisher has a subscriber, then ``SETTLE_S`` more.
+
+    Returns the topics still without one after ``timeout`` s (empty: all were heard, and the
+    settling wait was made). A writer that has matched its reader may not be known to the
+    reader yet, and a best-effort reader (the node's default) drops what it sends meanwhile:
+    0.3 s lost the first 31 of 150 messages on a loaded machine. ``SETTLE_S`` is what discovery
+    takes there (no ROS API says when the reader's side has matched).
+    """
+    def all_heard() -> bool:
+        return all(p.get_subscription_count() > 0 for p in publishers.values())
+
+    if not session.spin_until(all_heard, timeout):
+        return [t for t, p in publishers.items() if p.get_subscription_count() == 0]
+    session.spin_until(lambda: False, SETTLE_S)
+    return []
 
 
 def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate: float = 1.0,
@@ -73,24 +94,16 @@ def play_streams(session: RosSession, streams: Mapping[str, PoseStream], *, rate
     """
     if not rate > 0:
         raise ToolError(f'--rate must be > 0 (1 = real time), got {rate}')
-    node = session.node
     topics = list(streams)
-    pubs = [node.create_publisher(PoseStamped, t, PLAY_QOS) for t in topics]
+    pubs = [session.node.create_publisher(PoseStamped, t, PLAY_QOS) for t in topics]
     if wait_subscribers > 0:
-        def all_heard():
-            return all(p.get_subscription_count() > 0 for p in pubs)
-        if not session.spin_until(all_heard, wait_subscribers):
+        missing = wait_for_subscribers(session, dict(zip(topics, pubs, strict=True)),
+                                       wait_subscribers)
+        if missing:
             if not session.ok():  # interrupted while waiting
                 return 0
-            missing = [t for t, p in zip(topics, pubs, strict=True)
-                       if p.get_subscription_count() == 0]
             raise ToolError(f'no subscriber on {", ".join(missing)} after {wait_subscribers:g} s; '
                             f'start coreg_node (same ROS_DOMAIN_ID) first or pass --wait 0')
-        # The writer has matched the reader, but the reader may not know the writer yet, and
-        # a best-effort reader (the node's default) drops what it sends meanwhile: 0.3 s lost
-        # the first 31 of 150 messages on a loaded machine. SETTLE_S is what discovery takes
-        # there (no ROS API says when the reader's side has matched).
-        session.spin_until(lambda: False, SETTLE_S)
     # Plain Python lists: building messages from numpy scalars is several times slower.
     order_t, order_k, order_i = [], [], []
     for k, t in enumerate(topics):

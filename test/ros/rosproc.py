@@ -16,8 +16,8 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 from coreg_ros.ros.interface import PLAY_QOS  # noqa: E402
 from coreg_ros.ros.tools import (  # noqa: E402
     diagnostics_values,
-    SETTLE_S,
     wait_for_diagnostics,
+    wait_for_subscribers,
 )
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 import yaml  # noqa: E402
@@ -87,8 +87,5 @@ def publishers(session, topics, msg_type=PoseStamped, qos=PLAY_QOS) -> dict:
     """Create a publisher per topic; for PoseStamped, wait until the node has subscribed."""
     pubs = {t: session.node.create_publisher(msg_type, t, qos) for t in topics}
     if msg_type is PoseStamped:
-        assert session.spin_until(lambda: all(p.get_subscription_count()
-                                              for p in pubs.values()), 20.0), \
-            'node did not subscribe'
-        session.spin_until(lambda: False, SETTLE_S)  # the node's reader matches too (tools)
+        assert not wait_for_subscribers(session, pubs, 20.0), 'node did not subscribe'
     return pubs
