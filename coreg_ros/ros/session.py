@@ -22,7 +22,7 @@ import time
 from typing import Optional
 
 from coreg_ros.core.errors import CoregError
-from coreg_ros.ros.lifecycle import ended_by_shutdown, RCLError, shutdown_quietly
+from coreg_ros.ros.lifecycle import ended_by_shutdown, shutdown_quietly
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -55,8 +55,6 @@ class RosSession:
         self.context = Context()
         #: Set once a Ctrl-C, a SIGTERM or an external shutdown was seen.
         self.interrupted = False
-        #: The signals this session took, in order.
-        self.signals: list = []
         self._previous_handlers = {}
         if signals:
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -67,18 +65,13 @@ class RosSession:
             self.node = Node(name, context=self.context)
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
-        except RCLError:
-            shutdown_quietly(self.context)
-            self._restore_handlers()
-            raise
-        except BaseException:  # e.g. Ctrl-C right now: do not leave the context running
+        except BaseException:  # an RCLError; a Ctrl-C if signals=False: do not leave it running
             shutdown_quietly(self.context)
             self._restore_handlers()
             raise
 
     def _on_signal(self, signum: int, frame) -> None:
         """Python's handler for SIGINT/SIGTERM (main thread): mark the session interrupted."""
-        self.signals.append(signum)
         self.interrupted = True
 
     def _restore_handlers(self) -> None:
