@@ -227,7 +227,7 @@ class _Fitter:
         half = candidates[len(candidates) // 2]
         if ols_cost(data, half) > 4.0 * ols_cost(data, start) + 10.0 * len(idx):
             return start
-        problem = self.everything.subset(idx, self.priors)
+        problem = replace(data, priors=self.priors)  # the same pairs, the prior's terms too
         costs = [ols_cost(problem, p) for p in candidates]
         best = int(np.argmin(costs))
         return start if best == 0 else candidates[best]
