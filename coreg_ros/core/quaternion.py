@@ -200,7 +200,10 @@ def to_matrix(q: np.ndarray, pair_last: bool = False) -> np.ndarray:
             for j, entry in enumerate(row):
                 R[i, j] = entry
         return R
-    rows = matrix_parts(*np.moveaxis(np.asarray(q, dtype=float), -1, 0))
+    q = np.asarray(q, dtype=float)
+    if q.shape == (4,):  # one quaternion: the same entries, without the stacking
+        return np.array(matrix_parts(*q))
+    rows = matrix_parts(*np.moveaxis(q, -1, 0))
     return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
@@ -222,12 +225,16 @@ def from_matrix(R: np.ndarray) -> np.ndarray:
         R[..., 1, 0] - R[..., 0, 1]
     r10p01, r02p20, r21p12 = R[..., 1, 0] + R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], \
         R[..., 2, 1] + R[..., 1, 2]
-    q = np.select(
-        [k[..., None] == 0, k[..., None] == 1, k[..., None] == 2],
-        [np.stack([0.5 * t, r21_12 * d, r02_20 * d, r10_01 * d], axis=-1),
-         np.stack([r21_12 * d, 0.5 * t, r10p01 * d, r02p20 * d], axis=-1),
-         np.stack([r02_20 * d, r10p01 * d, 0.5 * t, r21p12 * d], axis=-1)],
-        np.stack([r10_01 * d, r02p20 * d, r21p12 * d, 0.5 * t], axis=-1))
+    rows = (lambda: (0.5 * t, r21_12 * d, r02_20 * d, r10_01 * d),
+            lambda: (r21_12 * d, 0.5 * t, r10p01 * d, r02p20 * d),
+            lambda: (r02_20 * d, r10p01 * d, 0.5 * t, r21p12 * d),
+            lambda: (r10_01 * d, r02p20 * d, r21p12 * d, 0.5 * t))
+    if R.shape == (3, 3):  # one matrix: only the chosen row is made
+        q = np.array(rows[int(k)]())
+    else:
+        q = np.select([k[..., None] == 0, k[..., None] == 1, k[..., None] == 2],
+                      [np.stack(rows[i](), axis=-1) for i in range(3)],
+                      np.stack(rows[3](), axis=-1))
     return canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
@@ -413,6 +420,8 @@ def expand(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> tuple[np.ndarr
 
     """
     s = np.asarray(s, dtype=float)
+    if s.shape == (3,):  # one quaternion (every Parameters): the same arithmetic, no scatter
+        return _expand_one(s, int(chart), float(sign))
     chart = np.asarray(chart)
     rest = 1.0 - np.sum(s * s, axis=-1)
     qk = np.asarray(sign) * np.sqrt(np.where(rest >= 0.0, rest, np.nan))
@@ -425,6 +434,20 @@ def expand(s: np.ndarray, chart: np.ndarray, sign: np.ndarray) -> tuple[np.ndarr
     np.put_along_axis(jac, others[..., None].repeat(3, -1), eye, -2)
     row_k = (-s / qk[..., None])[..., None, :]
     np.put_along_axis(jac, chart[..., None, None].repeat(3, -1), row_k, -2)
+    return q, jac
+
+
+def _expand_one(s: np.ndarray, chart: int, sign: float) -> tuple[np.ndarray, np.ndarray]:
+    """``expand`` of one reduced quaternion, shape (3,): q (4,) and dq/ds (4, 3)."""
+    rest = 1.0 - np.sum(s * s, axis=-1)
+    qk = np.float64(sign) * np.sqrt(rest if rest >= 0.0 else np.nan)
+    others = CHART_OTHERS[chart]
+    q = np.empty(4)
+    q[others] = s
+    q[chart] = qk
+    jac = np.zeros((4, 3))
+    jac[others] = np.eye(3)
+    jac[chart] = -s / qk
     return q, jac
 
 

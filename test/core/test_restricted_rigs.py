@@ -113,11 +113,12 @@ def gauged_nees(model, move, k, result) -> tuple:
         return L @ plain(th)
 
     # the nearest member first (the whitened cost is stiff along the held directions, whose
-    # gauge is tight): the turn about the axis is periodic, so from the best of a grid
+    # gauge is tight): the turn about the axis is periodic, so from the turn about base A's z
+    # that takes the truth's T0 nearest the estimate's (move turns R0 into R0 Rz(θ))
     start = np.zeros(k)
     if k == 2:
-        grid = [np.array([0.0, a]) for a in np.linspace(-np.pi, np.pi, 72, endpoint=False)]
-        start = min(grid, key=lambda th: float(np.sum(plain(th) ** 2)))
+        rel = quat.to_matrix(move(start)[1]).T @ quat.to_matrix(result.base_to_base.quat_wxyz)
+        start[1] = np.arctan2(rel[1, 0] - rel[0, 1], rel[0, 0] + rel[1, 1])
     start = optimize.least_squares(plain, start, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
     fit = optimize.least_squares(whitened, start, x_scale=np.full(k, 1e-2), xtol=1e-14,
                                  ftol=1e-14, gtol=1e-14)

@@ -23,7 +23,7 @@ from coreg_ros.core.calibration.observability import (
     undetermined,
 )
 from coreg_ros.core.calibration.pair_input import validated_arrays
-from coreg_ros.core.calibration.turn_family import turn_axis, turned
+from coreg_ros.core.calibration.turn_family import turn_angles, turn_axis, turned
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
@@ -219,14 +219,15 @@ class _Fitter:
         axis = turn_axis(self.pos_a[idx], self.quat_a[idx])
         if axis is None:
             return start
-        candidates = turned(start, axis)
+        phis = turn_angles()
         # a SCARA arm or a mobile robot turns about one axis too, but moves off the circle:
         # half a turn no longer fits its data (the lever, ~0.1 m, against mm of noise), and
-        # the other turns need not be tried
+        # the other turns need not be made nor tried
         data = self.everything.subset(idx)
-        half = candidates[len(candidates) // 2]
+        half = turned(start, axis, phis[len(phis) // 2])
         if ols_cost(data, half) > 4.0 * ols_cost(data, start) + 10.0 * len(idx):
             return start
+        candidates = [turned(start, axis, phi) for phi in phis]
         problem = replace(data, priors=self.priors)  # the same pairs, the prior's terms too
         costs = [ols_cost(problem, p) for p in candidates]
         best = int(np.argmin(costs))

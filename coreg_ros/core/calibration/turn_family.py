@@ -10,8 +10,9 @@ predict the same measurements for every φ: a closed curve of calibrations (a ci
 lever's radius in T1's position), along which the data say nothing. A linear step cannot
 travel it: a prior that fixes the turn (T1's position measured) lies anywhere on the circle
 from the closed-form start, and Gauss-Newton steps along the tangent leave the circle by
-s²/2r, so the fit would crawl (about √(2 σ r) per step). ``turned`` gives the members of the
-curve at a set of angles, from which the fit starts at the one the prior prefers.
+s²/2r, so the fit would crawl (about √(2 σ r) per step). ``turned`` gives the member of the
+curve at an angle (``turn_angles``: the set tried), from which the fit starts at the one the
+prior prefers.
 """
 
 from __future__ import annotations
@@ -56,9 +57,14 @@ def turn_axis(pos_a: np.ndarray, quat_a: np.ndarray) -> tuple | None:
     return a, c, (pos_a[0].copy(), Ra[0])
 
 
-def turned(params: Parameters, axis: tuple, angles: int = TURN_ANGLES) -> list:
+def turn_angles(angles: int = TURN_ANGLES) -> np.ndarray:
+    """Return ``angles`` evenly spread turns, rad, shape (angles,); the first is 0."""
+    return np.linspace(0.0, 2.0 * np.pi, angles, endpoint=False)
+
+
+def turned(params: Parameters, axis: tuple, phi: float) -> Parameters:
     """
-    Return ``params`` turned about A's tool axis by ``angles`` evenly spread angles.
+    Return ``params`` turned about A's tool axis by ``phi``.
 
     Parameters
     ----------
@@ -66,25 +72,22 @@ def turned(params: Parameters, axis: tuple, angles: int = TURN_ANGLES) -> list:
         A calibration (the closed-form start).
     axis : tuple
         ``turn_axis``'s answer.
-    angles : int
-        How many members of the curve (the first is ``params`` itself, φ = 0).
+    phi : float
+        The turn, rad (0 gives ``params`` itself, up to rounding).
 
     """
     a, c, (p_ref, R_ref) = axis
     spec = params.spec
     R0, markers = params.R0, np.asarray(params.markers, dtype=float)
-    R1 = quat.to_matrix(params.q1)
-    out = []
-    for phi in np.linspace(0.0, 2.0 * np.pi, angles, endpoint=False):
-        ax = skew(a)
-        RG = np.eye(3) + np.sin(phi) * ax + (1.0 - np.cos(phi)) * ax @ ax
-        tG = c - RG @ c
-        p0 = params.p0 + R0 @ tG
-        q0 = quat.from_matrix(R0 @ RG)
-        # H⁻¹ on a point m of the tool frame: m' = R_refᵀ (G⁻¹(R_ref m + p_ref) - p_ref)
-        world = markers @ R_ref.T + p_ref
-        back = (world - c) @ RG + c  # G⁻¹(x) = c + R_Gᵀ (x - c), row-wise
-        moved = (back - p_ref) @ R_ref
-        q1 = quat.from_matrix(R_ref.T @ RG.T @ R_ref @ R1) if spec.has_q1 else None
-        out.append(Parameters.from_transforms(spec, p0, q0, moved, q1))
-    return out
+    ax = skew(a)
+    RG = np.eye(3) + np.sin(phi) * ax + (1.0 - np.cos(phi)) * ax @ ax
+    tG = c - RG @ c
+    p0 = params.p0 + R0 @ tG
+    q0 = quat.from_matrix(R0 @ RG)
+    # H⁻¹ on a point m of the tool frame: m' = R_refᵀ (G⁻¹(R_ref m + p_ref) - p_ref)
+    world = markers @ R_ref.T + p_ref
+    back = (world - c) @ RG + c  # G⁻¹(x) = c + R_Gᵀ (x - c), row-wise
+    moved = (back - p_ref) @ R_ref
+    q1 = (quat.from_matrix(R_ref.T @ RG.T @ R_ref @ quat.to_matrix(params.q1))
+          if spec.has_q1 else None)
+    return Parameters.from_transforms(spec, p0, q0, moved, q1)
