@@ -144,7 +144,11 @@ def left_matrix(q: np.ndarray) -> np.ndarray:
 
     Used for derivatives of products with respect to the right operand.
     """
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    q = np.asarray(q, dtype=float)
+    if q.shape == (4,):  # one quaternion: the same entries, without the stacking
+        w, x, y, z = q
+        return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+    w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack([
         np.stack([w, -x, -y, -z], axis=-1),
         np.stack([x, w, -z, y], axis=-1),
@@ -159,7 +163,11 @@ def right_matrix(q: np.ndarray) -> np.ndarray:
 
     Used for derivatives of products with respect to the left operand.
     """
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    q = np.asarray(q, dtype=float)
+    if q.shape == (4,):  # one quaternion: the same entries, without the stacking
+        w, x, y, z = q
+        return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
+    w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack([
         np.stack([w, -x, -y, -z], axis=-1),
         np.stack([x, w, z, -y], axis=-1),
