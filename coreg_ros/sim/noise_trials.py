@@ -26,13 +26,13 @@ from coreg_ros.core.calibration.noise_components import (
     ols_stated,
     stated_channels,
 )
+from coreg_ros.core.distributions import chi2_ppf
 from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.noise_model import DeviceNoise
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim.device_noise import add_device_noise
 from coreg_ros.sim.devices import simulate_pairs
 import numpy as np
-from scipy import stats
 
 #: The true noise of the scenarios: (position m, rotation rad) of A and B.
 TRUE_A = (2e-4, 1e-3)
@@ -193,7 +193,7 @@ def run_scenario(sc: Scenario, trials: int, n_pairs: int, seed: int = 24) -> dic
     for r in rows:
         for k, v in r['errors'].items():
             errors.setdefault(k, []).append(v)
-    band = stats.chi2.ppf([0.005, 0.995], 12 * trials) / trials
+    band = chi2_ppf([0.005, 0.995], 12 * trials) / trials
     return {'name': sc.name, 'trials': trials, 'n_pairs': n_pairs,
             'max_error': {k: float(np.max(np.abs(v))) for k, v in errors.items()},
             'mean_error': {k: float(np.mean(v)) for k, v in errors.items()},

@@ -33,6 +33,7 @@ from coreg_ros.core.calibration.offset_search import (
 )
 from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.calibration.pairing import pair_for
+from coreg_ros.core.distributions import scipy_stats
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.models import Parameters, SPECS
@@ -40,7 +41,6 @@ from coreg_ros.core.noise_model import DeviceNoise
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, Pairs, PoseStream, TimeOffset
 import numpy as np
-from scipy import stats
 
 #: Rounds of "estimate, screen at the estimate" at most (the set settles in one or two).
 SCREEN_ROUNDS = 4
@@ -180,7 +180,7 @@ def with_estimate(result: CalibrationResult, estimate: NoiseEstimate) -> Calibra
     """
     if not result.dof > 0:
         return replace(result, noise=estimate)
-    p = float(stats.f.sf(result.chi2 / result.dof, result.dof, max(estimate.dof, 1)))
+    p = float(scipy_stats().f.sf(result.chi2 / result.dof, result.dof, max(estimate.dof, 1)))
     return replace(result, noise=estimate, p_value=p)
 
 

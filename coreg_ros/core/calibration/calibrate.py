@@ -24,6 +24,7 @@ from coreg_ros.core.calibration.observability import (
 )
 from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.calibration.turn_family import turn_angles, turn_axis, turned
+from coreg_ros.core.distributions import chi2_isf, chi2_ppf, chi2_sf
 from coreg_ros.core.errors import (
     ConvergenceError,
     InconsistentDataError,
@@ -54,7 +55,6 @@ from coreg_ros.core.models import ModelSpec, Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs
 import numpy as np
-from scipy import stats
 
 #: Chance that the robust fit rejects a pair that fits the stated noise (per pair).
 OUTLIER_ALPHA = 1e-4
@@ -400,8 +400,8 @@ class _Fitter:
     def _inliers(self, d2: np.ndarray, keep: np.ndarray) -> np.ndarray:
         """Return the pairs within the rejection limit (``reject_outliers``)."""
         m = self.spec.n_res
-        limit = float(stats.chi2.isf(OUTLIER_ALPHA, m))
-        quartile = float(stats.chi2.ppf(0.25, m))
+        limit = float(chi2_isf(OUTLIER_ALPHA, m))
+        quartile = float(chi2_ppf(0.25, m))
         scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
         return d2 <= scale * limit
 
@@ -569,7 +569,7 @@ def _result(sol: Solution, spec: ModelSpec, settings: Settings, n: int,
             found: Undetermined) -> CalibrationResult:
     t0, t1, joint, determined = result_covariances(sol.params, sol.cov, found.held)
     dof = sol.n_rows - spec.n_params
-    p_value = float(stats.chi2.sf(sol.chi2, dof)) if dof > 0 else float('nan')
+    p_value = float(chi2_sf(sol.chi2, dof)) if dof > 0 else float('nan')
     message = sol.message if sol.cov is not None else (
         sol.message + '; the covariance is singular (see observability)')
     return CalibrationResult(

@@ -21,11 +21,11 @@ from typing import Optional
 
 from coreg_ros.core.calibration.offset_search import fit_with_offset_search
 from coreg_ros.core.calibration.verdict import CONSISTENT_P
+from coreg_ros.core.distributions import chi2_sf
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import PoseStream
 import numpy as np
-from scipy import stats
 
 #: Consecutive blocks of B's samples in which τ is estimated on its own.
 N_BLOCKS = 6
@@ -122,7 +122,7 @@ def _weighted_fit(x: np.ndarray, y: np.ndarray, s: np.ndarray, degree: int) -> t
 
 
 def _explains(chi2: float, dof: int) -> bool:
-    return dof > 0 and float(stats.chi2.sf(chi2, dof)) >= EXPLAINS_P
+    return dof > 0 and float(chi2_sf(chi2, dof)) >= EXPLAINS_P
 
 
 def _best_step(blocks: list) -> Optional[tuple]:

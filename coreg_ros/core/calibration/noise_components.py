@@ -41,6 +41,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
+from coreg_ros.core.distributions import chi2_isf, chi2_ppf
 from coreg_ros.core.models import linearize, ModelSpec, Parameters
 from coreg_ros.core.noise_model import DeviceNoise
 import numpy as np
@@ -603,13 +604,11 @@ def screened(pairs: _Pairs, layout: _Layout, S: np.ndarray) -> np.ndarray:
     ``d² = rᵀ M⁻¹ r`` scaled by the lower quartile's excess over χ²_m's (a noise understated
     throughout is not an outlier); beyond χ²_m(1 - 10⁻⁴) a pair is out.
     """
-    from scipy import stats
-
     W = np.linalg.inv(pairs.K @ S @ pairs.K.transpose(0, 2, 1))
     d2 = np.einsum('nm,nmk,nk->n', pairs.r, W, pairs.r)
     m = pairs.r.shape[1]
-    scale = max(1.0, float(np.quantile(d2, 0.25)) / float(stats.chi2.ppf(0.25, m)))
-    return d2 <= scale * float(stats.chi2.isf(1e-4, m))
+    scale = max(1.0, float(np.quantile(d2, 0.25)) / float(chi2_ppf(0.25, m)))
+    return d2 <= scale * float(chi2_isf(1e-4, m))
 
 
 def noise_matrix(layout: _Layout, covariances: dict) -> np.ndarray:

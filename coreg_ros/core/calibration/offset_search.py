@@ -32,6 +32,7 @@ from coreg_ros.core.clock.coarse import (
 )
 from coreg_ros.core.clock.timing import OffsetStep, query_seconds, velocity_step
 from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_HALF_WINDOW
+from coreg_ros.core.distributions import chi2_sf
 from coreg_ros.core.errors import CoregError, InconsistentDataError, TooFewPairsError
 from coreg_ros.core.estimator import output_covariance
 from coreg_ros.core.estimator.linearized import PairData
@@ -41,7 +42,6 @@ from coreg_ros.core.models import Parameters, SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PairingReport, PoseStream, TimeOffset
 import numpy as np
-from scipy import stats
 
 #: A step of τ below this (s) is applied without re-pairing (the pairs are linear in τ over
 #: it: ½ a δτ² is 0.5 µm at 1 m/s² acceleration).
@@ -402,7 +402,7 @@ def _final(rnd: _Round, ctx: _Context, sigma_s: Optional[float] = None,
                         message=message, cross_cov=cross, cov=step.cov)
     chi2 = max(0.0, result.chi2 - float(d @ np.linalg.solve(step.cov, d)))
     dof = result.dof - d.size
-    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    p_value = float(chi2_sf(chi2, dof)) if dof > 0 else float('nan')
     return replace(result, base_to_base=t0, tool_to_marker=t1, markers=params.markers.copy(),
                    params=params.phi.copy(), param_cov=cov, cov_joint=joint, chi2=chi2,
                    dof=dof, p_value=p_value, time_offset=timing, cov_determined=determined)

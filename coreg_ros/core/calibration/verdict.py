@@ -16,13 +16,13 @@ from dataclasses import replace
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.distributions import chi2_sf
 from coreg_ros.core.estimator.priors import gravity_tilt, Prior
 from coreg_ros.core.models import SPECS
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, PoseStream
 from coreg_ros.core.uncertainty import pose_error
 import numpy as np
-from scipy import stats
 
 #: A fit (or a prior) with a p-value below this does not match the stated noise.
 CONSISTENT_P = 1e-3
@@ -181,7 +181,7 @@ def prior_check(result: CalibrationResult, prior: Prior) -> Optional[dict]:
         return None
     chi2 = float(np.sum((U[:, keep].T @ d) ** 2 / lam[keep]))
     dof = int(keep.sum())
-    p = float(stats.chi2.sf(chi2, dof))
+    p = float(chi2_sf(chi2, dof))
     return {'chi2': chi2, 'dof': dof, 'p_value': p, 'consistent': p >= CONSISTENT_P}
 
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 from coreg_ros.core.diagnosis.record import Record
+from coreg_ros.core.distributions import chi2_cdf, chi2_isf, chi2_sf, norm_sf, scipy_stats
 import numpy as np
-from scipy import stats
 
 #: Lags of the Ljung-Box whiteness test.
 LJUNG_BOX_LAGS = 20
@@ -147,7 +147,7 @@ def ljung_box(x: np.ndarray, lags: int = LJUNG_BOX_LAGS):
         return 0.0, 1.0, np.zeros(h)
     rho = np.array([np.dot(x[:-k], x[k:]) / den for k in range(1, h + 1)])
     q = float(n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, h + 1))))
-    return q, float(stats.chi2.sf(q, h)), rho
+    return q, float(chi2_sf(q, h)), rho
 
 
 def detect(quad: np.ndarray, zstd: np.ndarray, m: int, n_params: int) -> Detection:
@@ -174,8 +174,8 @@ def detect(quad: np.ndarray, zstd: np.ndarray, m: int, n_params: int) -> Detecti
     chi2 = float(np.sum(quad))
     dof = max(n * m - n_params, 1)
     ratio = chi2 / dof
-    p_hi = float(stats.chi2.sf(chi2, dof))
-    p_lo = float(stats.chi2.cdf(chi2, dof))
+    p_hi = float(chi2_sf(chi2, dof))
+    p_lo = float(chi2_cdf(chi2, dof))
     qs, rhos = [], []
     for j in range(zstd.shape[1]):
         q, _, rho = ljung_box(zstd[:, j])
@@ -184,17 +184,17 @@ def detect(quad: np.ndarray, zstd: np.ndarray, m: int, n_params: int) -> Detecti
     h = len(rhos[0]) if rhos else 1
     q_total = float(np.sum(qs))
     lb_dof = h * zstd.shape[1]
-    p_lb = float(stats.chi2.sf(q_total, lb_dof))
+    p_lb = float(chi2_sf(q_total, lb_dof))
     rho_max = float(np.max(np.abs(np.concatenate(rhos)))) if rhos else 0.0
     rho1 = float(np.mean([r[0] for r in rhos])) if rhos else 0.0
     flat = zstd.reshape(-1)
-    kurt = float(stats.kurtosis(flat)) if flat.size > 3 else 0.0
+    kurt = float(scipy_stats().kurtosis(flat)) if flat.size > 3 else 0.0
     beyond4 = float(np.mean(np.abs(flat) > 4.0))
-    expected4 = float(2.0 * stats.norm.sf(4.0))
-    limit = stats.chi2.isf(1e-6, m)
+    expected4 = float(2.0 * norm_sf(4.0))
+    limit = chi2_isf(1e-6, m)
     gross = int(np.sum(quad > limit))
     expected_gross = 1e-6 * n
-    p_tail = float(stats.poisson.sf(gross - 1, max(expected_gross, 1e-12)))
+    p_tail = float(scipy_stats().poisson.sf(gross - 1, max(expected_gross, 1e-12)))
     flags = GapFlags(chi2_high=bool(p_hi < ALPHA and ratio > 1.0 + PRACTICAL_CHI2),
                      chi2_low=bool(p_lo < ALPHA and ratio < 1.0 - PRACTICAL_CHI2),
                      not_white=bool(p_lb < ALPHA and rho_max > PRACTICAL_AUTOCORR),

@@ -16,8 +16,8 @@ from typing import Optional
 from coreg_ros.core.diagnosis.data import grid_cells, time_folds
 from coreg_ros.core.diagnosis.record import Record
 from coreg_ros.core.diagnosis.timeline import flagged_runs, FlaggedRuns, run_bounds
+from coreg_ros.core.distributions import chi2_sf
 import numpy as np
-from scipy import stats
 
 #: Time blocks and cells per workspace axis of the excess map.
 TIME_BLOCKS = 10
@@ -176,7 +176,7 @@ def _concentration(excess: np.ndarray, labels: np.ndarray, quad: np.ndarray, m: 
         # chi-square of the block's sum against the others' level (scaled by their mean)
         level = max(1.0 + med, 1.0)
         stat = float(np.sum(quad[sel]) / level)
-        p = float(stats.chi2.sf(stat, m * int(c)))
+        p = float(chi2_sf(stat, m * int(c)))
         out.append({'label': int(i), 'n': int(c), 'excess': float(mu),
                     'stands_out': bool(mu >= LOCAL_EXCESS and mu >= LOCAL_RATIO * max(med, 0.05)
                                        and p < 1e-6 and c >= 10)})
@@ -370,7 +370,7 @@ def _clusters(data, flagged: np.ndarray, n_blocks: int) -> tuple:
         exp = tot * share
         ok = exp > 0
         stat = float(np.sum((hit[ok] - exp[ok]) ** 2 / (exp[ok] * (1 - share) + 1e-12)))
-        p = float(stats.chi2.sf(stat, max(int(ok.sum()) - 1, 1)))
+        p = float(chi2_sf(stat, max(int(ok.sum()) - 1, 1)))
         ratio = hit / np.maximum(exp, 1e-12)
         big = (ratio >= 3.0) & (hit >= 5)
         clustered = bool(p < 1e-6 and big.any())

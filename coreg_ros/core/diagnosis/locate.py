@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from typing import Optional
 
 from coreg_ros.core.diagnosis.record import keyed, Record
+from coreg_ros.core.distributions import scipy_stats
 import numpy as np
-from scipy import stats
 
 #: Lags (in pairs) of the residual-velocity cross-correlation.
 XCORR_LAGS = 25
@@ -257,4 +257,4 @@ def locate(*, t: np.ndarray, quad: np.ndarray, e_std: np.ndarray, m: int, has_ro
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     if len(a) < 3 or np.ptp(a) == 0 or np.ptp(b) == 0:
         return 0.0
-    return float(stats.spearmanr(a, b)[0])
+    return float(scipy_stats().spearmanr(a, b)[0])

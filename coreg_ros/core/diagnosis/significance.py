@@ -44,8 +44,8 @@ from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.residuals import base_errors
 from coreg_ros.core.diagnosis.selection import blocks_judged
 from coreg_ros.core.diagnosis.structure import SMOOTH_LAG1, smoothness
+from coreg_ros.core.distributions import chi2_ppf
 import numpy as np
-from scipy import stats
 
 #: A noise effect changes σ by at least this much (relative) ...
 NOISE_FLOOR = 0.1
@@ -175,7 +175,7 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
         # an outlier is far off at the stated noise, not only off a noise the model shrank
         # (a recording inside its stated noise split into a tight half and the rest)
         stated = float(np.mean(ht.quad_stated[set_aside]) / m)
-        floor = float(stats.chi2.ppf(1.0 - OUTLIER_STATED_P, m) / m)
+        floor = float(chi2_ppf(1.0 - OUTLIER_STATED_P, m) / m)
         if stated < floor:
             reasons.append(f'the pairs it sets aside lie at χ²/dof {stated:.2f} at the stated '
                            f'noise, inside it (an outlier lies beyond {floor:.2f})')

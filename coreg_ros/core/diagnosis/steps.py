@@ -24,8 +24,8 @@ from coreg_ros.core.calibration.observability import tangent_matrix, WEAK_SHARE
 from coreg_ros.core.diagnosis.data import DiagData
 from coreg_ros.core.diagnosis.fit import Model, State
 from coreg_ros.core.diagnosis.timeline import step_scan
+from coreg_ros.core.distributions import chi2_isf
 import numpy as np
-from scipy import stats
 
 #: Candidate instants scanned (segment boundaries), then refined pair by pair near the best.
 SCAN_SEGMENTS = 400
@@ -131,7 +131,7 @@ def _whitened(data: DiagData, state: State, idx: np.ndarray, names: tuple) -> tu
     w = 1.0 / np.sqrt(1.0 + lam)
     r, J = -z * w, J * w[:, :, None]
     quad = np.sum(r ** 2, axis=1)
-    huber = np.sqrt(np.minimum(1.0, stats.chi2.isf(GROSS_P, data.m) / np.maximum(quad, 1e-300)))
+    huber = np.sqrt(np.minimum(1.0, chi2_isf(GROSS_P, data.m) / np.maximum(quad, 1e-300)))
     return r * huber[:, None], J * huber[:, None, None]
 
 
@@ -191,7 +191,7 @@ def locate_noise_step(data: DiagData, quad: np.ndarray, idx: np.ndarray) -> Inst
 
     """
     m = data.m
-    q = np.minimum(quad[idx], stats.chi2.isf(GROSS_P, m))
+    q = np.minimum(quad[idx], chi2_isf(GROSS_P, m))
     n = len(q)
     side, _ = _scan_grid(n)
     if n < 2 * side + 2:

@@ -32,8 +32,8 @@ from coreg_ros.core.diagnosis.detect import ljung_box
 from coreg_ros.core.diagnosis.excess import explained_by_place
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.timeline import CHANGE_S, CHANGE_SAMPLES
+from coreg_ros.core.distributions import chi2_sf, scipy_stats
 import numpy as np
-from scipy import stats
 
 #: Segments of the recording whose windows are scanned (equal numbers of pairs).
 SEGMENTS = 100
@@ -239,7 +239,7 @@ def _tied(data, excess: np.ndarray, counted: np.ndarray) -> dict:
                     ('distance', np.linalg.norm(data.b_points[counted, 0, :], axis=1))):
         if len(x) < 10 or np.ptp(x) <= 0:
             continue
-        rho, p = stats.spearmanr(x, excess[counted])
+        rho, p = scipy_stats().spearmanr(x, excess[counted])
         if np.isfinite(rho) and abs(rho) >= TIED_RHO and p < TIED_P:
             out[name] = float(rho)
     return out
@@ -255,7 +255,7 @@ def _not_white(e_std: np.ndarray) -> Optional[float]:
     if not rhos or not len(rhos[0]):
         return None
     h = len(rhos[0])
-    p = float(stats.chi2.sf(float(np.sum(qs)), h * e_std.shape[1]))
+    p = float(chi2_sf(float(np.sum(qs)), h * e_std.shape[1]))
     top = float(np.max(np.abs(np.concatenate(rhos))))
     return top if p < 1e-3 and top >= NOT_WHITE else None
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from coreg_ros.core.diagnosis.record import Record
+from coreg_ros.core.distributions import scipy_stats
 import numpy as np
-from scipy import stats
 
 #: A run of flagged pairs lasting at least this long (s) ...
 CHANGE_S = 1.0
@@ -128,7 +128,7 @@ def flagged_runs(t: np.ndarray, flagged: np.ndarray) -> FlaggedRuns:
     episodes = np.searchsorted(a, last, side='right') - lo
     # so many episodes in a run anywhere in the recording by chance: binomial tail, times
     # the places
-    tail = stats.binom.sf(episodes - 1, length, a.size / max(n, 1)) * n
+    tail = scipy_stats().binom.sf(episodes - 1, length, a.size / max(n, 1)) * n
     # a single episode of a change's number of samples is no glitch either: a glitch strikes
     # a few (each run holds the episodes from lo on, in order)
     lasting = row >= CHANGE_SAMPLES

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field, replace
 from typing import Optional
 
 from coreg_ros.core.diagnosis import noise_shape as ns
+from coreg_ros.core.distributions import chi2_ppf, scipy_stats
 import numpy as np
-from scipy import optimize
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 #: Largest share of outliers: beyond half the pairs the "outliers" are the data and the
@@ -258,13 +258,11 @@ def _initial(name: str, st: PairStats, var: VarState) -> float:
     if name == 'log_s2':
         return float(np.log(max(np.median(quad) / max(m - 0.7, 0.3), 1e-6)))
     if name == 'logit_eps':
-        from scipy import stats
-        big = np.mean(quad > stats.chi2.ppf(1.0 - 1e-4, m))
+        big = np.mean(quad > chi2_ppf(1.0 - 1e-4, m))
         eps = min(max(big, 1e-4), MAX_OUTLIER_SHARE)
         return float(np.log(eps / (1.0 - eps)))
     if name == 'log_lam':
-        from scipy import stats
-        big = quad[quad > stats.chi2.ppf(1.0 - 1e-4, m)]
+        big = quad[quad > chi2_ppf(1.0 - 1e-4, m)]
         lam2 = np.median(big) / m if big.size else 100.0
         return float(np.clip(0.5 * np.log(max(lam2, 9.0)), *_BOUNDS['log_lam']))
     if name == 'log_beta':
@@ -312,6 +310,8 @@ def fit_variance(st: PairStats, var: VarState, names: tuple, step: float = 0.3) 
                                                       *_BOUNDS['log_s2'])])
     if names == ('logit_eps', 'log_lam'):
         return _outliers_em(st, start)
+    # imported on first use: scipy.optimize adds 0.15 s of CPU to every command's start
+    from scipy import optimize
 
     def objective(x):
         x = np.clip(x, lo, hi)
@@ -449,8 +449,6 @@ def noise_source(data) -> np.ndarray:
         The source in B's base frame, m.
 
     """
-    from scipy import stats
-
     origin = np.zeros(3)
     e = data.cache.get('base_errors')
     if e is None:
@@ -461,13 +459,13 @@ def noise_source(data) -> np.ndarray:
     k = data.spec.n_markers
     rows = list(range(3 * k)) if not data.spec.has_q1 else [0, 1, 2]
     q = np.sum(e[::step][:, rows] ** 2, axis=1)
-    rq = stats.rankdata(q)
+    rq = scipy_stats().rankdata(q)
 
     def score(s):
         d = np.log(np.maximum(np.linalg.norm(p - s, axis=1), 1e-9))
         if np.ptp(d) <= 0:
             return -1.0
-        return float(np.corrcoef(stats.rankdata(d), rq)[0, 1])
+        return float(np.corrcoef(scipy_stats().rankdata(d), rq)[0, 1])
 
     centre = p.mean(axis=0)
     spread = float(np.max(np.linalg.norm(p - centre, axis=1))) or 1.0

@@ -18,13 +18,13 @@ from dataclasses import dataclass
 from typing import Optional
 
 from coreg_ros.core.calibration.pipeline import calibrate_streams
+from coreg_ros.core.distributions import chi2_sf
 from coreg_ros.core.errors import CoregError
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, UncertainPose
 from coreg_ros.core.uncertainty import chain, pose_error
 from coreg_ros.core.uncertainty.composition import inverse_jacobian, invert
 import numpy as np
-from scipy import stats
 
 #: A loop (or a device's own fit) disagrees when its χ² has a p-value below this.
 LOOP_P = 1e-3
@@ -137,7 +137,7 @@ def _compare(devices: tuple, what: str, e: np.ndarray, cov: np.ndarray) -> Disag
     dof = int(np.linalg.matrix_rank(cov))
     pos = np.abs(e[:min(3, e.size)]).max() * 1e3 if e.size else float('nan')
     rot = np.degrees(np.abs(e[3:]).max()) if e.size > 3 else float('nan')
-    return Disagreement(devices, what, chi2, dof, float(stats.chi2.sf(chi2, dof)), (pos, rot))
+    return Disagreement(devices, what, chi2, dof, float(chi2_sf(chi2, dof)), (pos, rot))
 
 
 def _alone_check(name: str, rig_result: CalibrationResult,
@@ -167,7 +167,7 @@ def _alone_check(name: str, rig_result: CalibrationResult,
     chi2 = float(np.sum(z * z / w[keep]))
     dof = int(keep.sum())
     position = np.isin(np.flatnonzero(known), [0, 1, 2, 6, 7, 8])
-    return Disagreement((name,), 'alone', chi2, dof, float(stats.chi2.sf(chi2, dof)),
+    return Disagreement((name,), 'alone', chi2, dof, float(chi2_sf(chi2, dof)),
                         (np.abs(e[position]).max() * 1e3, np.degrees(np.abs(e[~position]).max())))
 
 

@@ -31,6 +31,7 @@ from coreg_ros.core.calibration.pair_input import validated_arrays
 from coreg_ros.core.calibration.pairing import pair_for, validate_stream
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.calibration.verdict import CONSISTENT_P
+from coreg_ros.core.distributions import chi2_sf
 from coreg_ros.core.errors import CoregError, UnobservableError
 from coreg_ros.core.estimator import noise_covariance, output_covariance, whitening
 from coreg_ros.core.estimator.posterior import result_poses, tangent_map, UNKNOWN
@@ -53,7 +54,6 @@ from coreg_ros.core.rig.shared_instants import sharing_groups
 from coreg_ros.core.settings import Settings
 from coreg_ros.core.types import CalibrationResult, Pairs, PoseStream, TimeOffset
 import numpy as np
-from scipy import stats
 
 
 def device_settings(settings: Settings, device: RigDevice) -> Settings:
@@ -167,7 +167,7 @@ def _independent(devices: list, fits: list, settings: Settings) -> RigResult:
         return RigResult(bool(r.success), int(r.status), r.message, settings.method, tuple(out),
                          chi2, dof, float(r.p_value), bool(r.fit_consistent), r.verdict, cov,
                          iterations=int(r.iterations))
-    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    p_value = float(chi2_sf(chi2, dof)) if dof > 0 else float('nan')
     status = min(int(r.status) for r, _ in fits)
     return RigResult(not off, status, f'{K} devices that share neither base nor clock: each '
                      f'calibrated with A', settings.method, tuple(out), chi2, dof, p_value,
@@ -335,7 +335,7 @@ def _rig_result(layout, devices, alone, reports, sol, cov, time_cols, clocks, de
     n_time = sum(c.n_time for c in clocks)
     n_rows = [r.shape[0] * r.shape[1] for r in sol.residuals]
     dof = int(sum(n_rows) - layout.n_params - n_time)
-    p_value = float(stats.chi2.sf(sol.chi2, dof)) if dof > 0 else float('nan')
+    p_value = float(chi2_sf(sol.chi2, dof)) if dof > 0 else float('nan')
     out, off = [], []
     for k, d in enumerate(devices):
         clock = clocks[device_clock[k]]
@@ -353,7 +353,7 @@ def _rig_result(layout, devices, alone, reports, sol, cov, time_cols, clocks, de
         chi2_k = float(sol.device_chi2[k])
         total = float(np.sum(sol.device_chi2))
         dof_k = _device_dof(layout, k, n_rows[k], clock)
-        p_k = float(stats.chi2.sf(chi2_k, dof_k)) if dof_k > 0 else float('nan')
+        p_k = float(chi2_sf(chi2_k, dof_k)) if dof_k > 0 else float('nan')
         consistent = not (np.isfinite(p_k) and p_k < CONSISTENT_P)
         verdict = '' if consistent else (
             f'its pairs do not match its stated noise (chi2/dof {chi2_k / dof_k:.3g}, '

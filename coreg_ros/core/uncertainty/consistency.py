@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.distributions import chi2_cdf, chi2_ppf
 import numpy as np
-from scipy import stats
 
 
 def pose_error(p_true, q_true, p_est, q_est) -> np.ndarray:
@@ -57,9 +57,9 @@ def coverage_probability(n_sigma: float, dim: int) -> float:
     The ellipsoid is ``eᵀ C⁻¹ e ≤ n_sigma²``; in 3-D, 3σ holds about 97 % (Hoff eq. 8, note 3);
     in 2-D (an axis cone) about 98.9 %.
     """
-    return float(stats.chi2.cdf(float(n_sigma) ** 2, int(dim)))
+    return float(chi2_cdf(float(n_sigma) ** 2, int(dim)))
 
 
 def sigma_for_probability(probability: float, dim: int) -> float:
     """Scale k of the ellipsoid ``eᵀ C⁻¹ e ≤ k²`` that holds ``probability`` in ``dim`` dims."""
-    return float(np.sqrt(stats.chi2.ppf(float(probability), int(dim))))
+    return float(np.sqrt(chi2_ppf(float(probability), int(dim))))

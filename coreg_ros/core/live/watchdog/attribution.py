@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from coreg_ros.core.distributions import chi2_isf, chi2_ppf
 from coreg_ros.core.estimator.priors import Prior
 from coreg_ros.core.live.guidance import (
     Estimate,
@@ -14,7 +15,6 @@ from coreg_ros.core.live.watchdog.residuals import Calibration, Linearised
 from coreg_ros.core.so3 import skew
 from coreg_ros.core.types import CalibrationResult
 import numpy as np
-from scipy import stats
 
 #: In the attribution fits, a pair's -2 log-likelihood is clipped at the χ²_m quantile
 #: 1 - FIT_CLIP_TAIL (and such pairs are left out of the refit): outliers do not decide.
@@ -131,7 +131,7 @@ def attribute(calibration: Calibration, lin: Linearised) -> Attribution:
     n, m = r.shape
     d = f.shape[2] - 1
     model = calibration.model
-    clip = float(stats.chi2.isf(FIT_CLIP_TAIL, m))
+    clip = float(chi2_isf(FIT_CLIP_TAIL, m))
     log_n = float(np.log(max(n, 2)))
     d2_0 = np.einsum('ni,ni->n', r, r)
     scores = {'none': float(np.minimum(d2_0, clip).sum())}
@@ -161,7 +161,7 @@ def attribute(calibration: Calibration, lin: Linearised) -> Attribution:
         fits[kind] = (G, delta, cov)
     # noise (or field) changed: residual covariance λ times the stated, no mean; λ from the
     # median so that a few outliers do not make it
-    lam = max(float(np.median(d2_0) / stats.chi2.median(m)), 1e-6)
+    lam = max(float(np.median(d2_0) / chi2_ppf(0.5, m)), 1e-6)
     scores['noise'] = float(np.minimum(d2_0 / lam, clip).sum() + n * m * np.log(lam) + log_n)
     order = sorted(scores, key=scores.get)
     kind, runner = order[0], order[1]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import functools
 
+from coreg_ros.core.distributions import chi2_cdf, chi2_isf, scipy_stats
 import numpy as np
-from scipy import optimize, stats
 
 #: Residual covariance inflation the CUSUM is tuned to (λ: d² ≈ λ χ²_m under the change).
 DESIGN_INFLATION = 2.0
@@ -22,7 +22,7 @@ def llr_constants(m: int, inflation: float) -> tuple[float, float, float]:
     """Return (a, b, clip) of ``ℓ = a min(d², clip) - b``."""
     a = 0.5 * (1.0 - 1.0 / inflation)
     b = 0.5 * m * np.log(inflation)
-    return a, b, float(stats.chi2.isf(CLIP_TAIL, m))
+    return a, b, float(chi2_isf(CLIP_TAIL, m))
 
 
 def run_length(threshold: float, m: int, inflation: float = DESIGN_INFLATION,
@@ -53,8 +53,8 @@ def run_length(threshold: float, m: int, inflation: float = DESIGN_INFLATION,
 
     def cdf(y):
         x = (y + b) / a
-        inner = (stats.ncx2.cdf(np.maximum(x, 0.0), m, noncentrality) if noncentrality > 0
-                 else stats.chi2.cdf(np.maximum(x, 0.0), m))
+        inner = (scipy_stats().ncx2.cdf(np.maximum(x, 0.0), m, noncentrality) if noncentrality > 0
+                 else chi2_cdf(np.maximum(x, 0.0), m))
         return np.where(x >= clip, 1.0, np.where(x < 0.0, 0.0, inner))
 
     upto = cdf(edges[None, :] - values[:, None])
@@ -75,4 +75,6 @@ def cusum_threshold(m: int, target: float = TARGET_RUN_LENGTH,
     def excess(h: float) -> float:
         return float(np.log(run_length(h, m, inflation)) - np.log(target))
 
+    # imported on first use: scipy.optimize adds 0.15 s of CPU to every command's start
+    from scipy import optimize
     return float(optimize.brentq(excess, 5.0, 25.0, xtol=1e-9, rtol=1e-12))
