@@ -5,6 +5,7 @@ Recordings played (``coreg play``, a process) into coreg_node (in the test's pro
 /diagnostics and ``~/fused_pose`` read as a user would.
 """
 
+import shutil
 import subprocess
 import time
 
@@ -12,14 +13,17 @@ from coreg_ros.core.live import guidance as gd
 from coreg_ros.core.live import watchdog as wd
 from coreg_ros.core.types import PoseStream
 from coreg_ros.files.bag.posebag import write_pose_bag
+from coreg_ros.ros.domain import reserve_domain_id
 from coreg_ros.ros.interface import LATCHED_QOS
 from coreg_ros.ros.live_checks import STALE_QOS
+from coreg_ros.ros.session import RosSession
 from coreg_ros.ros.tools import wait_for_message, wait_for_result
 from coreg_ros.ros.uncertainty_outputs import FUSED_QOS
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.changes import apply_changes
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from innode import InProcessNode, Output
 import numpy as np
 import pytest
 from rosproc import PY, run_cli
@@ -180,24 +184,69 @@ def _true_size(change: dict, key: str) -> float:
     return abs(change['clock_s']) * 1e3
 
 
+#: The steps' recording (seed, duration, s): the change comes at CHANGE_S, after BEFORE_S.
+STEP_RECORDING, CHANGE_S, BEFORE_S = (72, 56.0), 43.0, 40.0
+
+
+class _Uncaptured:
+    """The output of a node made outside a test (no capfd): left to pytest's own capture."""
+
+    @staticmethod
+    def readouterr():
+        return '', ''
+
+
+@pytest.fixture(scope='module')
+def calibrated_before(tmp_path_factory):
+    """
+    Return the storage of a node that calibrated the steps' first BEFORE_S seconds and stopped.
+
+    Every step changes the same recording only after BEFORE_S (the test checks it), so the
+    calibration before it is made once, in a domain of its own, by a real node and service call.
+    """
+    folder = tmp_path_factory.mktemp('before')
+    rec = simulate_recording(*STEP_RECORDING, rate_a=RATE, rate_b=RATE)
+    (before,) = _bags(folder, rec, [0.0, BEFORE_S])
+    domain = reserve_domain_id()
+    session = RosSession('coreg_test_before', domain_id=domain.domain_id, signals=False)
+    try:
+        first = InProcessNode(domain, folder, {'qos_reliable': True}, Output(_Uncaptured()),
+                              name='first')
+        try:
+            watch = Collector(session)
+            watch.play(domain, before, rate=4.0)
+            watch.spin(2.0)
+            _calibrate(domain, first)
+        finally:
+            code = first.stop()
+        assert code == 0, first.log()
+    finally:
+        session.close()
+        domain.release()
+    return rec, first.storage
+
+
 @pytest.mark.parametrize('spec, kind, key, text', STEPS)
 def test_step_is_detected_attributed_and_stops_the_fused_pose(ros_domain, ros_session,
-                                                              start_node_here, tmp_path, spec,
-                                                              kind, key, text):
-    change_s = 43.0
-    rec = apply_changes(simulate_recording(72, 56.0, rate_a=RATE, rate_b=RATE),
-                        [f'{spec}@{change_s}'], seed=72)
+                                                              start_node_here, tmp_path,
+                                                              calibrated_before, spec, kind,
+                                                              key, text):
+    unchanged, stored = calibrated_before
+    rec = apply_changes(simulate_recording(*STEP_RECORDING, rate_a=RATE, rate_b=RATE),
+                        [f'{spec}@{CHANGE_S}'], seed=72)
     change = rec.truth.effects[-1]
-    before, after = _bags(tmp_path, rec, [0.0, 40.0, 56.0])
-    first = start_node_here({'qos_reliable': True})
+    # the change leaves the calibrated part as it was
+    end = rec.start_ns + int(BEFORE_S * 1e9)
+    for topic, s in rec.streams.items():
+        was = unchanged.streams[topic]
+        assert np.array_equal(s.stamps[s.stamps < end], was.stamps[was.stamps < end])
+        assert np.array_equal(s.position[s.stamps < end], was.position[was.stamps < end])
+        assert np.array_equal(s.quat_wxyz[s.stamps < end], was.quat_wxyz[was.stamps < end])
+    (after,) = _bags(tmp_path, rec, [BEFORE_S, 56.0])
     watch = Collector(ros_session)
-    watch.play(ros_domain, before, rate=4.0)
-    watch.spin(2.0)
-    _calibrate(ros_domain, first)
-    assert first.stop() == 0, first.log()
     # a restarted node watches the stored calibration it republishes
-    node = start_node_here({'qos_reliable': True, 'storage_dir': str(first.storage)},
-                           name='again')
+    storage = shutil.copytree(stored, tmp_path / 'store')
+    node = start_node_here({'qos_reliable': True, 'storage_dir': str(storage)}, name='again')
     assert wait_for_result(ros_session, f'/{NODE}/base_to_base', timeout=20) is not None
     n0 = len(watch.statuses[wd.STATUS_NAME])
     watch.play(ros_domain, after, rate=1.0)  # real time: the node checks once a second
