@@ -138,6 +138,18 @@ def conjugate(q: np.ndarray) -> np.ndarray:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
+def _stacked(rows) -> np.ndarray:
+    """
+    Return matrices (..., r, c) from rows of entries, each a scalar or an array of shape (...).
+
+    One matrix (scalar entries) is made directly: stacking arrays of one entry each costs
+    several times the arithmetic, and the fits make such small matrices by the thousand.
+    """
+    if np.ndim(rows[0][0]) == 0:
+        return np.array(rows, dtype=float)
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+
+
 def left_matrix(q: np.ndarray) -> np.ndarray:
     """
     Matrix L(q), shape (..., 4, 4), such that ``q ⊗ p = L(q) p``.
@@ -145,16 +157,8 @@ def left_matrix(q: np.ndarray) -> np.ndarray:
     Used for derivatives of products with respect to the right operand.
     """
     q = np.asarray(q, dtype=float)
-    if q.shape == (4,):  # one quaternion: the same entries, without the stacking
-        w, x, y, z = q
-        return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([w, -x, -y, -z], axis=-1),
-        np.stack([x, w, -z, y], axis=-1),
-        np.stack([y, z, w, -x], axis=-1),
-        np.stack([z, -y, x, w], axis=-1),
-    ], axis=-2)
+    w, x, y, z = q if q.shape == (4,) else np.moveaxis(q, -1, 0)
+    return _stacked([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
 
 
 def right_matrix(q: np.ndarray) -> np.ndarray:
@@ -164,16 +168,8 @@ def right_matrix(q: np.ndarray) -> np.ndarray:
     Used for derivatives of products with respect to the left operand.
     """
     q = np.asarray(q, dtype=float)
-    if q.shape == (4,):  # one quaternion: the same entries, without the stacking
-        w, x, y, z = q
-        return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([w, -x, -y, -z], axis=-1),
-        np.stack([x, w, z, -y], axis=-1),
-        np.stack([y, -z, w, x], axis=-1),
-        np.stack([z, y, -x, w], axis=-1),
-    ], axis=-2)
+    w, x, y, z = q if q.shape == (4,) else np.moveaxis(q, -1, 0)
+    return _stacked([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
 
 
 def matrix_parts(w, x, y, z) -> tuple:
@@ -209,10 +205,7 @@ def to_matrix(q: np.ndarray, pair_last: bool = False) -> np.ndarray:
                 R[i, j] = entry
         return R
     q = np.asarray(q, dtype=float)
-    if q.shape == (4,):  # one quaternion: the same entries, without the stacking
-        return np.array(matrix_parts(*q))
-    rows = matrix_parts(*np.moveaxis(q, -1, 0))
-    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+    return _stacked(matrix_parts(*(q if q.shape == (4,) else np.moveaxis(q, -1, 0))))
 
 
 def from_matrix(R: np.ndarray) -> np.ndarray:
