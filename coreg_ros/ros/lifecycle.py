@@ -16,10 +16,13 @@ The Jazzy idiom of ros2/demos and ros2/examples (ros2/demos#581, ros2/examples#3
 rclpy.try_shutdown()``; ``ended_by_shutdown`` is that ``except`` with the ``RCLError`` race
 added, and ``shutdown_quietly`` is that ``finally``. ``coreg_ros.ros.node.main``, its services
 thread, and ``coreg_ros.ros.session.RosSession`` (hence every tool, ``coreg play/record/call/
-echo/watch`` and the demo) use them; a tool's session takes the signals itself, without
-rclpy's handlers, so for the tools only an external shutdown of the context is left. The
-node also keeps Python's KeyboardInterrupt out of its stop altogether
-(``record_stop_signals``): what it collected is saved after the spin.
+echo/watch`` and the demo) use them. Neither installs rclpy's handlers any more (a shutdown
+from their thread while the main thread was inside rmw ended in SIGSEGV, in ``coreg echo``
+and in a node stopped just after it started): a tool's session and the node
+(``record_stop_signals``) take SIGINT and SIGTERM in Python, which only records them; the
+main thread sees that between short spins and shuts the context down itself, so only an
+external shutdown of the context is left for the races above, and what the node collected is
+saved after its spin.
 """
 
 from __future__ import annotations
@@ -93,19 +96,17 @@ def shutdown_quietly(context: Optional[Context] = None) -> None:
 
 def record_stop_signals() -> list:
     """
-    Let SIGINT and SIGTERM stop this process through ROS only, never as a KeyboardInterrupt.
+    Let SIGINT and SIGTERM be recorded, never raised as a KeyboardInterrupt.
 
-    Call in the main thread before ``rclpy.init``. rclpy's handlers shut the context down and
-    then chain to Python's, whose KeyboardInterrupt arrives at the main thread's next
-    bytecode: possibly only after the block that expects the stop (``ended_by_shutdown``)
-    has ended, in the middle of saving what was collected. With this, Python only records
-    the signal and the spin ends through the shut-down context.
+    Call in the main thread before ``rclpy.init(signal_handler_options=NO)``. A
+    KeyboardInterrupt would arrive at the main thread's next bytecode, possibly in the middle
+    of saving what was collected; recorded, the signal is seen by the main thread's loop
+    between spins, which then shuts the context down and saves.
 
     Returns
     -------
     list
-        The signals received, in order: one that came before ``rclpy.init`` installed its
-        handlers did not reach ROS and is the caller's to act on.
+        The signals received, in order (the caller stops once it is not empty).
 
     """
     received: list = []

@@ -119,6 +119,8 @@ __all__ = ['CoregNode', 'FLUSH_PERIOD', 'LATCHED_QOS', 'main', 'NODE_NAME', 'Nod
 #: Environment switch back to one deserialised message per callback (the path before the raw
 #: intake; kept as the benchmark's baseline and as a fallback): ``COREG_NODE_PLAIN=1``.
 PLAIN_ENV = 'COREG_NODE_PLAIN'
+#: Longest wait of the main thread's spin (s): how soon it sees a SIGINT or SIGTERM.
+STOP_POLL_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -389,12 +391,14 @@ def main(args=None) -> int:
     except ConfigError as e:
         print(f'coreg_node: {e}', file=sys.stderr)
         return 1
-    # ALL: rclpy's handlers for both SIGINT and SIGTERM shut the context down, so spin
-    # returns and the finally block saves the samples in either case; Python's own handler
-    # only records the signal, so that no late KeyboardInterrupt cuts the saving short.
+    # SIGINT and SIGTERM are taken by Python's handler, which only records them; the main
+    # thread sees that between spins (at most STOP_POLL_S apart), leaves the loop and shuts
+    # the context down itself, and the finally block saves the samples. rclpy's own handlers
+    # (NO) would shut the context down from their thread while this one may be inside rmw
+    # (the node just made, its executors being made): an early Ctrl-C ended in SIGSEGV.
     stops = record_stop_signals()
     try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.ALL)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RCLError as e:
         reason = str(e).split(', at ')[0]
         print(f'coreg_node: cannot start ROS: {reason}; check the --ros-args arguments',
@@ -413,7 +417,8 @@ def main(args=None) -> int:
             node = CoregNode()
             executors = NodeExecutors(node)
             executors.start()
-            executors.streams.spin()
+            while not stops and rclpy.ok():
+                executors.streams.spin_once(timeout_sec=STOP_POLL_S)
     except CoregError as e:
         print(f'coreg_node: {e}', file=sys.stderr)
         code = 1
