@@ -71,7 +71,7 @@ def cmd_record(args) -> int:
         stops = record_stop_signals()
         try:
             with RosSession('coreg_record') as session:
-                if stops:  # a signal before rclpy's handlers: it did not reach ROS
+                if stops:  # a signal before the session took the signals: it did not see it
                     session.interrupt()
                 streams = record_streams(session, args.topics, duration=args.duration,
                                          on_flush=journal.append, flush_period=1.0)
