@@ -157,12 +157,53 @@ class Selector:
         return max(self.opts.min_gain, per * self.n_res)
 
 
-def blocks_judged(sel: Selector, name: str, labels: np.ndarray) -> np.ndarray:
+#: A block is expected to gain from a time or mean effect when the effect's own fit predicts
+#: a gain there of at least this many nats. An error the model leaves of noncentrality λ in a
+#: block (Σ of its squared moves over the noise) gains λ/2 there on average with a standard
+#: deviation of √λ: from λ/2 = 2 nats on (λ = 4) the expected gain stands one standard
+#: deviation above zero. Below it the block's sign is a coin flip (a drift from zero in its
+#: first blocks, a pose step before its instant, a small effect where the motion hides it).
+EXPECTED_BLOCK_GAIN = 2.0
+
+
+def expected_block_gains(sel: Selector, fit: Fit, name: str, labels: np.ndarray
+                         ) -> Optional[np.ndarray]:
+    """
+    Return the gain (nats, per block of ``labels``) a time or mean effect predicts for itself.
+
+    Per pair, ``½ Σ Δz² / D``: the change of the decorrelated error the effect makes in the
+    fit (its θ against θ = 0, the rest held), over the fitted noise variance, weighted by the
+    pair's inlier weight; summed per block. None for a noise effect (it moves no error).
+    """
+    if CANDIDATES[name].acts_on not in ('time', 'mean') or fit is None:
+        return None
+    state = fit.state
+    if name not in state.theta:
+        return None
+    zero = state.copy()
+    zero.theta[name] = np.zeros_like(state.theta[name])
+    model = fit.model
+    per_pair = np.empty(len(sel.idx))
+    at = 0
+    for ch in model.chunks(sel.idx):
+        a = model.evaluate(state, ch, jac=False)
+        b = model.evaluate(zero, ch, jac=False)
+        D, _, w = vm.weights(state.var, a.st)
+        dz = a.st.z - b.st.z
+        per_pair[at:at + len(ch)] = 0.5 * w * np.sum(dz ** 2 / D, axis=1)
+        at += len(ch)
+    return np.bincount(labels, weights=per_pair, minlength=sel.K)
+
+
+def blocks_judged(sel: Selector, name: str, labels: np.ndarray, fit: Optional[Fit] = None
+                  ) -> np.ndarray:
     """
     Return the blocks (bool, K) an effect is judged on.
 
     Those with pairs; for a change in time (``changes_at``) only those with pairs from its
-    instant on.
+    instant on; for a time or mean effect with its ``fit`` given, only those where it expects
+    to gain (``EXPECTED_BLOCK_GAIN``, ``expected_block_gains``), unless it expects that
+    nowhere (then every block with pairs: its total gain decides).
     """
     judged = np.bincount(labels, minlength=sel.K) > 0
     key = CANDIDATES[name].changes_at
@@ -170,6 +211,11 @@ def blocks_judged(sel: Selector, name: str, labels: np.ndarray) -> np.ndarray:
     if found is not None and labels is sel.tf:
         after = sel.data.t[sel.idx] >= float(found.at_s)
         judged &= np.bincount(labels[after], minlength=sel.K) > 0
+    expected = expected_block_gains(sel, fit, name, labels)
+    if expected is not None:
+        gaining = judged & (expected >= EXPECTED_BLOCK_GAIN)
+        if gaining.any():
+            judged = gaining
     return judged
 
 
@@ -198,7 +244,7 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     if gain < thr:
         reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
     labels = sel.sf if kind == 'workspace' else sel.tf
-    judged = blocks_judged(sel, name, labels)
+    judged = blocks_judged(sel, name, labels, fit)
     blocks = int(judged.sum())
     improved = int(np.sum(fold_gains[judged] > 0))
     if improved < max(blocks - 1, 1):
