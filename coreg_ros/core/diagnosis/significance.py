@@ -266,19 +266,41 @@ def noise_change(fit, name: str) -> float:
     """
     Return the relative change of σ a noise effect makes, on the pairs it changes most.
 
-    Per pair, σ's factor is the square root of the ratio of the error's total variance with
-    the effect's parameters to that without them (the others kept); the ``1 - NOISE_SHARE``
-    quantile of ``|log factor|`` is returned as a relative change (``exp(q) - 1``).
+    Per pair, σ's factor along the direction it changes most: the square roots of the
+    generalized eigenvalues of the error's covariance with the effect's parameters against
+    that without them (the others kept), the one farthest from one in log. A noise level
+    changes every direction alike; a noise shape (one axis of B noisier) or a jitter (along the
+    motion) changes one direction, which the total variance would dilute among the others.
+    The ``1 - NOISE_SHARE`` quantile of ``|log factor|`` is returned as a relative change
+    (``exp(q) - 1``).
     """
     var = fit.state.var
     params = CANDIDATES[name].var_params
     off = var.with_values(params, [getattr(vm.VarState(), p) for p in params])
     st = fit.stats
-    total = vm.total_variance(var, st)
-    without = vm.total_variance(off, st)
-    q = float(np.quantile(np.abs(0.5 * np.log(total / np.maximum(without, 1e-300))),
-                          1.0 - NOISE_SHARE))
+    q = float(np.quantile(_largest_log_factor(var, off, st), 1.0 - NOISE_SHARE))
     return float(np.expm1(q))
+
+
+def _largest_log_factor(var, off, st, chunk: int = 8192) -> np.ndarray:
+    """Per pair, the largest ``|log|`` of σ's factor along a direction, ``var`` over ``off``."""
+    n = len(st.z)
+    out = np.empty(n)
+    for i in range(0, n, chunk):
+        part = vm.PairStats(*(_rows(getattr(st, f), i, chunk) for f in (
+            'z', 'lam', 'u', 'log_g', 'V')), markers=st.markers,
+            step=_rows(st.step, i, chunk))
+        c1 = vm.pair_covariances(var, part)
+        c0 = vm.pair_covariances(off, part)
+        L = np.linalg.cholesky(c0)
+        x = np.linalg.solve(L, c1)
+        w = np.linalg.eigvalsh(np.linalg.solve(L, np.swapaxes(x, 1, 2)))
+        out[i:i + chunk] = np.max(np.abs(0.5 * np.log(np.maximum(w, 1e-300))), axis=1)
+    return out
+
+
+def _rows(a, i: int, chunk: int):
+    return None if a is None else a[i:i + chunk]
 
 
 def widened_smoothness(fit, name: str) -> Optional[float]:
