@@ -281,7 +281,8 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
     extended by every compatible mean effect and a clock drift (whose first column is the
     time offset's), all new θ at zero. At the reference optimum the gradient is the score,
     and the one-step gain of adding a candidate's columns is ``½ gₛᵀ Hₛₛ⁻¹ gₛ`` over the
-    reference's parameters and the candidate's. Variance effects are fitted on the
+    reference's parameters and the candidate's. A time effect whose shift is not the drift's
+    (a clock step) has a pass of its own. Variance effects are fitted on the
     reference's pair statistics (the mean held). A candidate missing from the result is
     refitted whatever its score.
     """
@@ -308,19 +309,26 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
                 cols = list(range(sl.start, sl.stop))
                 if effect.acts_on == 'time':
                     cols = cols[:effect.term.n]
-                c = np.array(base_cols + cols)
-                H = ps.H[np.ix_(c, c)]
-                g = ps.g[c]
-                try:
-                    step = np.linalg.lstsq(H, g, rcond=1e-12)[0]
-                except np.linalg.LinAlgError:
-                    continue
-                # the reference's own gradient is ~0 at its optimum: what is left is the
-                # candidate's score; take the reference's share off all the same
-                hb = H[:len(base_cols), :len(base_cols)]
-                gb = g[:len(base_cols)]
-                own = float(gb @ np.linalg.lstsq(hb, gb, rcond=1e-12)[0])
-                out[name] = 0.5 * max(float(g @ step) - own, 0.0)
+                gain = _one_step_gain(ps, base_cols, cols)
+                if gain is not None:
+                    out[name] = gain
+    for name in time_new:
+        if _shares_screen(name):
+            continue
+        # a time effect whose shift is not the drift's (a clock step: the offset after an
+        # instant) is linearised on its own: a ramp stands for a step only in part
+        try:
+            model = Model(sel.data, accepted + (name,))
+            ps = model.normal(model.initial_state(state0), sel.idx)
+        except (ValueError, np.linalg.LinAlgError):
+            out.pop(name, None)
+            continue
+        base_cols = list(range(model.P))
+        for a in accepted:
+            if a in model.slices:
+                base_cols += list(range(model.slices[a].start, model.slices[a].stop))
+        sl = model.slices[name]
+        out[name] = _one_step_gain(ps, base_cols, list(range(sl.start, sl.stop)))
     stats = fit0.stats
     ll0 = float(np.sum(vm.loglik(state0.var, stats)))
     for name in todo:
@@ -337,6 +345,31 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
             continue
         out[name] = max(float(np.sum(vm.loglik(var, stats))) - ll0, 0.0)
     return out
+
+
+def _shares_screen(name: str) -> bool:
+    """Whether a time effect's shift is the first columns of ``SCREEN_TIME_EFFECT``'s."""
+    return name == SCREEN_TIME_EFFECT or CANDIDATES[SCREEN_TIME_EFFECT].simpler == name
+
+
+def _one_step_gain(ps, base_cols: list, cols: list) -> Optional[float]:
+    """
+    One-step gain ``½ gₛᵀ Hₛₛ⁻¹ gₛ`` of adding ``cols`` to ``base_cols``, nats (``screen``).
+
+    The reference's own gradient is ~0 at its optimum: what is left is the candidate's
+    score; the reference's share is taken off all the same.
+    """
+    c = np.array(base_cols + cols)
+    H = ps.H[np.ix_(c, c)]
+    g = ps.g[c]
+    try:
+        step = np.linalg.lstsq(H, g, rcond=1e-12)[0]
+        hb = H[:len(base_cols), :len(base_cols)]
+        gb = g[:len(base_cols)]
+        own = float(gb @ np.linalg.lstsq(hb, gb, rcond=1e-12)[0])
+    except np.linalg.LinAlgError:
+        return None
+    return 0.5 * max(float(g @ step) - own, 0.0)
 
 
 def compatible(accepted: tuple, name: str) -> bool:
