@@ -10,9 +10,11 @@ from coreg_ros.core.diagnosis.selection import (
     EXPECTED_BLOCK_GAIN,
     expected_block_gains,
     score_candidate,
+    screen,
     Selector,
 )
 from coreg_ros.core.diagnosis.significance import _largest_log_factor, rms_gain
+from coreg_ros.core.diagnosis.steps import locate_clock_step
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import simulate_recording
 from coreg_ros.sim.injected import parse_effect
@@ -115,3 +117,26 @@ def test_a_pose_step_beside_a_large_jitter_is_named(draw):
                                           f'timestamp_jitter={jitter:.4f}'])
     names = [e['name'] for e in r['effects']]
     assert 'pose_step' in names and 'timestamp_jitter' in names, (names, r['not_significant'])
+
+
+def test_a_clock_step_is_screened_with_its_own_shift():
+    # the screening's one-step prediction of a clock step uses the step's own column (the
+    # offset after the located instant): a ramp stands for a step only in part, and a step
+    # screened on the drift's ramp predicted too little to be refitted beside outliers
+    rng = np.random.default_rng(3330)
+    step = float(rng.uniform(0.03, 0.06))
+    rec = simulate_recording(int(rng.integers(1000)), 40.0,
+                             effects=[parse_effect(f'clock_step={step:.4f}')])
+    settings = Settings()
+    pairs, _ = pair_for(rec.stream_a, list(rec.streams_b), settings)
+    data, _, fit0 = _base_fit(pairs, settings, rec.stream_a, settings.cov_a, settings.cov_b,
+                              Options().n_folds)
+    sel = Selector(data, np.arange(data.n), Options(), lambda f, s: None)
+    data.cache['clock_step'] = locate_clock_step(data, fit0.state, sel.idx)
+    base = sel.score((), fit0.state)
+    predicted = screen(sel, (), base, ['clock_step', 'clock_drift', 'time_offset'])
+    refit = sel.score(('clock_step',), fit0.state)[0]
+    in_sample = refit.loglik - base[0].loglik
+    # its own prediction is its refit's gain; the ramp's (what it was screened with) is not
+    assert predicted['clock_step'] == pytest.approx(in_sample, rel=0.05)
+    assert abs(predicted['clock_drift'] - in_sample) > 3 * abs(predicted['clock_step'] - in_sample)
