@@ -195,15 +195,15 @@ def expected_block_gains(sel: Selector, fit: Fit, name: str, labels: np.ndarray
     return np.bincount(labels, weights=per_pair, minlength=sel.K)
 
 
-def blocks_judged(sel: Selector, name: str, labels: np.ndarray, fit: Optional[Fit] = None
-                  ) -> np.ndarray:
+def blocks_judged(sel: Selector, name: str, labels: np.ndarray, fit: Optional[Fit] = None,
+                  expected: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Return the blocks (bool, K) an effect is judged on.
 
     Those with pairs; for a change in time (``changes_at``) only those with pairs from its
-    instant on; for a time or mean effect with its ``fit`` given, only those where it expects
-    to gain (``EXPECTED_BLOCK_GAIN``, ``expected_block_gains``), unless it expects that
-    nowhere (then every block with pairs: its total gain decides).
+    instant on; for a time or mean effect with its ``fit`` (or its ``expected`` block gains)
+    given, only those where it expects to gain (``EXPECTED_BLOCK_GAIN``,
+    ``expected_block_gains``), unless it expects that nowhere (then every block with pairs).
     """
     judged = np.bincount(labels, minlength=sel.K) > 0
     key = CANDIDATES[name].changes_at
@@ -211,12 +211,37 @@ def blocks_judged(sel: Selector, name: str, labels: np.ndarray, fit: Optional[Fi
     if found is not None and labels is sel.tf:
         after = sel.data.t[sel.idx] >= float(found.at_s)
         judged &= np.bincount(labels[after], minlength=sel.K) > 0
-    expected = expected_block_gains(sel, fit, name, labels)
+    if expected is None:
+        expected = expected_block_gains(sel, fit, name, labels)
     if expected is not None:
         gaining = judged & (expected >= EXPECTED_BLOCK_GAIN)
         if gaining.any():
             judged = gaining
     return judged
+
+
+#: A time or mean effect's own moves must predict at least this share of the practical
+#: threshold (``own_gain_reasons``); the share is the screening's (``SCREEN_SHARE``), which
+#: leaves room for the linearisation's error.
+OWN_SHARE = 0.3
+
+
+def own_gain_reasons(expected: Optional[np.ndarray], thr: float) -> list:
+    """
+    Why a time or mean effect's gain is not its own, or nothing.
+
+    Its held-out gain must come from the errors it moves: the gain its own θ predicts
+    (``expected_block_gains`` summed) must reach ``OWN_SHARE`` of the practical ``thr``. A
+    model refitted with an effect whose θ stays near zero can still gain when the other
+    effects' parameters converge further from the new start: that gain is theirs.
+    """
+    if expected is None:
+        return []
+    own = float(np.sum(expected))
+    if own >= OWN_SHARE * thr:
+        return []
+    return [f'its own moves predict a gain of {own:.1f} nats, below {OWN_SHARE:g} of the '
+            f'practical {thr:.1f}: the gain is the refit of the others']
 
 
 def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round_no: int
@@ -244,11 +269,13 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     if gain < thr:
         reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
     labels = sel.sf if kind == 'workspace' else sel.tf
-    judged = blocks_judged(sel, name, labels, fit)
+    expected = expected_block_gains(sel, fit, name, labels)
+    judged = blocks_judged(sel, name, labels, expected=expected)
     blocks = int(judged.sum())
     improved = int(np.sum(fold_gains[judged] > 0))
     if improved < max(blocks - 1, 1):
         reasons.append(f'improves only {improved} of {blocks} {kind} blocks')
+    reasons += own_gain_reasons(expected, thr)
     cand.passes = not reasons
     cand.reason = '; '.join(reasons) if reasons else 'passes'
     return cand

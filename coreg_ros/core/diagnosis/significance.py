@@ -44,7 +44,11 @@ from coreg_ros.core.diagnosis.fit import Model
 from coreg_ros.core.diagnosis.gap import position_rotation_rows
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.residuals import base_errors
-from coreg_ros.core.diagnosis.selection import blocks_judged
+from coreg_ros.core.diagnosis.selection import (
+    blocks_judged,
+    expected_block_gains,
+    own_gain_reasons,
+)
 from coreg_ros.core.diagnosis.structure import SMOOTH_LAG1, smoothness
 import numpy as np
 from scipy import stats
@@ -186,11 +190,12 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
     h0, _ = _fold_kind(sel, name, without)
     fold_gains = h.fold_sums(h.ll) - h0.fold_sums(h0.ll)
     gain = float(fold_gains.sum())
-    judged = blocks_judged(sel, name, labels, full[0])
+    expected = expected_block_gains(sel, full[0], name, labels)
+    judged = blocks_judged(sel, name, labels, expected=expected)
     blocks = int(judged.sum())
     improved = int(np.sum(fold_gains[judged] > 0))
     thr = sel.threshold(0)
-    reasons = []
+    reasons = own_gain_reasons(expected, thr)
     if gain < thr:
         reasons.append(f'with the others present its held-out gain is {gain:.1f} nats, below '
                        f'the practical {thr:.1f}')

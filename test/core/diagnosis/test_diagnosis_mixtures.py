@@ -9,6 +9,8 @@ from coreg_ros.core.diagnosis.selection import (
     blocks_judged,
     EXPECTED_BLOCK_GAIN,
     expected_block_gains,
+    own_gain_reasons,
+    OWN_SHARE,
     score_candidate,
     screen,
     Selector,
@@ -140,3 +142,28 @@ def test_a_clock_step_is_screened_with_its_own_shift():
     # its own prediction is its refit's gain; the ramp's (what it was screened with) is not
     assert predicted['clock_step'] == pytest.approx(in_sample, rel=0.05)
     assert abs(predicted['clock_drift'] - in_sample) > 3 * abs(predicted['clock_step'] - in_sample)
+
+
+@pytest.mark.parametrize('offset', [0.0, 0.01])
+def test_a_gain_must_come_from_the_effects_own_moves(offset):
+    # a real offset's own moves predict about its held-out gain; with no offset its θ stays
+    # near zero and whatever the refit gains is not its own
+    rng = np.random.default_rng(3340)
+    effects = [parse_effect(f'time_offset={offset}')] if offset else []
+    rec = simulate_recording(int(rng.integers(1000)), 40.0, effects=effects)
+    settings = Settings()
+    pairs, _ = pair_for(rec.stream_a, list(rec.streams_b), settings)
+    data, _, fit0 = _base_fit(pairs, settings, rec.stream_a, settings.cov_a, settings.cov_b,
+                              Options().n_folds)
+    sel = Selector(data, np.arange(data.n), Options(), lambda f, s: None)
+    base = sel.score((), fit0.state)
+    cand = score_candidate(sel, (), 'time_offset', base, 0)
+    own = float(np.sum(expected_block_gains(sel, cand.fit, 'time_offset', sel.tf)))
+    thr = sel.threshold(0)
+    if offset:
+        assert cand.passes and own == pytest.approx(cand.gain, rel=0.2)
+        assert own_gain_reasons(np.array([own]), thr) == []
+    else:
+        assert own < OWN_SHARE * thr
+        assert 'its own moves' in own_gain_reasons(np.array([own]), thr)[0]
+        assert not cand.passes and 'its own moves' in cand.reason
