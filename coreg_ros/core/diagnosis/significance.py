@@ -42,13 +42,13 @@ from coreg_ros.core.diagnosis.channels import (
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
 from coreg_ros.core.diagnosis.fit import Model
 from coreg_ros.core.diagnosis.gap import position_rotation_rows
-from coreg_ros.core.diagnosis.record import optional, Record
-from coreg_ros.core.diagnosis.residuals import base_errors
-from coreg_ros.core.diagnosis.selection import (
+from coreg_ros.core.diagnosis.judged import (
     blocks_judged,
     expected_block_gains,
     own_gain_reasons,
 )
+from coreg_ros.core.diagnosis.record import optional, Record
+from coreg_ros.core.diagnosis.residuals import base_errors
 from coreg_ros.core.diagnosis.structure import SMOOTH_LAG1, smoothness
 import numpy as np
 from scipy import stats

@@ -4,17 +4,15 @@ from coreg_ros.core.calibration.pairing import pair_for
 from coreg_ros.core.diagnosis import diagnose_streams
 from coreg_ros.core.diagnosis import variance as vm
 from coreg_ros.core.diagnosis.engine import _base_fit
-from coreg_ros.core.diagnosis.options import Options
-from coreg_ros.core.diagnosis.selection import (
+from coreg_ros.core.diagnosis.judged import (
     blocks_judged,
     EXPECTED_BLOCK_GAIN,
     expected_block_gains,
     own_gain_reasons,
     OWN_SHARE,
-    score_candidate,
-    screen,
-    Selector,
 )
+from coreg_ros.core.diagnosis.options import Options
+from coreg_ros.core.diagnosis.selection import score_candidate, screen, Selector
 from coreg_ros.core.diagnosis.significance import _largest_log_factor, rms_gain
 from coreg_ros.core.diagnosis.steps import locate_clock_step
 from coreg_ros.core.settings import Settings
