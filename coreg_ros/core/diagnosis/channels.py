@@ -80,8 +80,11 @@ def channel_reasons(moved: dict, test) -> list:
                 f'(floor {SIZE_FLOOR:g})']
     if test is None:
         return []
-    gains = {k: g for k, g in (('position', test.rms_gain_position),
-                               ('rotation', test.rms_gain_rotation)) if g is not None}
+    # judged against the stated noise where the re-test gives it (``significance.rms_gain``)
+    pairs = (('position', test.rms_gain_position, test.judged_gain_position),
+             ('rotation', test.rms_gain_rotation, test.judged_gain_rotation))
+    gains = {k: (j if j is not None else g) for k, g, j in pairs
+             if (j if j is not None else g) is not None}
     reasons = []
     own = [gains[k] for k in claimed if k in gains]
     if own and max(own) < MIN_RMS_GAIN:

@@ -49,10 +49,10 @@ def drift_check(data: DiagData, sel, best, cands: list) -> DriftCheck:
     """
     Accept a clock drift only if it beats a constant offset and per-block offsets trend.
 
-    The offset is fitted on each time block alone (``time_offset`` model); a drift must show
-    as a significant linear trend of those offsets (slope beyond 3σ, agreeing in sign with
-    the drift and within a factor of three of it), and the drift's held-out gain must exceed
-    the constant offset's by the practical threshold.
+    The offset is fitted on each time block alone (``time_offset`` beside the effects already
+    accepted); a drift must show as a significant linear trend of those offsets (slope beyond
+    3σ, agreeing in sign with the drift and within a factor of three of it), and the drift's
+    held-out gain must exceed the constant offset's by the practical threshold.
 
     Parameters
     ----------
@@ -73,12 +73,15 @@ def drift_check(data: DiagData, sel, best, cands: list) -> DriftCheck:
     K = sel.K
     idx = sel.idx
     taus, sds, mids = [], [], []
+    # the offset per block beside the effects already accepted (outliers set aside, a noise
+    # level in the weights): without them a block's offset is pulled by what they explain
+    others = tuple(n for n in best.names if n != best.name)
     for k in range(K):
         block = idx[sel.tf == k]
         if len(block) < 30:
             continue
         try:
-            fit = Model(data, ('time_offset',)).fit(best.fit.state, block)
+            fit = Model(data, others + ('time_offset',)).fit(best.fit.state, block)
         except (ValueError, np.linalg.LinAlgError):
             continue
         cov = fit.mean_cov()

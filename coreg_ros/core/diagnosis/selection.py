@@ -22,6 +22,11 @@ from coreg_ros.core.diagnosis.data import DiagData, spatial_folds, time_folds
 from coreg_ros.core.diagnosis.drift import drift_check
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES, EFFECT_NAMES
 from coreg_ros.core.diagnosis.fit import Fit, Heldout, Model
+from coreg_ros.core.diagnosis.judged import (
+    blocks_judged,
+    expected_block_gains,
+    own_gain_reasons,
+)
 from coreg_ros.core.diagnosis.locate import STATIC_ANGULAR_SPEED, STATIC_SPEED
 from coreg_ros.core.diagnosis.options import Options, Progress
 from coreg_ros.core.diagnosis.record import optional, Record
@@ -157,22 +162,6 @@ class Selector:
         return max(self.opts.min_gain, per * self.n_res)
 
 
-def blocks_judged(sel: Selector, name: str, labels: np.ndarray) -> np.ndarray:
-    """
-    Return the blocks (bool, K) an effect is judged on.
-
-    Those with pairs; for a change in time (``changes_at``) only those with pairs from its
-    instant on.
-    """
-    judged = np.bincount(labels, minlength=sel.K) > 0
-    key = CANDIDATES[name].changes_at
-    found = sel.data.cache.get(key) if key else None
-    if found is not None and labels is sel.tf:
-        after = sel.data.t[sel.idx] >= float(found.at_s)
-        judged &= np.bincount(labels[after], minlength=sel.K) > 0
-    return judged
-
-
 def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round_no: int
                     ) -> Candidate:
     """Fit ``accepted + (name,)``, score its held-out gain over ``ref`` and test it."""
@@ -198,11 +187,13 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     if gain < thr:
         reasons.append(f'held-out gain {gain:.1f} below the practical {thr:.1f} nats')
     labels = sel.sf if kind == 'workspace' else sel.tf
-    judged = blocks_judged(sel, name, labels)
+    expected = expected_block_gains(sel, fit, name, labels)
+    judged = blocks_judged(sel, name, labels, expected=expected)
     blocks = int(judged.sum())
     improved = int(np.sum(fold_gains[judged] > 0))
     if improved < max(blocks - 1, 1):
         reasons.append(f'improves only {improved} of {blocks} {kind} blocks')
+    reasons += own_gain_reasons(expected, thr)
     cand.passes = not reasons
     cand.reason = '; '.join(reasons) if reasons else 'passes'
     return cand
@@ -235,7 +226,8 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
     extended by every compatible mean effect and a clock drift (whose first column is the
     time offset's), all new θ at zero. At the reference optimum the gradient is the score,
     and the one-step gain of adding a candidate's columns is ``½ gₛᵀ Hₛₛ⁻¹ gₛ`` over the
-    reference's parameters and the candidate's. Variance effects are fitted on the
+    reference's parameters and the candidate's. A time effect whose shift is not the drift's
+    (a clock step) has a pass of its own. Variance effects are fitted on the
     reference's pair statistics (the mean held). A candidate missing from the result is
     refitted whatever its score.
     """
@@ -262,19 +254,26 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
                 cols = list(range(sl.start, sl.stop))
                 if effect.acts_on == 'time':
                     cols = cols[:effect.term.n]
-                c = np.array(base_cols + cols)
-                H = ps.H[np.ix_(c, c)]
-                g = ps.g[c]
-                try:
-                    step = np.linalg.lstsq(H, g, rcond=1e-12)[0]
-                except np.linalg.LinAlgError:
-                    continue
-                # the reference's own gradient is ~0 at its optimum: what is left is the
-                # candidate's score; take the reference's share off all the same
-                hb = H[:len(base_cols), :len(base_cols)]
-                gb = g[:len(base_cols)]
-                own = float(gb @ np.linalg.lstsq(hb, gb, rcond=1e-12)[0])
-                out[name] = 0.5 * max(float(g @ step) - own, 0.0)
+                gain = _one_step_gain(ps, base_cols, cols)
+                if gain is not None:
+                    out[name] = gain
+    for name in time_new:
+        if _shares_screen(name):
+            continue
+        # a time effect whose shift is not the drift's (a clock step: the offset after an
+        # instant) is linearised on its own: a ramp stands for a step only in part
+        try:
+            model = Model(sel.data, accepted + (name,))
+            ps = model.normal(model.initial_state(state0), sel.idx)
+        except (ValueError, np.linalg.LinAlgError):
+            out.pop(name, None)
+            continue
+        base_cols = list(range(model.P))
+        for a in accepted:
+            if a in model.slices:
+                base_cols += list(range(model.slices[a].start, model.slices[a].stop))
+        sl = model.slices[name]
+        out[name] = _one_step_gain(ps, base_cols, list(range(sl.start, sl.stop)))
     stats = fit0.stats
     ll0 = float(np.sum(vm.loglik(state0.var, stats)))
     for name in todo:
@@ -291,6 +290,31 @@ def screen(sel: Selector, accepted: tuple, ref: tuple, todo: Sequence[str]) -> d
             continue
         out[name] = max(float(np.sum(vm.loglik(var, stats))) - ll0, 0.0)
     return out
+
+
+def _shares_screen(name: str) -> bool:
+    """Whether a time effect's shift is the first columns of ``SCREEN_TIME_EFFECT``'s."""
+    return name == SCREEN_TIME_EFFECT or CANDIDATES[SCREEN_TIME_EFFECT].simpler == name
+
+
+def _one_step_gain(ps, base_cols: list, cols: list) -> Optional[float]:
+    """
+    One-step gain ``½ gₛᵀ Hₛₛ⁻¹ gₛ`` of adding ``cols`` to ``base_cols``, nats (``screen``).
+
+    The reference's own gradient is ~0 at its optimum: what is left is the candidate's
+    score; the reference's share is taken off all the same.
+    """
+    c = np.array(base_cols + cols)
+    H = ps.H[np.ix_(c, c)]
+    g = ps.g[c]
+    try:
+        step = np.linalg.lstsq(H, g, rcond=1e-12)[0]
+        hb = H[:len(base_cols), :len(base_cols)]
+        gb = g[:len(base_cols)]
+        own = float(gb @ np.linalg.lstsq(hb, gb, rcond=1e-12)[0])
+    except np.linalg.LinAlgError:
+        return None
+    return 0.5 * max(float(g @ step) - own, 0.0)
 
 
 def compatible(accepted: tuple, name: str) -> bool:

@@ -4,8 +4,9 @@ Practical significance: each named effect re-tested beside the others, sized aga
 The selection adds effects one at a time; an effect accepted early may have stood in for one
 found later (outliers taken for a noise level before the offset behind them was seen). So
 every accepted effect is re-tested in the final model (``retest``): dropped from it, it must
-lose held-out log-likelihood by the practical threshold, in (almost) every block, with the
-others present; the one that fails by most goes, and the rest are tested again. Outliers must
+lose held-out log-likelihood by the practical threshold, in (almost) every block where it
+expects to gain (``selection.blocks_judged``), with the others present; the one that fails by
+most goes, and the rest are tested again. Outliers must
 also set aside pairs that lie beyond the stated noise (``OUTLIER_STATED_P``): pairs off only a
 noise level the model shrank are not glitches.
 
@@ -39,10 +40,15 @@ from coreg_ros.core.diagnosis.channels import (
     SIZE_FLOOR,
 )
 from coreg_ros.core.diagnosis.effects.registry import CANDIDATES
+from coreg_ros.core.diagnosis.fit import Model
 from coreg_ros.core.diagnosis.gap import position_rotation_rows
+from coreg_ros.core.diagnosis.judged import (
+    blocks_judged,
+    expected_block_gains,
+    own_gain_reasons,
+)
 from coreg_ros.core.diagnosis.record import optional, Record
 from coreg_ros.core.diagnosis.residuals import base_errors
-from coreg_ros.core.diagnosis.selection import blocks_judged
 from coreg_ros.core.diagnosis.structure import SMOOTH_LAG1, smoothness
 from coreg_ros.core.distributions import chi2_ppf
 import numpy as np
@@ -77,6 +83,10 @@ class EffectTest(Record):
     rms_gain_position, rms_gain_rotation : float, optional
         Relative fall of the held-out position (rotation) RMS at the stated noise, on the
         blocks it is judged on (workspace cells for a spatial effect).
+    judged_gain_position, judged_gain_rotation : float, optional
+        The same judged against the stated noise (``rms_gain``): what
+        ``channels.channel_reasons`` holds to ``MIN_RMS_GAIN``; equal to the above while the
+        errors are within the stated noise.
     passes : bool
         It keeps a practical held-out gain with the others present.
     reason : str
@@ -90,6 +100,8 @@ class EffectTest(Record):
     share_of_gap: float
     rms_gain_position: Optional[float] = optional()
     rms_gain_rotation: Optional[float] = optional()
+    judged_gain_position: Optional[float] = optional()
+    judged_gain_rotation: Optional[float] = optional()
     passes: bool
     reason: str
 
@@ -122,11 +134,42 @@ class NotSignificant(Record):
     text: str
 
 
-def _rms(e: np.ndarray, rows: Optional[list], sel: np.ndarray, angle: bool) -> Optional[float]:
+def _ms(e: np.ndarray, rows: Optional[list], sel: np.ndarray) -> Optional[float]:
     if rows is None or not sel.any():
         return None
-    v = float(np.sqrt(np.mean(e[sel][:, rows] ** 2)))
-    return 2.0 * v if angle else v
+    return float(np.mean(e[sel][:, rows] ** 2))
+
+
+def rms_gain(with_ms: Optional[float], without_ms: Optional[float],
+             stated_ms: Optional[float]) -> Optional[float]:
+    """
+    Relative fall of a channel's held-out RMS an effect makes, judged at the stated noise.
+
+    ``1 - sqrt(1 - (b² - a²) / min(b², s²))`` for the mean squares ``a²`` with the effect,
+    ``b²`` without and the stated noise's ``s²``: the relative fall of the RMS ``1 - a/b``
+    when the errors are within the stated noise; beyond it, the fall of the mean square is
+    measured against the stated noise (an error left larger than stated by another effect, a
+    jitter or a larger noise, does not dilute what this one explains). Negative: it raises
+    the RMS. Without ``s²``: ``1 - a/b``.
+    """
+    if with_ms is None or not without_ms:
+        return None
+    if not stated_ms:
+        return float(1.0 - np.sqrt(with_ms / without_ms))
+    ref = min(without_ms, stated_ms)
+    return float(1.0 - np.sqrt(max(1.0 - (without_ms - with_ms) / ref, 0.0)))
+
+
+def _stated_sd(sel, state) -> np.ndarray:
+    """Stated σ of each raw error of the selection pairs (n, m): B's and A's carried noise."""
+    key = ('stated_sd', len(sel.idx), int(sel.idx[0]), int(sel.idx[-1]))
+    got = sel.data.cache.get(key)
+    if got is None:
+        model = Model(sel.data, ())
+        got = np.concatenate([model.evaluate(state, ch, jac=False).sd
+                              for ch in model.chunks(sel.idx)])
+        sel.data.cache[key] = got
+    return got
 
 
 def _fold_kind(sel, name: str, scored: tuple):
@@ -147,11 +190,12 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
     h0, _ = _fold_kind(sel, name, without)
     fold_gains = h.fold_sums(h.ll) - h0.fold_sums(h0.ll)
     gain = float(fold_gains.sum())
-    judged = blocks_judged(sel, name, labels)
+    expected = expected_block_gains(sel, full[0], name, labels)
+    judged = blocks_judged(sel, name, labels, expected=expected)
     blocks = int(judged.sum())
     improved = int(np.sum(fold_gains[judged] > 0))
     thr = sel.threshold(0)
-    reasons = []
+    reasons = own_gain_reasons(expected, thr)
     if gain < thr:
         reasons.append(f'with the others present its held-out gain is {gain:.1f} nats, below '
                        f'the practical {thr:.1f}')
@@ -188,13 +232,17 @@ def _drop_one(sel, names: tuple, name: str, full: tuple, base_excess: float) -> 
     kept = h.p_in > 0.5
     if not kept.any():
         kept = np.ones_like(kept)
-    gains = {}
-    for key, rows, angle in (('position', pos, False), ('rotation', rot, True)):
-        a, b = _rms(h.e, rows, kept, angle), _rms(h0.e, rows, kept, angle)
-        gains[key] = None if a is None or not b else float(1.0 - a / b)
+    sd = _stated_sd(sel, full[0].state)
+    gains, judged = {}, {}
+    for key, rows in (('position', pos), ('rotation', rot)):
+        a, b = _ms(h.e, rows, kept), _ms(h0.e, rows, kept)
+        gains[key] = rms_gain(a, b, None)
+        judged[key] = rms_gain(a, b, _ms(sd, rows, kept))
     return EffectTest(name=name, held_out_gain=gain, blocks_improved=improved, blocks=blocks,
                       share_of_gap=share, rms_gain_position=gains['position'],
-                      rms_gain_rotation=gains['rotation'], passes=not reasons,
+                      rms_gain_rotation=gains['rotation'],
+                      judged_gain_position=judged['position'],
+                      judged_gain_rotation=judged['rotation'], passes=not reasons,
                       reason='; '.join(reasons) if reasons else 'passes')
 
 
@@ -266,19 +314,41 @@ def noise_change(fit, name: str) -> float:
     """
     Return the relative change of σ a noise effect makes, on the pairs it changes most.
 
-    Per pair, σ's factor is the square root of the ratio of the error's total variance with
-    the effect's parameters to that without them (the others kept); the ``1 - NOISE_SHARE``
-    quantile of ``|log factor|`` is returned as a relative change (``exp(q) - 1``).
+    Per pair, σ's factor along the direction it changes most: the square roots of the
+    generalized eigenvalues of the error's covariance with the effect's parameters against
+    that without them (the others kept), the one farthest from one in log. A noise level
+    changes every direction alike; a noise shape (one axis of B noisier) or a jitter (along the
+    motion) changes one direction, which the total variance would dilute among the others.
+    The ``1 - NOISE_SHARE`` quantile of ``|log factor|`` is returned as a relative change
+    (``exp(q) - 1``).
     """
     var = fit.state.var
     params = CANDIDATES[name].var_params
     off = var.with_values(params, [getattr(vm.VarState(), p) for p in params])
     st = fit.stats
-    total = vm.total_variance(var, st)
-    without = vm.total_variance(off, st)
-    q = float(np.quantile(np.abs(0.5 * np.log(total / np.maximum(without, 1e-300))),
-                          1.0 - NOISE_SHARE))
+    q = float(np.quantile(_largest_log_factor(var, off, st), 1.0 - NOISE_SHARE))
     return float(np.expm1(q))
+
+
+def _largest_log_factor(var, off, st, chunk: int = 8192) -> np.ndarray:
+    """Per pair, the largest ``|log|`` of σ's factor along a direction, ``var`` over ``off``."""
+    n = len(st.z)
+    out = np.empty(n)
+    for i in range(0, n, chunk):
+        part = vm.PairStats(*(_rows(getattr(st, f), i, chunk) for f in (
+            'z', 'lam', 'u', 'log_g', 'V')), markers=st.markers,
+            step=_rows(st.step, i, chunk))
+        c1 = vm.pair_covariances(var, part)
+        c0 = vm.pair_covariances(off, part)
+        L = np.linalg.cholesky(c0)
+        x = np.linalg.solve(L, c1)
+        w = np.linalg.eigvalsh(np.linalg.solve(L, np.swapaxes(x, 1, 2)))
+        out[i:i + chunk] = np.max(np.abs(0.5 * np.log(np.maximum(w, 1e-300))), axis=1)
+    return out
+
+
+def _rows(a, i: int, chunk: int):
+    return None if a is None else a[i:i + chunk]
 
 
 def widened_smoothness(fit, name: str) -> Optional[float]:

@@ -232,6 +232,24 @@ def total_variance(var: VarState, st: PairStats) -> np.ndarray:
     return np.sum(D, axis=1) + var.beta * np.sum(st.u ** 2, axis=1)
 
 
+def pair_covariances(var: VarState, st: PairStats) -> np.ndarray:
+    """
+    Each pair's inlier error covariance (n, m, m) in the decorrelated coordinates.
+
+    The diagonal variances and the jitter's rank-one part, or the full covariance of a noise
+    shape.
+    """
+    if var.shape:
+        return shaped_covariances(var, st)
+    _, _, D, _ = components(var, st)
+    C = np.zeros(D.shape + (D.shape[1],))
+    idx = np.arange(D.shape[1])
+    C[:, idx, idx] = D
+    if var.beta > 0.0:
+        C += var.beta * st.u[:, :, None] * st.u[:, None, :]
+    return C
+
+
 def inflation(var: VarState, st: PairStats) -> float:
     """
     Factor (>= 1) on a fit's parameter variances: the chi-square per dof left under it.
