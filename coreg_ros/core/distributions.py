@@ -27,6 +27,33 @@ def _invalid(df: np.ndarray) -> np.ndarray:
     return ~(df > 0)  # NaN degrees of freedom are invalid too
 
 
+def _of_statistic(f, x, df, at_zero: float, at_inf: float):
+    """
+    Return ``f(df, x)`` on χ²'s support (0, inf), scipy.stats' values at its edges.
+
+    ``at_zero`` where x <= 0, ``at_inf`` where x = inf, NaN for a NaN x or an invalid df.
+    """
+    x, df = np.asarray(x, dtype=float), np.asarray(df)
+    inside = (x > 0.0) & (x < np.inf)
+    value = f(df, np.where(inside, x, 1.0))
+    out = np.where(inside, value, np.where(x <= 0.0, at_zero, at_inf))
+    return _out(np.where(np.isnan(x) | _invalid(df), np.nan, out))
+
+
+def _of_probability(f, p, df, at_zero: float, at_one: float):
+    """
+    Return ``f(df, p)`` for p in (0, 1), scipy.stats' values at 0 and 1.
+
+    ``* 1.0 + 0.0`` is scipy's ``* scale + loc`` (the same bits); NaN outside [0, 1] or for
+    an invalid df.
+    """
+    p, df = np.asarray(p, dtype=float), np.asarray(df)
+    inside = (p > 0.0) & (p < 1.0)
+    value = f(df, np.where(inside, p, 0.5)) * 1.0 + 0.0
+    out = np.where(inside, value, np.where(p == 0.0, at_zero, at_one))
+    return _out(np.where(~((p >= 0.0) & (p <= 1.0)) | _invalid(df), np.nan, out))
+
+
 def chi2_sf(x, df):
     """
     Return P(X > x) for X ~ χ²(df) (``scipy.stats.chi2.sf``).
@@ -39,20 +66,12 @@ def chi2_sf(x, df):
         Degrees of freedom (> 0).
 
     """
-    x, df = np.asarray(x, dtype=float), np.asarray(df)
-    inside = (x > 0.0) & (x < np.inf)
-    value = special.chdtrc(df, np.where(inside, x, 1.0))
-    out = np.where(inside, value, np.where(x <= 0.0, 1.0, 0.0))
-    return _out(np.where(np.isnan(x) | _invalid(df), np.nan, out))
+    return _of_statistic(special.chdtrc, x, df, 1.0, 0.0)
 
 
 def chi2_cdf(x, df):
     """Return P(X <= x) for X ~ χ²(df) (``scipy.stats.chi2.cdf``); shapes as ``chi2_sf``."""
-    x, df = np.asarray(x, dtype=float), np.asarray(df)
-    inside = (x > 0.0) & (x < np.inf)
-    value = special.chdtr(df, np.where(inside, x, 1.0))
-    out = np.where(inside, value, np.where(x <= 0.0, 0.0, 1.0))
-    return _out(np.where(np.isnan(x) | _invalid(df), np.nan, out))
+    return _of_statistic(special.chdtr, x, df, 0.0, 1.0)
 
 
 def chi2_ppf(p, df):
@@ -67,20 +86,12 @@ def chi2_ppf(p, df):
         Degrees of freedom (> 0).
 
     """
-    p, df = np.asarray(p, dtype=float), np.asarray(df)
-    inside = (p > 0.0) & (p < 1.0)
-    value = 2 * special.gammaincinv(df / 2, np.where(inside, p, 0.5)) * 1.0 + 0.0
-    out = np.where(inside, value, np.where(p == 0.0, 0.0, np.inf))
-    return _out(np.where(~((p >= 0.0) & (p <= 1.0)) | _invalid(df), np.nan, out))
+    return _of_probability(lambda d, q: 2 * special.gammaincinv(d / 2, q), p, df, 0.0, np.inf)
 
 
 def chi2_isf(p, df):
     """Return the value χ²(df) exceeds with probability p (``scipy.stats.chi2.isf``)."""
-    p, df = np.asarray(p, dtype=float), np.asarray(df)
-    inside = (p > 0.0) & (p < 1.0)
-    value = special.chdtri(df, np.where(inside, p, 0.5)) * 1.0 + 0.0
-    out = np.where(inside, value, np.where(p == 1.0, 0.0, np.inf))
-    return _out(np.where(~((p >= 0.0) & (p <= 1.0)) | _invalid(df), np.nan, out))
+    return _of_probability(special.chdtri, p, df, np.inf, 0.0)
 
 
 def norm_sf(x):
