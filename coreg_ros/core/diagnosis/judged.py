@@ -86,10 +86,11 @@ def blocks_judged(sel, name: str, labels: np.ndarray, fit: Optional[Fit] = None,
     return judged
 
 
-#: A time or mean effect's own moves must predict at least this share of the practical
-#: threshold (``own_gain_reasons``); the share is the screening's (``selection.SCREEN_SHARE``):
-#: it leaves room for the linearisation's error.
-OWN_SHARE = 0.3
+#: A candidate whose predicted gain is below this share of the practical threshold is not
+#: refitted (the screening of ``selection``: its held-out gain cannot reach the threshold),
+#: and a time or mean effect's own moves must predict at least this share of it
+#: (``own_gain_reasons``); the share leaves room for the linearisation's error.
+SCREEN_SHARE = 0.3
 
 
 def own_gain_reasons(expected: Optional[np.ndarray], thr: float) -> list:
@@ -97,14 +98,14 @@ def own_gain_reasons(expected: Optional[np.ndarray], thr: float) -> list:
     Why a time or mean effect's gain is not its own, or nothing.
 
     Its held-out gain must come from the errors it moves: the gain its own θ predicts
-    (``expected_block_gains`` summed) must reach ``OWN_SHARE`` of the practical ``thr``. A
+    (``expected_block_gains`` summed) must reach ``SCREEN_SHARE`` of the practical ``thr``. A
     model refitted with an effect whose θ stays near zero can still gain when the other
     effects' parameters converge further from the new start: that gain is theirs.
     """
     if expected is None:
         return []
     own = float(np.sum(expected))
-    if own >= OWN_SHARE * thr:
+    if own >= SCREEN_SHARE * thr:
         return []
-    return [f'its own moves predict a gain of {own:.1f} nats, below {OWN_SHARE:g} of the '
+    return [f'its own moves predict a gain of {own:.1f} nats, below {SCREEN_SHARE:g} of the '
             f'practical {thr:.1f}: the gain is the refit of the others']

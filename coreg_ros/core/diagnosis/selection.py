@@ -26,6 +26,7 @@ from coreg_ros.core.diagnosis.judged import (
     blocks_judged,
     expected_block_gains,
     own_gain_reasons,
+    SCREEN_SHARE,
 )
 from coreg_ros.core.diagnosis.locate import STATIC_ANGULAR_SPEED, STATIC_SPEED
 from coreg_ros.core.diagnosis.options import Options, Progress
@@ -199,11 +200,8 @@ def score_candidate(sel: Selector, accepted: tuple, name: str, ref: tuple, round
     return cand
 
 
-#: A candidate whose predicted in-sample gain is below this share of the practical threshold
-#: is not refitted (its held-out gain cannot reach the threshold; the share leaves room for
-#: the linearisation's error).
-SCREEN_SHARE = 0.3
-#: ... or below this share of the best held-out gain found in the round (it could be neither
+#: A candidate is not refitted either (beside ``judged.SCREEN_SHARE`` of the practical
+#: threshold) below this share of the best held-out gain found in the round (it could be neither
 #: the pick nor a not-separable rival, which needs ``not_separable_ratio`` = 0.6 of it; the
 #: margin is for the prediction's error). Such a candidate is looked at again in the next
 #: round, on top of the pick.

@@ -9,7 +9,7 @@ from coreg_ros.core.diagnosis.judged import (
     EXPECTED_BLOCK_GAIN,
     expected_block_gains,
     own_gain_reasons,
-    OWN_SHARE,
+    SCREEN_SHARE,
 )
 from coreg_ros.core.diagnosis.options import Options
 from coreg_ros.core.diagnosis.selection import score_candidate, screen, Selector
@@ -162,6 +162,6 @@ def test_a_gain_must_come_from_the_effects_own_moves(offset):
         assert cand.passes and own == pytest.approx(cand.gain, rel=0.2)
         assert own_gain_reasons(np.array([own]), thr) == []
     else:
-        assert own < OWN_SHARE * thr
+        assert own < SCREEN_SHARE * thr
         assert 'its own moves' in own_gain_reasons(np.array([own]), thr)[0]
         assert not cand.passes and 'its own moves' in cand.reason
