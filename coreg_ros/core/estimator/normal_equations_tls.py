@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple, Optional, Union
 
+from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConvergenceError
 from coreg_ros.core.estimator.normal_equations import (
     _add_rotation_block,
@@ -49,15 +50,14 @@ class ChunkFactors(NamedTuple):
 
     The float32 arrays cost half the memory; δφ is solved from S and b accumulated in float64,
     so only the input steps carry a relative error of ~1e-7, which the next linearisation
-    absorbs (an inexact Newton step in x, as in the generic path).
+    absorbs (an inexact Newton step in x, as in the generic path). R_A, c and v are not kept:
+    the back-substitution makes them again from the input state (``TlsFactors.inputs``), 84
+    bytes a pair less at the peak of a long recording's fit.
     """
 
     pairs: slice
     L: np.ndarray        # (6, c) float32: l00, l10, l11, l20, l21, l22 of the 3×3 factor
     Z: np.ndarray        # (3, k, c) float32: L⁻¹ [N | H_r | g̃_θ]
-    c: np.ndarray        # (3, c) R_A p1
-    v: np.ndarray        # (3, c) p_A + R_A p1
-    Ra: np.ndarray       # (3, 3, c) float32 input orientations
     g_pos: np.ndarray    # (3, c) gradient of the input position before elimination
     m: Optional[Union[float, np.ndarray]]  # scalar M_p (one or per pair), None: matrix
 
@@ -70,10 +70,25 @@ class TlsFactors:
     Mp: Optional[np.ndarray]      # (3, 3) constant M_p, None when it is a scalar
     Qp_bar: np.ndarray            # (3, 3) Q̄p
     chunks: list                  # of ChunkFactors
+    marker: np.ndarray            # (3,) p1, the tool-to-marker position at the linearisation
+    inputs: tuple                 # (3, N), (4, N) the input state x linearised at (held)
+
+    def geometry(self, sl: slice) -> tuple:
+        """
+        R_A (float32, as kept before), c = R_A p1 and v = p_A + c of the pairs ``sl``.
+
+        Made as ``_channels`` made them at the linearisation, from the same inputs: the same
+        numbers to the bit.
+        """
+        xp, xq = self.inputs[0][:, sl], self.inputs[1][:, sl]
+        Ra = quat.to_matrix(xq, pair_last=True)
+        c = self.marker @ Ra
+        return Ra.astype(np.float32), c, xp + c
 
     def clear(self) -> None:
-        """Drop the per-pair factors (spent after the back-substitution)."""
+        """Drop the per-pair factors and the inputs (spent after the back-substitution)."""
         self.chunks.clear()
+        self.inputs = ()
 
 
 def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
@@ -140,7 +155,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         Qe = Qp_bar @ Mp @ extra
         Qe = 0.5 * (Qe + Qe.T)
         keep = extra @ Mp    # I - Q̄p M_p, as hp = gp - Q̄p M_p (gp + gap) needs it
-    factors = TlsFactors(frame.T, Mp, Qp_bar, [])
+    factors = TlsFactors(frame.T, Mp, Qp_bar, [], params.markers[0], (x.pos_t, x.quat_t))
     k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
 
     def chunk(sl):
@@ -202,8 +217,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             residuals[0][sl] = ch.r_out.T
             residuals[1][sl, 0:3] = r_ap.T
             residuals[1][sl, 3:6] = r_ar.T
-        kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), ch.c,
-                            ch.v, ch.Ra.astype(np.float32), g_pos, m)
+        kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), g_pos, m)
         cost = np.vdot(ch.r_out, ch.r_out) + np.vdot(r_ap, r_ap) + np.vdot(r_ar, r_ar)
         # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
         F = f @ f.T
@@ -285,14 +299,15 @@ def closed_form_back_substitute(n: int, factors: TlsFactors,
     for ch in factors.chunks:
         L = tuple(ch.L.astype(float))
         Z = ch.Z.astype(float)
-        Bp = d[0:3, None] - cross(ch.v, np.broadcast_to(d[3:6, None], ch.v.shape)) \
-            + np.einsum('abn,b->an', ch.Ra, d[6:9])
+        Ra, c, v = factors.geometry(ch.pairs)
+        Bp = d[0:3, None] - cross(v, np.broadcast_to(d[3:6, None], v.shape)) \
+            + np.einsum('abn,b->an', Ra, d[6:9])
         rhs = np.einsum('abn,bn->an', Z[:, 0:3], Bp) + Z[:, -1]
         if len(d) == 12:
-            Br = d[3:6, None] + np.einsum('abn,b->an', ch.Ra, d[9:12])
+            Br = d[3:6, None] + np.einsum('abn,b->an', Ra, d[9:12])
             rhs += np.einsum('abn,bn->an', Z[:, 3:6], Br)
         dth = -sym_solve3(L, rhs, transpose=True)
-        y = ch.g_pos + factors.Qp_bar @ (Bp - cross(ch.c, dth))
+        y = ch.g_pos + factors.Qp_bar @ (Bp - cross(c, dth))
         dx[0:3, ch.pairs] = -(factors.Mp @ y) if ch.m is None else -(ch.m * y)
         dx[3:6, ch.pairs] = dth
     return dx
