@@ -267,8 +267,10 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             trial = phi.stepped(delta)
             if not trial.valid:
                 return state, np.inf, None
-            trial = (trial.recharted(), x.stepped(back_substitute(problem.n, factors, delta)))
-            factors.clear()  # spent: free them before the trial's are made
+            step = back_substitute(problem.n, factors, delta)
+            factors.clear()  # spent: freed before the trial's inputs and factors are made
+            trial = (trial.recharted(), x.stepped(step))
+            step = None
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
@@ -284,9 +286,11 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             step = back_substitute(seed.n_factored, seed.factors, delta)
             if seed.kept is not None:
                 step = np.take(step, seed.kept, axis=1)
-            trial = (trial.recharted(), x.stepped(step))
-            step = None  # spent, as the factors: freed before the trial's are made
+            # spent, with the inputs of the fit they came from: freed before the trial's
+            # inputs and factors are made
             seed.factors.clear()
+            trial = (trial.recharted(), x.stepped(step))
+            step = None
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
