@@ -68,12 +68,15 @@ class Trajectory:
         pos, q, _ = self._interpolated(np.asarray(t, dtype=float))
         return pos, q
 
-    def _interpolated(self, t: np.ndarray, position: bool = True, orientation: bool = True
+    def _interpolated(self, t: np.ndarray, position: bool = True, orientation: bool = True,
+                      canonical: bool = True
                       ) -> tuple[Optional[np.ndarray], Optional[np.ndarray], np.ndarray]:
         """
         Return ``pose(t)``'s parts asked (None for the others) and each time's bracket.
 
         The bracket is the index of the last sample at or before the time (-1: none).
+        ``canonical`` False: the quaternions keep the trajectory's continuous sign instead of
+        w >= 0 (for a relative rotation whose ``quat.log`` takes the sign anyway).
         """
         before = np.searchsorted(self.t, t, side='right') - 1
         k = np.clip(before, 0, len(self) - 2)
@@ -93,7 +96,8 @@ class Trajectory:
                 q_hi *= np.take(self._sign, k1)[:, None]
             q = q_lo + a * (q_hi - q_lo)
             q /= np.linalg.norm(q, axis=1, keepdims=True)
-            q = quat.canonical(q)
+            if canonical:
+                q = quat.canonical(q)
         return pos, q, before
 
     def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW,
@@ -125,12 +129,14 @@ class Trajectory:
     def _velocity_into(self, t: np.ndarray, half: float, max_gap: Optional[float],
                        v: Optional[np.ndarray], w: Optional[np.ndarray]) -> None:
         """Write ``velocity``'s linear part into v and its angular part into w (None: skip)."""
-        p1, q1, _ = self._interpolated(t + half, v is not None, w is not None)
-        p0, q0, lo = self._interpolated(t - half, v is not None, w is not None)
+        # the signs of q0 and q1 need no choosing: q1 ⊗ q0* only changes sign with either
+        # (exactly), and quat.log gives q and -q one rotation vector
+        p1, q1, _ = self._interpolated(t + half, v is not None, w is not None, False)
+        p0, q0, lo = self._interpolated(t - half, v is not None, w is not None, False)
         if v is not None:
             v[:] = (p1 - p0) / (2.0 * half)
         if w is not None:
-            w[:] = quat.log(quat.multiply(q1, quat.conjugate(q0))) / (2.0 * half)
+            w[:] = quat.relative_log(q1, q0) / (2.0 * half)
         if max_gap is not None:
             gaps = self._segment_ids(max_gap)
             hi = np.searchsorted(self.t, t + half, side='left')
