@@ -164,6 +164,22 @@ def test_log_near_pi_keeps_angle():
                                    atol=1e-9)
 
 
+@pytest.mark.parametrize('spread', [1.0, 1e-3, 1e-9, 0.0])
+def test_relative_log_is_log_of_the_relative_rotation_to_the_bit(spread):
+    # random signs, neighbours (a velocity's window), identical pairs and w = 0 exactly
+    rng = np.random.default_rng(11)
+    q1 = rng.normal(size=(20000, 4))
+    q0 = q1 + spread * rng.normal(size=q1.shape)
+    q1 /= np.linalg.norm(q1, axis=1, keepdims=True)
+    q0 /= np.linalg.norm(q0, axis=1, keepdims=True)
+    q0[rng.random(len(q0)) < 0.5] *= -1.0
+    q1[:50, 0] = 0.0
+    composed = quat.log(quat.multiply(q1, quat.conjugate(q0)))
+    fused = quat.relative_log(q1, q0)
+    assert fused.shape == composed.shape
+    assert np.array_equal(fused.view(np.int64), composed.view(np.int64))
+
+
 # ---------------------------------------------------------------------------------------------
 # Slerp and canonical sign
 # ---------------------------------------------------------------------------------------------
