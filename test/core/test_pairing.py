@@ -1,8 +1,15 @@
 """Tests of coreg_ros.core.calibration.pairing: the one pairing rule of the package."""
 
 
+import dataclasses
+
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibration.pairing import pair_streams, UNPAIRED_REASONS, validate_stream
+from coreg_ros.core.calibration.pairing import (
+    pair_streams,
+    UNPAIRED_REASONS,
+    validate_stream,
+    VALIDATED,
+)
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import PoseStream
 from hypothesis import given, settings
@@ -312,3 +319,20 @@ def test_a_million_samples_pair():
     b = PoseStream(tb, rng.normal(size=(n, 3)), q)
     pairs, report = pair_streams(a, b, max_gap_ns=20 * MS)
     assert report.n_paired > 0.99 * n
+
+
+def test_a_validated_stream_is_checked_once():
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=(50, 4))
+    raw = PoseStream(np.arange(50, dtype=np.int64) * 10**6, rng.normal(size=(50, 3)),
+                     q / np.linalg.norm(q, axis=1, keepdims=True) * (1 + 1e-9))
+    once = validate_stream(raw, 'stream_a')
+    assert once is not raw and validate_stream(once, 'stream_a') is once
+    assert np.all(once.quat_wxyz[:, 0] >= 0)
+    # checked without its orientation: asked with it, the quaternions are checked then
+    positions = validate_stream(raw, 'stream_b', orientation=False)
+    assert validate_stream(positions, 'stream_b', orientation=False) is positions
+    full = validate_stream(positions, 'stream_b')
+    assert full is not positions and np.array_equal(full.quat_wxyz, once.quat_wxyz)
+    # the mark is no field (equality, copies and the fingerprint do not see it)
+    assert all(f.name != VALIDATED for f in dataclasses.fields(once))

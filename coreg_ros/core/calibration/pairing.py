@@ -55,6 +55,10 @@ def _stamps(values: object, name: str) -> np.ndarray:
     return arr.astype(np.int64, copy=False)
 
 
+#: Attribute of a stream ``validate_stream`` returned: the ``orientation`` it was checked with.
+VALIDATED = '_validated_orientation'
+
+
 def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) -> PoseStream:
     """
     Check one device's stream before pairing and return it with normalised quaternions.
@@ -74,7 +78,8 @@ def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) 
     -------
     stream : PoseStream
         The same samples with int64 stamps, float positions and unit quaternions of sign
-        w >= 0 (when ``orientation``).
+        w >= 0 (when ``orientation``). A stream this function returned is returned as it is
+        (checked once, normalised once).
 
     Raises
     ------
@@ -85,6 +90,8 @@ def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) 
         positions, NaN, zero or non-unit quaternions.
 
     """
+    if getattr(stream, VALIDATED, None) in (True, orientation):
+        return stream  # this function's own result (with its quaternions, if asked)
     n = len(np.asarray(stream.stamps).reshape(-1))
     if n == 0:
         raise InputError(f'{name}: the stream is empty; record or select samples of this '
@@ -138,8 +145,12 @@ def validate_stream(stream: PoseStream, name: str, *, orientation: bool = True) 
             f'samples')
     if orientation:
         quat = validate_quaternions(quat, f'{name} quat_wxyz')
-    return PoseStream(stamps=stamps, position=position, quat_wxyz=quat,
-                      frame_id=stream.frame_id, receive_stamps=receive)
+    out = PoseStream(stamps=stamps, position=position, quat_wxyz=quat,
+                     frame_id=stream.frame_id, receive_stamps=receive)
+    # marked (not a field: equality and the fingerprint ignore it), so that a caller can
+    # validate once and let the samples as recorded go (a long recording's quaternions)
+    object.__setattr__(out, VALIDATED, orientation)
+    return out
 
 
 def _bracket(t_src: np.ndarray, t: np.ndarray,
