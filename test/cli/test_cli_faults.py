@@ -210,7 +210,6 @@ def test_messages_name_no_tool_a_user_may_lack():
 #: where rosdep has none: then package.xml says so in a comment).
 THIRD_PARTY = {'numpy': ('numpy', 'python3-numpy'), 'scipy': ('scipy', 'python3-scipy'),
                'yaml': ('PyYAML', 'python3-yaml'), 'rosbags': ('rosbags', None),
-               'apsw': ('apsw', None),
                'rich': ('rich', None), 'threadpoolctl': ('threadpoolctl', None),
                'matplotlib': ('matplotlib', 'python3-matplotlib'),
                'dask': ('dask[distributed]', None), 'distributed': ('dask[distributed]', None)}
