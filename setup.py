@@ -17,7 +17,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.9.2', 'rosbags>=0.10', 'apsw', 'PyYAML',
+    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.9.2', 'rosbags>=0.10', 'PyYAML',
                       'rich>=13', 'threadpoolctl>=3'],
     extras_require={'test': ['pytest', 'hypothesis', 'ruff', 'pytest-xdist'],
                     'report': ['matplotlib'],

@@ -244,7 +244,7 @@ def _fetched_pages(storage: Any, db: Any, ids: list[int], pages: list, index: st
         return [_sqlite_page(db, ids, lo, hi, index) for lo, hi in pages]
     from concurrent.futures import ThreadPoolExecutor
 
-    import apsw  # rosbags' sqlite3 storage is apsw's (setup.py names it too)
+    import apsw
     second = apsw.Connection(f'file:{storage.path}?immutable=1',
                              flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
     try:
