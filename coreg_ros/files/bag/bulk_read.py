@@ -242,9 +242,8 @@ def _fetched_pages(storage: Any, db: Any, ids: list[int], pages: list, index: st
     """
     if len(pages) < 2 or not isinstance(getattr(storage, 'path', None), Path):
         return [_sqlite_page(db, ids, lo, hi, index) for lo, hi in pages]
-    from concurrent.futures import ThreadPoolExecutor
-
     import apsw
+    from concurrent.futures import ThreadPoolExecutor
     second = apsw.Connection(f'file:{storage.path}?immutable=1',
                              flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
     try:
