@@ -31,7 +31,6 @@ raises the usual errors for damaged files.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 import re
 from typing import Any, Optional
 
@@ -207,7 +206,8 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
     index = _index_walked(db, theirs, ids)
     parts: dict[str, list[Parts]] = {t: [] for t in cids.values()}
     (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
-    for page in _fetched_pages(storage, db, ids, _sqlite_pages(db, total), index):
+    for lo, hi in _sqlite_pages(db, total):
+        page = _sqlite_page(db, ids, lo, hi, index)
         if page is None:
             continue
         log_ns, tid, size, mem = page
@@ -230,34 +230,6 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
                 block = _gather(mem, starts[pick], int(mine[0]))
             parts[topic].append((log_ns[pick], None if block is None else [block]))
     return {topic: _concat(items) for topic, items in parts.items()}
-
-
-def _fetched_pages(storage: Any, db: Any, ids: list[int], pages: list, index: str) -> list:
-    """
-    ``_sqlite_page`` of every page, in order; two connections in two threads when it pays.
-
-    SQLite's work on a page (the index walk and the concatenation) runs without the GIL, so
-    a second read-only connection to the same immutable file fetches every other page beside
-    the first (a connection is used by one thread only).
-    """
-    if len(pages) < 2 or not isinstance(getattr(storage, 'path', None), Path):
-        return [_sqlite_page(db, ids, lo, hi, index) for lo, hi in pages]
-    import apsw
-    from concurrent.futures import ThreadPoolExecutor
-    second = apsw.Connection(f'file:{storage.path}?immutable=1',
-                             flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
-    try:
-        def fetch(k: int) -> list:
-            conn = db if k == 0 else second
-            return [_sqlite_page(conn, ids, lo, hi, index) for lo, hi in pages[k::2]]
-
-        with ThreadPoolExecutor(2) as pool:
-            even, odd = pool.map(fetch, (0, 1))
-    finally:
-        second.close()
-    out = [None] * len(pages)
-    out[0::2], out[1::2] = even, odd
-    return out
 
 
 def _sqlite_pages(db: Any, total: int) -> list[tuple[Optional[int], Optional[int]]]:
