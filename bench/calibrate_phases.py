@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (module, function, phase): the read, the offset search's parts, the fit's parts, the verdict.
 PHASES = (
     ('coreg_ros.files.bag.posebag', 'read_pose_bag', 'read the bag'),
-    ('coreg_ros.core.calibration.offset_search', 'validated_streams', 'validate the streams'),
+    ('coreg_ros.core.calibration.pairing', 'validate_stream', 'validate the streams'),
     ('coreg_ros.core.calibration.offset_search', '_candidates', 'coarse offset search'),
     ('coreg_ros.core.calibration.offset_search', 'pair_for', 'pairing'),
     ('coreg_ros.core.calibration.offset_search', 'calibrate', 'robust fit'),
