@@ -68,7 +68,10 @@ import os, sys, time, pickle, json
 for v in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ[v] = '1'
 sys.path.insert(0, sys.argv[1])
-from coreg_ros.core.calibration.calibrate import calibrate
+try:
+    from coreg_ros.core.calibration.calibrate import calibrate
+except ModuleNotFoundError:  # a tree from before the house's second level
+    from coreg_ros.core.calibrate import calibrate
 pairs, settings = pickle.load(open(sys.argv[2], 'rb'))
 best = float('inf')
 for _ in range(int(sys.argv[3])):
