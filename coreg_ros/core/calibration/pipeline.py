@@ -16,7 +16,7 @@ from typing import Optional, Union
 from coreg_ros.core.calibration.auto_noise import calibrate_with_noise
 from coreg_ros.core.calibration.clock_check import clock_problem
 from coreg_ros.core.calibration.offset_search import fit_at_offset, fit_with_offset_search
-from coreg_ros.core.calibration.pairing import stream_list
+from coreg_ros.core.calibration.pairing import stream_list, validated_streams
 from coreg_ros.core.calibration.stream_directions import (
     CHECK_BELOW_P,
     check_directions,
@@ -107,6 +107,11 @@ def calibrate_streams(stream_a: PoseStream, streams_b: Union[PoseStream, Sequenc
                          f'(coreg_ros.calibrate loads them itself)')
     streams_b = stream_list(streams_b)
     same_data_prior(prior, streams_b)
+    if len(streams_b) in (1, 3):  # (any other count is refused below, in the pairing's words)
+        # checked and normalised once: every step below (the offset search, the noise
+        # estimate's rounds, the verdict's checks) takes these as they are
+        stream_a, streams_b = validated_streams(stream_a, streams_b,
+                                                settings.model == 'full_pose')
     try:
         if settings.noise == 'auto':  # the noise estimated with the fit, and the fit at it
             result, report, settings = calibrate_with_noise(stream_a, streams_b, settings,
