@@ -271,13 +271,20 @@ def log(q: np.ndarray) -> np.ndarray:
     are opposite vectors, both of angle π: the same rotation.
     """
     q = canonical(q)
-    w = np.clip(q[..., 0], -1.0, 1.0)
     vec = q[..., 1:]
-    s = np.linalg.norm(vec, axis=-1)
+    return _log_scale(q[..., 0], np.linalg.norm(vec, axis=-1))[..., None] * vec
+
+
+def _log_scale(w: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """
+    θ / |v| of canonical quaternions (w >= 0) from w and s = |v|: ``log``'s factor on v.
+
+    Accurate as s -> 0 (the limit 2 / w).
+    """
+    w = np.clip(w, -1.0, 1.0)
     theta = 2.0 * np.arctan2(s, w)
     small = s < 1e-9
-    k = np.where(small, 2.0 / np.maximum(w, 1e-300), theta / np.where(small, 1.0, s))
-    return k[..., None] * vec
+    return np.where(small, 2.0 / np.maximum(w, 1e-300), theta / np.where(small, 1.0, s))
 
 
 def relative_log(q1: np.ndarray, q0: np.ndarray) -> np.ndarray:
@@ -293,11 +300,7 @@ def relative_log(q1: np.ndarray, q0: np.ndarray) -> np.ndarray:
     flip = w < 0.0
     for part in (w, x, y, z):
         np.negative(part, out=part, where=flip)
-    w = np.clip(w, -1.0, 1.0)
-    s = np.sqrt(x * x + y * y + z * z)
-    theta = 2.0 * np.arctan2(s, w)
-    small = s < 1e-9
-    k = np.where(small, 2.0 / np.maximum(w, 1e-300), theta / np.where(small, 1.0, s))
+    k = _log_scale(w, np.sqrt(x * x + y * y + z * z))
     out = np.empty((a.shape[1], 3))
     for i, part in enumerate((x, y, z)):
         np.multiply(k, part, out=out[:, i])
