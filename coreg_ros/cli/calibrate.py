@@ -6,7 +6,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import sys
 from typing import Any
 
@@ -91,7 +91,9 @@ def calibrate_bag(bag, settings, prior=None, frames=None, direction_check: bool 
     from coreg_ros.files.results import result_to_dict
     from coreg_ros.threads import one_blas_thread
 
-    streams = read_pose_bag(bag, [settings.topic_a, *settings.topic_b])
+    # the log times are the diagnosis's (coreg diagnose), not the calibration's: let go
+    streams = {topic: replace(s, receive_stamps=None)
+               for topic, s in read_pose_bag(bag, [settings.topic_a, *settings.topic_b]).items()}
     sketch = data_sketch([streams[t] for t in settings.topic_b])  # --prior refuses the same
     # checked and normalised once here, and the samples as read let go: the pipeline takes
     # the validated streams as they are (a 4M-message recording's quaternions: 122 MiB)

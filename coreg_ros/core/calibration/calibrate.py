@@ -428,10 +428,12 @@ class _Fitter:
             return solve_ols(replace(self.everything, weights=kept.astype(float)), params,
                              max_iterations=settings.max_iterations, xtol=XTOL, normal=normal)
         if self.paths.refit and can_take_out(sol, fitted, kept):
-            seed = without_pairs(sol, self.everything, fitted, kept)
+            # the seed handed over: solve_tls alone holds it (its inputs go when spent)
+            seed = [without_pairs(sol, self.everything, fitted, kept)]
             del sol
             return solve_tls(self.problem(kept, with_priors=False, lazy=True), params,
-                             max_iterations=settings.max_iterations, xtol=XTOL, seed=seed)
+                             max_iterations=settings.max_iterations, xtol=XTOL,
+                             seed=seed.pop())
         inputs = self.carried(sol, fitted, kept)
         del sol
         return self.solve(kept, params, warm=True, with_priors=False, inputs=inputs)

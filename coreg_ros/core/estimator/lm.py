@@ -70,10 +70,10 @@ class Linearization:
     rhs: np.ndarray
     cost: float
     propose: Callable
-    residuals: Optional[tuple] = None
     damping_share: float = 0.0  # largest λ·V_jj / info_jj: how far info is from undamped
     factors: Union[list, TlsFactors, None] = None
     step: Optional[np.ndarray] = None  # set by the driver when it pauses before this step
+    fresh: bool = True  # made at its state (not sums carried over from another fit's)
 
 
 def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: float,
@@ -118,7 +118,9 @@ def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: f
 
     """
     lam = damping
-    lin = linearize(state, lam) if first is None else first
+    # ``first`` and, once it moves on, the last state are held by nothing here: a TLS state
+    # holds every pair's input estimates (107 MB at 2M pairs)
+    lin, first = (linearize(state, lam) if first is None else first), None
     for it in range(1, max_iterations + 1):
         rejected = False
         while True:
@@ -131,9 +133,6 @@ def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: f
                 lin.step = delta
                 return state, PAUSED, it, lin, lam
             lam_next = max(lam / 10.0, 1e-12)
-            # the residuals at the current state are not needed while the trial is made
-            # (a return after a rejection re-linearises): their memory goes first
-            lin.residuals = None
             trial, new_cost, trial_lin = lin.propose(delta, lam_next)
             if np.isfinite(new_cost) and new_cost <= lin.cost:
                 break
@@ -148,12 +147,12 @@ def levenberg_marquardt(state, linearize: Callable, max_iterations: int, xtol: f
             lam = max(lam, 1e-12) * 10.0
             lin = None
             lin = linearize(state, lam)
-        state, old, lam = trial, lin, lam_next
-        lin = None
-        lin = trial_lin if trial_lin is not None else linearize(state, lam)
-        if step_is_small(delta, old.info, xtol):
+        state, lam, old_info, old_cost = trial, lam_next, lin.info, lin.cost
+        lin = trial = None  # the last state's linearisation (its closures hold that state)
+        lin, trial_lin = (trial_lin if trial_lin is not None else linearize(state, lam)), None
+        if step_is_small(delta, old_info, xtol):
             return state, 1, it, lin, lam
-        if old.cost - new_cost <= ftol * max(new_cost, 1.0):
+        if old_cost - new_cost <= ftol * max(new_cost, 1.0):
             return state, 2, it, lin, lam
     return state, 0, max_iterations, lin, lam
 

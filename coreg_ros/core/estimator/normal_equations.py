@@ -222,23 +222,31 @@ def _channels(frame: _Frame, pos_a, qa, pos_b, quat_b, matrices: bool = True) ->
 
     Without ``matrices``, ``Hr`` is None where the moment form (``hr_f``) replaces it.
     """
-    params = frame.params
-    R0 = params.R0
     Ra = quat.to_matrix(qa, pair_last=True)
-    c = params.markers[0] @ Ra   # Σ_b R_A[a, b] p1[b], (3, c)
+    c = frame.params.markers[0] @ Ra   # Σ_b R_A[a, b] p1[b], (3, c)
     v = pos_a + c
-    e_p = (params.p0[:, None] + R0 @ v) - pos_b
-    r_p = frame.Lp @ e_p
-    gp = (R0.T @ frame.Lp.T) @ r_p
+    r_p, gp = position_residual(frame, v, pos_b)
     if not frame.has_rot:
         return _Chunk(Ra, c, v, r_p, gp, None, None)
     E = error_quaternion(frame.q_model @ qa, quat_b)
-    r_r, Hr, gr, f = _rotation_information(frame.Lr, E, R0, matrices)
+    r_r, Hr, gr, f = _rotation_information(frame.Lr, E, frame.params.R0, matrices)
     out = _Chunk(Ra, c, v, np.concatenate([r_p, r_r]), gp, Hr, gr)
     if f is not None:   # isotropic Lr = w I: H_r = w²/4 (I - f fᵀ)
         w = float(frame.Lr[0, 0])
         out.hr_f, out.hr_scale = f, 0.25 * w * w
     return out
+
+
+def position_residual(frame: _Frame, v: np.ndarray, pos_b: np.ndarray) -> tuple:
+    """
+    Whitened position residual r_p (3, c) and its gradient g_p = R0ᵀ L_pᵀ r_p (3, c).
+
+    ``v = p_A + R_A p1`` (3, c) per pair, ``pos_b`` B's positions (3, c), m.
+    """
+    R0 = frame.params.R0
+    e_p = (frame.params.p0[:, None] + R0 @ v) - pos_b
+    r_p = frame.Lp @ e_p
+    return r_p, (R0.T @ frame.Lp.T) @ r_p
 
 
 def _features(ch: _Chunk) -> np.ndarray:

@@ -12,7 +12,7 @@ factors (``closed_form_back_substitute``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Optional, Union
+from typing import Callable, NamedTuple, Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConvergenceError
@@ -28,6 +28,7 @@ from coreg_ros.core.estimator.normal_equations import (
     _scalar,
     _sum_chunks,
     _sum_gradient,
+    position_residual,
 )
 from coreg_ros.core.estimator.pair_algebra import (
     cholesky3,
@@ -39,6 +40,7 @@ from coreg_ros.core.estimator.pair_algebra import (
     mm,
     sym_solve3,
 )
+from coreg_ros.core.estimator.problem import Columns
 from coreg_ros.core.models import Parameters
 from coreg_ros.core.so3 import skew
 import numpy as np
@@ -51,15 +53,14 @@ class ChunkFactors(NamedTuple):
     The float32 arrays cost half the memory; δφ is solved from S and b accumulated in float64,
     so only the input steps carry a relative error of ~1e-7, which the next linearisation
     absorbs (an inexact Newton step in x, as in the generic path). R_A, c and v are not kept:
-    the back-substitution makes them again from the input state (``TlsFactors.inputs``), 84
-    bytes a pair less at the peak of a long recording's fit.
+    the back-substitution makes them again from the input state (``TlsFactors.inputs``),
+    and the input position's gradient and M_p from the pairs (``TlsFactors.position_terms``):
+    148 bytes a pair less at the peak of a long recording's fit.
     """
 
     pairs: slice
     L: np.ndarray        # (6, c) float32: l00, l10, l11, l20, l21, l22 of the 3×3 factor
     Z: np.ndarray        # (3, k, c) float32: L⁻¹ [N | H_r | g̃_θ]
-    g_pos: np.ndarray    # (3, c) gradient of the input position before elimination
-    m: Optional[Union[float, np.ndarray]]  # scalar M_p (one or per pair), None: matrix
 
 
 @dataclass
@@ -72,6 +73,22 @@ class TlsFactors:
     chunks: list                  # of ChunkFactors
     marker: np.ndarray            # (3,) p1, the tool-to-marker position at the linearisation
     inputs: tuple                 # (3, N), (4, N) the input state x linearised at (held)
+    frame: _Frame                 # φ and the whitening of the linearisation
+    problem: object               # its pairs (a Problem; not copied)
+    m_of: Optional[Callable]      # pair weights (c,) or 1.0 -> scalar M_p; None: matrix M_p
+
+    def position_terms(self, sl: slice, v: np.ndarray) -> tuple:
+        """
+        The input position's gradient g_p + g_ap (3, c) and M_p of the pairs ``sl``.
+
+        Made as ``tls_schur`` made them, from the same inputs: the same numbers to the bit.
+        """
+        pos_a = np.ascontiguousarray(self.problem.pos_a[sl].T)
+        pos_b = np.ascontiguousarray(self.problem.pos_b[sl].T)
+        w = _input_weights(self.problem, sl)
+        _, gap = _input_position(self.frame, self.inputs[0][:, sl], pos_a, w)
+        g_pos = position_residual(self.frame, v, pos_b)[1] + gap
+        return g_pos, None if self.m_of is None else self.m_of(w)
 
     def geometry(self, sl: slice) -> tuple:
         """
@@ -155,7 +172,8 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         Qe = Qp_bar @ Mp @ extra
         Qe = 0.5 * (Qe + Qe.T)
         keep = extra @ Mp    # I - Q̄p M_p, as hp = gp - Q̄p M_p (gp + gap) needs it
-    factors = TlsFactors(frame.T, Mp, Qp_bar, [], params.markers[0], (x.pos_t, x.quat_t))
+    factors = TlsFactors(frame.T, Mp, Qp_bar, [], params.markers[0], (x.pos_t, x.quat_t),
+                         frame, problem, (lambda w: eliminated(w)[1]) if iso else None)
     k = 7 if has_rot else 4   # columns of Z: N, (H_r,) g̃_θ
 
     def chunk(sl):
@@ -163,19 +181,15 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
         xp, xq = x.pos_t[:, sl], x.quat_t[:, sl]
         ch = _channels(frame, xp, xq, pos_b, quat_b)
         n_pairs = ch.c.shape[1]
-        r_ap = frame.Lap @ (xp - pos_a)
         Ea = error_quaternion(xq, quat_a * CONJ)
         r_ar, U, gar, _ = _rotation_information(frame.Lar, Ea, None)
-        gap = frame.Lap.T @ r_ap
-        # per-pair weights w on A's information (1 / a_scale, from the interpolation of A)
-        w = 1.0 if not weighted else 1.0 / problem.a_scale[sl]
+        w = _input_weights(problem, sl)
+        r_ap, gap = _input_position(frame, xp, pos_a, w)
         if weighted:
-            gap *= w
             r_ap *= np.sqrt(w)
             r_ar *= np.sqrt(w)
             U *= w
             gar *= w
-        g_pos = ch.gp + gap
         rhs = np.empty((3, k, n_pairs))
         if iso:
             # [c]×ᵀ (q I) [c]× = q (|c|² I - c cᵀ); after eliminating δp_A, q_e in place of q_p
@@ -217,7 +231,7 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
             residuals[0][sl] = ch.r_out.T
             residuals[1][sl, 0:3] = r_ap.T
             residuals[1][sl, 3:6] = r_ar.T
-        kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32), g_pos, m)
+        kept = ChunkFactors(sl, np.array(L, dtype=np.float32), Zs.astype(np.float32))
         cost = np.vdot(ch.r_out, ch.r_out) + np.vdot(r_ap, r_ap) + np.vdot(r_ar, r_ar)
         # Σ B_pᵀ Q_e B_p from moments: weighted by q_e per pair, or Q_e applied at the end
         F = f @ f.T
@@ -238,6 +252,45 @@ def tls_schur(problem, params: Parameters, x, lam: float, residuals=None):
                                'weight is inf or NaN, or the noise is zero); check the pairs '
                                'and the noise settings')
     return S, b, v_diag, float(cost), factors
+
+
+def _input_weights(problem, sl: slice):
+    """Per-pair weights w (c,) on A's information (1 / a_scale, from A's interpolation), or 1."""
+    return 1.0 if problem.a_scale is None else 1.0 / problem.a_scale[sl]
+
+
+def _input_position(frame: _Frame, xp: np.ndarray, pos_a: np.ndarray, w) -> tuple:
+    """A's whitened input position residual r_ap (3, c), unweighted, and its gradient w·g_ap."""
+    r_ap = frame.Lap @ (xp - pos_a)
+    gap = frame.Lap.T @ r_ap
+    if not isinstance(w, float):
+        gap *= w
+    return r_ap, gap
+
+
+def tls_residuals(problem, params: Parameters, x, out: tuple) -> None:
+    """
+    Fill ``out`` with the whitened output (N, m) and input (N, 6) residuals at (x, φ).
+
+    The residuals ``tls_schur`` writes, by the same arithmetic chunk by chunk (the same
+    numbers to the bit), in a light pass: a fit needs them only at its solution, so its
+    linearisations need not hold them (183 MB at 2M pairs) on the way there.
+    """
+    frame = _Frame.of(problem, params)
+    for sl in problem.chunks():
+        pos_a, quat_a, pos_b, quat_b = _chunk_of(problem, sl)
+        xp, xq = x.pos_t[:, sl], x.quat_t[:, sl]
+        r_out = _channels(frame, xp, xq, pos_b, quat_b, matrices=False).r_out
+        w = _input_weights(problem, sl)
+        r_ap = _input_position(frame, xp, pos_a, w)[0]
+        r_ar = _rotation_information(frame.Lar, error_quaternion(xq, quat_a * CONJ), None,
+                                     matrices=False)[0]
+        if problem.a_scale is not None:
+            r_ap *= np.sqrt(w)
+            r_ar *= np.sqrt(w)
+        out[0][sl] = r_out.T
+        out[1][sl, 0:3] = r_ap.T
+        out[1][sl, 3:6] = r_ar.T
 
 
 def _scaled_skew(q, c: np.ndarray, out: np.ndarray) -> None:
@@ -271,8 +324,8 @@ def _coupling(Zs: np.ndarray, ch: _Chunk, P: int) -> np.ndarray:
     return out
 
 
-def closed_form_back_substitute(n: int, factors: TlsFactors,
-                                delta_phi: np.ndarray) -> np.ndarray:
+def closed_form_back_substitute(n: int, factors: TlsFactors, delta_phi: np.ndarray,
+                                kept: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Input corrections of a parameter step, from the factors of ``tls_schur``.
 
@@ -287,19 +340,22 @@ def closed_form_back_substitute(n: int, factors: TlsFactors,
         The factors ``tls_schur`` returned.
     delta_phi : ndarray, shape (P,)
         The parameter step in reduced coordinates.
+    kept : ndarray of int, shape (K,), optional
+        Increasing indices of the pairs whose corrections are wanted (None: all).
 
     Returns
     -------
-    dx : ndarray, shape (6, N)
+    dx : ndarray, shape (6, N) or (6, K)
         (δp_A in m, δθ_A in rad) per pair, pair-last.
 
     """
     d = factors.T @ delta_phi
-    dx = np.empty((6, n))
+    dx = Columns(n, kept)
     for ch in factors.chunks:
         L = tuple(ch.L.astype(float))
         Z = ch.Z.astype(float)
         Ra, c, v = factors.geometry(ch.pairs)
+        g_pos, m = factors.position_terms(ch.pairs, v)
         Bp = d[0:3, None] - cross(v, np.broadcast_to(d[3:6, None], v.shape)) \
             + np.einsum('abn,b->an', Ra, d[6:9])
         rhs = np.einsum('abn,bn->an', Z[:, 0:3], Bp) + Z[:, -1]
@@ -307,7 +363,7 @@ def closed_form_back_substitute(n: int, factors: TlsFactors,
             Br = d[3:6, None] + np.einsum('abn,b->an', Ra, d[9:12])
             rhs += np.einsum('abn,bn->an', Z[:, 3:6], Br)
         dth = -sym_solve3(L, rhs, transpose=True)
-        y = ch.g_pos + factors.Qp_bar @ (Bp - cross(c, dth))
-        dx[0:3, ch.pairs] = -(factors.Mp @ y) if ch.m is None else -(ch.m * y)
-        dx[3:6, ch.pairs] = dth
-    return dx
+        y = g_pos + factors.Qp_bar @ (Bp - cross(c, dth))
+        dx.put(ch.pairs, -(factors.Mp @ y) if m is None else -(m * y), slice(0, 3))
+        dx.put(ch.pairs, dth, slice(3, 6))
+    return dx.out

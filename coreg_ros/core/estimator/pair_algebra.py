@@ -10,6 +10,8 @@ because numpy's general routines are several times slower on stacks of 3×3 bloc
 
 from __future__ import annotations
 
+from typing import Optional
+
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.estimator.problem import chunk_slices
 from coreg_ros.core.so3 import skew
@@ -21,16 +23,19 @@ def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.array(quat.multiply_parts(p, q))
 
 
-def rotated(q: np.ndarray, d: np.ndarray) -> np.ndarray:
+def rotated(q: np.ndarray, d: np.ndarray, idx: Optional[np.ndarray] = None) -> np.ndarray:
     """
     ``Exp(d) ⊗ q``, renormalised, for quaternions (4, N) and rotation vectors d (3, N), rad.
 
     The TLS input step (pair-last layout), chunk by chunk so that the temporaries stay in
-    cache.
+    cache. With ``idx`` (K,), the columns ``idx`` of q are stepped by d (3, K), gathered a
+    chunk at a time: the numbers of ``rotated(np.take(q, idx, axis=1), d)``.
     """
-    out = np.empty_like(q)
-    for sl in chunk_slices(q.shape[1]):
-        qc = qmul(quat.exp_parts(*d[:, sl]), q[:, sl])
+    n = d.shape[1]
+    out = np.empty((4, n))
+    for sl in chunk_slices(n):
+        qc = qmul(quat.exp_parts(*d[:, sl]),
+                  q[:, sl] if idx is None else np.take(q, idx[sl], axis=1))
         out[:, sl] = qc / np.sqrt(qc[0] * qc[0] + qc[1] * qc[1] + qc[2] * qc[2] + qc[3] * qc[3])
     return out
 

@@ -97,6 +97,34 @@ def pair_last(n: int, m: int) -> np.ndarray:
     return np.empty((m, n)).T
 
 
+class Columns:
+    """
+    A (rows, N) pair-last result filled chunk by chunk, or only its columns ``kept``.
+
+    Parameters
+    ----------
+    n : int
+        Number of pairs N the chunks cover.
+    kept : ndarray of int, shape (K,), optional
+        Increasing indices of the columns kept (None: all N); ``out`` is (rows, K).
+    rows : int
+        Rows of the result.
+
+    """
+
+    def __init__(self, n: int, kept: Optional[np.ndarray] = None, rows: int = 6):
+        self.kept = kept
+        self.out = np.empty((rows, n if kept is None else len(kept)))
+
+    def put(self, sl: slice, values: np.ndarray, rows: slice = slice(None)) -> None:
+        """Write ``values`` (r, c), the chunk ``sl``'s columns, into ``out[rows]``."""
+        if self.kept is None:
+            self.out[rows, sl] = values
+            return
+        lo, hi = np.searchsorted(self.kept, (sl.start, sl.stop))
+        self.out[rows, lo:hi] = values[:, self.kept[lo:hi] - sl.start]
+
+
 @dataclass
 class Problem:
     """

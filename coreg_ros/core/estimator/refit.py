@@ -133,7 +133,10 @@ def without_pairs(solution: Solution, everything: Problem, fitted: np.ndarray,
     S, b, cost, _, _, _ = tls_linearization(everything.subset(gone), solution.params,
                                             fit.take(np.flatnonzero(~stay)), sums.lam)
     stay_idx = np.flatnonzero(stay)
-    return TlsSeed(sums.less(S, b, cost), fit.take(stay_idx), resume.factors, fit.n, stay_idx)
+    # the start gathered when read: its first step (back-substitution, then the step) reads
+    # the fit's inputs, which the factors hold until then anyway
+    return TlsSeed(sums.less(S, b, cost), fit.take(stay_idx, lazy=True), resume.factors, fit.n,
+                   stay_idx)
 
 
 def weighable(solution: Solution, everything: Problem) -> bool:

@@ -58,8 +58,16 @@ class InputState:
         out.pos_t, out.quat_t = pos_t, quat_t
         return out
 
-    def take(self, idx: np.ndarray) -> InputState:
-        """Return the inputs of the pairs ``idx`` (indices into the N pairs), a copy."""
+    def take(self, idx: np.ndarray, lazy: bool = False) -> InputState:
+        """
+        Return the inputs of the pairs ``idx`` (indices into the N pairs), a copy.
+
+        ``lazy``: gathered when first read (``TakenInputs``); a refit's start, whose first
+        step reads it only to step it, without a copy of nearly all pairs' inputs beside
+        this state's.
+        """
+        if lazy:
+            return TakenInputs(self, idx)
         return InputState.of_pair_last(np.take(self.pos_t, idx, axis=1),
                                        np.take(self.quat_t, idx, axis=1))
 
@@ -67,6 +75,42 @@ class InputState:
         """Return the state after the step dx (6, N) = (δp m, δθ rad), pair-last."""
         return InputState.of_pair_last(self.pos_t + dx[0:3],
                                        pair_algebra.rotated(self.quat_t, dx[3:6]))
+
+
+class TakenInputs(InputState):
+    """
+    The inputs of the pairs ``idx`` of another state, gathered when first read.
+
+    Until then it holds that state, not a copy: a step (``stepped``) gathers a chunk at a time
+    into the stepped state. The numbers are those of ``InputState.take`` to the bit.
+    """
+
+    def __init__(self, base: InputState, idx: np.ndarray):
+        self._source = (base, idx)
+
+    def __getattr__(self, name: str):
+        # only for attributes not set yet: pos_t and quat_t, gathered on first reading
+        if name not in ('pos_t', 'quat_t') or self.__dict__.get('_source') is None:
+            raise AttributeError(name)
+        base, idx = self._source
+        self.pos_t = np.take(base.pos_t, idx, axis=1)
+        self.quat_t = np.take(base.quat_t, idx, axis=1)
+        self._source = None
+        return getattr(self, name)
+
+    @property
+    def n(self) -> int:
+        """Return the number of pairs."""
+        return len(self._source[1]) if self._source is not None else self.pos_t.shape[1]
+
+    def stepped(self, dx: np.ndarray) -> InputState:
+        """``take(idx).stepped(dx)`` without the gathered copy (when not gathered yet)."""
+        if self._source is None:
+            return super().stepped(dx)
+        base, idx = self._source
+        pos_t = np.take(base.pos_t, idx, axis=1)
+        pos_t += dx[0:3]
+        return InputState.of_pair_last(pos_t, pair_algebra.rotated(base.quat_t, dx[3:6], idx))
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ from coreg_ros.core.estimator.lm import (
 )
 from coreg_ros.core.estimator.posterior import covariance, Solution
 from coreg_ros.core.estimator.priors import gauge_diagonal, prior_rows
-from coreg_ros.core.estimator.problem import chunk_slices, pair_last, Problem
+from coreg_ros.core.estimator.problem import chunk_slices, Columns, pair_last, Problem
 from coreg_ros.core.estimator.state import InputState, TlsResume, TlsSeed, TlsSums
 from coreg_ros.core.models import error_rotation_jacobian, linearize, Parameters
 import numpy as np
@@ -141,7 +141,8 @@ def _tls_schur(problem: Problem, params: Parameters, x: InputState, lam: float,
     return S, b, v_diag, cost, factors
 
 
-def back_substitute(n: int, factors, delta_phi: np.ndarray) -> np.ndarray:
+def back_substitute(n: int, factors, delta_phi: np.ndarray,
+                    kept: Optional[np.ndarray] = None) -> np.ndarray:
     """
     Input corrections ``δx_i = -U_i⁻¹(g_i + W_i δφ)`` of a parameter step, (6, N) pair-last.
 
@@ -156,18 +157,39 @@ def back_substitute(n: int, factors, delta_phi: np.ndarray) -> np.ndarray:
         The factors of the linearisation (``tls_linearization``).
     delta_phi : ndarray, shape (P,)
         The parameter step.
+    kept : ndarray of int, shape (K,), optional
+        Increasing indices of the pairs whose corrections are wanted (a refit of fewer
+        pairs): (6, K), without the (6, N) array of all.
 
     """
     if isinstance(factors, normal_equations_tls.TlsFactors):
-        return normal_equations_tls.closed_form_back_substitute(n, factors, delta_phi)
-    dx = np.empty((6, n))
+        return normal_equations_tls.closed_form_back_substitute(n, factors, delta_phi, kept)
+    dx = Columns(n, kept)
     for sl, (L, Z) in zip(chunk_slices(n), factors, strict=True):
         rhs = Z[:, :-1, :].transpose(0, 2, 1) @ delta_phi + Z[:, -1, :]  # (6, c), float64
-        dx[:, sl] = -batched.solve_upper_t(L, rhs[:, None, :])[:, 0, :]
-    return dx
+        dx.put(sl, -batched.solve_upper_t(L, rhs[:, None, :])[:, 0, :])
+    return dx.out
 
 
-def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: float):
+def tls_residuals(problem: Problem, params: Parameters, x: InputState) -> tuple:
+    """
+    The whitened output (N, m) and input (N, 6) residuals at (x, φ), as linearising gives them.
+
+    A light pass on the structured path (``normal_equations_tls.tls_residuals``); the same
+    numbers to the bit as ``tls_linearization``'s.
+    """
+    out = (pair_last(problem.n, problem.spec.n_res), pair_last(problem.n, 6))
+    if normal_equations.applies(problem):
+        normal_equations_tls.tls_residuals(problem, params, x, out)
+    else:
+        for sl in problem.chunks():
+            r_x, r_y = _tls_blocks(problem, params, x, sl)[:2]
+            out[0][sl], out[1][sl] = r_y, r_x
+    return out
+
+
+def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: float,
+                      with_residuals: bool = True):
     """
     Linearise TLS at (x, φ): the damped reduced system with priors, cost and residuals.
 
@@ -184,6 +206,9 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
         The input estimates at the linearisation point.
     lam : float
         The damping λ (0: the undamped posterior information).
+    with_residuals : bool
+        Also return the residuals (False: None, for the steps of a fit, which needs them only
+        at its solution: ``tls_residuals``).
 
     Returns
     -------
@@ -191,7 +216,7 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
         Damped Schur complement (undamped when λ = 0: the posterior information).
     b : ndarray, shape (P,)
     cost : float
-    residuals : tuple of ndarray
+    residuals : tuple of ndarray or None
         Whitened output (N, m) and input (N, 6) residuals.
     factors
         For ``back_substitute``.
@@ -201,7 +226,8 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
     """
     if problem.weights is not None:
         raise ValueError('TLS takes subsets of the pairs, not pair weights (Problem.weights)')
-    residuals = (pair_last(problem.n, problem.spec.n_res), pair_last(problem.n, 6))
+    residuals = (pair_last(problem.n, problem.spec.n_res), pair_last(problem.n, 6)
+                 ) if with_residuals else None
     schur = normal_equations_tls.tls_schur if normal_equations.applies(problem) else _tls_schur
     S, b, v_diag, cost, factors = schur(problem, params, x, lam, residuals)
     r_prior, j_prior = prior_rows(problem, params)
@@ -261,7 +287,9 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     """
     def linearize(state, lam: float) -> Linearization:
         phi, x = state
-        S, b, cost, residuals, factors, share = tls_linearization(problem, phi, x, lam)
+        # without residuals: the fit needs them at its solution only (tls_residuals)
+        S, b, cost, _, factors, share = tls_linearization(problem, phi, x, lam,
+                                                          with_residuals=False)
 
         def propose(delta, lam_next):
             trial = phi.stepped(delta)
@@ -274,18 +302,14 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        return Linearization(S, b, cost, propose, residuals, share, factors)
+        return Linearization(S, b, cost, propose, share, factors)
 
-    def seeded(seed: TlsSeed) -> Linearization:
-        phi, x = state
-
+    def seeded(phi: Parameters, x: InputState, seed: TlsSeed) -> Linearization:
         def propose(delta, lam_next):
             trial = phi.stepped(delta)
             if not trial.valid:
-                return state, np.inf, None
-            step = back_substitute(seed.n_factored, seed.factors, delta)
-            if seed.kept is not None:
-                step = np.take(step, seed.kept, axis=1)
+                return (phi, x), np.inf, None
+            step = back_substitute(seed.n_factored, seed.factors, delta, seed.kept)
             # spent, with the inputs of the fit they came from: freed before the trial's
             # inputs and factors are made
             seed.factors.clear()
@@ -294,8 +318,9 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             lin = linearize(trial, lam_next)
             return trial, lin.cost, lin
 
-        # residuals None: if this very state is returned, the posterior is made afresh
-        return Linearization(seed.sums.S, seed.sums.b, seed.sums.cost, propose)
+        # not made here (fresh False): if this very state is returned, the posterior is made
+        # afresh
+        return Linearization(seed.sums.S, seed.sums.b, seed.sums.cost, propose, fresh=False)
 
     if seed is not None:
         if inputs is not None:
@@ -304,25 +329,28 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
     cold = inputs is None  # inputs at their measured values: they must move at least once
     if cold:
         inputs = InputState(problem.pos_a, problem.quat_a)
-    elif inputs.pos_t.shape != (3, problem.n):
-        raise ValueError(f'inputs for {inputs.pos_t.shape[1]} pairs, problem has {problem.n}')
-    state = (params, inputs)
+    elif inputs.n != problem.n:
+        raise ValueError(f'inputs for {inputs.n} pairs, problem has {problem.n}')
     xtol = XTOL if xtol is None else xtol
-    first = None if seed is None else seeded(seed)
+    # handed over: the driver alone holds the start, whose inputs go once it moves on
+    start = [(params, inputs), None if seed is None else seeded(params, inputs, seed)]
+    inputs = seed = None
     (params, x), status, it, last, lam = levenberg_marquardt(
-        state, linearize, max_iterations, xtol, ftol, damping, first, min_steps=int(cold),
-        pause_at=pause_at)
+        start.pop(0), linearize, max_iterations, xtol, ftol, damping, start.pop(),
+        min_steps=int(cold), pause_at=pause_at)
+    # linearize calls itself through its trials: a reference cycle that would hold the
+    # problem (its pairs) until the cyclic collector ran; emptied, the cycle is gone now
+    del linearize
     paused = status == PAUSED  # the linearisation where it stopped is what goes on
-    if paused or (status > 0 and last.residuals is not None
-                  and last.damping_share <= DAMPING_SHARE):
+    if paused or (status > 0 and last.fresh and last.damping_share <= DAMPING_SHARE):
         # Paused (the caller goes on from this linearisation), or converged within xtol·σ
         # (or on a flat cost) with the linearisation at the solution almost undamped: its
         # Schur complement is the posterior information (relative change of the covariance
-        # below DAMPING_SHARE), which saves a pass over the pairs.
-        info, chi2, (res_y, res_x) = last.info, last.cost, last.residuals
+        # below DAMPING_SHARE), which saves a pass over the pairs; the residuals there take
+        # a light one (a paused fit goes on before anything reads them: none).
+        info, chi2 = last.info, last.cost
         sums, factors = TlsSums(last.info, last.rhs, last.cost, lam), last.factors
-        if paused:  # goes on (a refit) before anything reads them: not kept
-            res_y = res_x = last.residuals = None
+        res_y, res_x = (None, None) if paused else tls_residuals(problem, params, x)
     else:
         last = None
         info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)

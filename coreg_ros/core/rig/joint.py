@@ -206,7 +206,7 @@ def solve_rig(problems: list, query_ns: list, start: RigParameters, method: str,
             lin = linearize((trial.recharted(), steps), lam_next)
             return (trial.recharted(), steps), lin.cost, lin
 
-        return Linearization(S, b, float(costs.sum()), propose, None, share)
+        return Linearization(S, b, float(costs.sum()), propose, share)
 
     state = (start, [unit.start() for unit in units])
     (params, xs), status, it, _, _ = levenberg_marquardt(state, linearize, max_iterations, XTOL,
