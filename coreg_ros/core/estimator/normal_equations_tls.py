@@ -11,8 +11,9 @@ factors (``closed_form_back_substitute``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple, Optional
 
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.errors import ConvergenceError
@@ -79,7 +80,7 @@ class TlsFactors:
 
     def position_terms(self, sl: slice, v: np.ndarray) -> tuple:
         """
-        The input position's gradient g_p + g_ap (3, c) and M_p of the pairs ``sl``.
+        Return the input position's gradient g_p + g_ap (3, c) and M_p of the pairs ``sl``.
 
         Made as ``tls_schur`` made them, from the same inputs: the same numbers to the bit.
         """
@@ -268,7 +269,7 @@ def _input_position(frame: _Frame, xp: np.ndarray, pos_a: np.ndarray, w) -> tupl
     return r_ap, gap
 
 
-def tls_residuals(problem, params: Parameters, x, out: tuple) -> None:
+def residuals_into(problem, params: Parameters, x, out: tuple) -> None:
     """
     Fill ``out`` with the whitened output (N, m) and input (N, 6) residuals at (x, φ).
 

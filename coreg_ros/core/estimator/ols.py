@@ -138,7 +138,7 @@ def solve_ols(problem: Problem, params: Parameters, max_iterations: int = 100,
 
     params, status, it, _, _ = levenberg_marquardt(params, linearize, max_iterations, xtol,
                                                    ftol)
-    del linearize  # it calls itself through its trials: a cycle holding the problem (tls)
+    linearize = None  # it calls itself through its trials: a cycle holding the problem (tls)
     # JᵀJ does not depend on the damping: the linearisation at the solution gives the
     # posterior information and the residuals (Ikits B.4.2)
     _, H, g, cost, res = normal_at(params)

@@ -104,7 +104,7 @@ class TakenInputs(InputState):
         return len(self._source[1]) if self._source is not None else self.pos_t.shape[1]
 
     def stepped(self, dx: np.ndarray) -> InputState:
-        """``take(idx).stepped(dx)`` without the gathered copy (when not gathered yet)."""
+        """Return the gathered state after the step dx, without gathering it first if not yet."""
         if self._source is None:
             return super().stepped(dx)
         base, idx = self._source

@@ -173,14 +173,14 @@ def back_substitute(n: int, factors, delta_phi: np.ndarray,
 
 def tls_residuals(problem: Problem, params: Parameters, x: InputState) -> tuple:
     """
-    The whitened output (N, m) and input (N, 6) residuals at (x, φ), as linearising gives them.
+    Return the whitened output (N, m) and input (N, 6) residuals at (x, φ), as linearised.
 
-    A light pass on the structured path (``normal_equations_tls.tls_residuals``); the same
+    A light pass on the structured path (``normal_equations_tls.residuals_into``); the same
     numbers to the bit as ``tls_linearization``'s.
     """
     out = (pair_last(problem.n, problem.spec.n_res), pair_last(problem.n, 6))
     if normal_equations.applies(problem):
-        normal_equations_tls.tls_residuals(problem, params, x, out)
+        normal_equations_tls.residuals_into(problem, params, x, out)
     else:
         for sl in problem.chunks():
             r_x, r_y = _tls_blocks(problem, params, x, sl)[:2]
@@ -340,7 +340,7 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         min_steps=int(cold), pause_at=pause_at)
     # linearize calls itself through its trials: a reference cycle that would hold the
     # problem (its pairs) until the cyclic collector ran; emptied, the cycle is gone now
-    del linearize
+    linearize = None
     paused = status == PAUSED  # the linearisation where it stopped is what goes on
     if paused or (status > 0 and last.fresh and last.damping_share <= DAMPING_SHARE):
         # Paused (the caller goes on from this linearisation), or converged within xtol·σ
