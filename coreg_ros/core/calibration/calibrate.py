@@ -402,7 +402,8 @@ class _Fitter:
         m = self.spec.n_res
         limit = float(chi2_isf(OUTLIER_ALPHA, m))
         quartile = float(chi2_ppf(0.25, m))
-        scale = max(1.0, float(np.quantile(d2[keep], 0.25)) / quartile)
+        # the quartile of a copy (d2 is read again), partitioned in place: one copy, not two
+        scale = max(1.0, float(np.quantile(d2[keep], 0.25, overwrite_input=True)) / quartile)
         return d2 <= scale * limit
 
     def refit(self, handed: list, fitted: np.ndarray, kept: np.ndarray,
