@@ -210,8 +210,7 @@ def _lerp(values: np.ndarray, lo: np.ndarray, hi: np.ndarray, alpha: np.ndarray)
 def _slerp_rows(quats: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                 alpha: np.ndarray) -> np.ndarray:
     """
-    Slerp from quats[lo] towards quats[hi] by α, rows (K, 4); an exact match (α = 0) keeps its
-    sample unchanged.
+    Slerp from quats[lo] towards quats[hi] by α, rows (K, 4); α = 0 keeps the sample as it is.
 
     Chunk by chunk (``CHUNK`` rows): the temporaries of a million slerps stay in cache
     instead of a dozen (K,) and (K, 4) arrays being made afresh; the same numbers (slerp works
