@@ -45,6 +45,7 @@ from coreg_ros.core.estimator import (
     Solution,
     solve_ols,
     solve_tls,
+    tls_residuals,
     weighable,
     whitening,
     without_pairs,
@@ -262,14 +263,16 @@ class _Fitter:
 
     def solve(self, keep: np.ndarray, start: Parameters, warm: bool = False,
               with_priors: bool = True, screened: bool = False,
-              inputs: Optional[InputState] = None, fitted: bool = False) -> Solution:
+              inputs: Optional[InputState] = None, fitted: bool = False,
+              residuals: bool = True) -> Solution:
         """
         Fit the pairs in ``keep`` from ``start`` (``start()``, or a fit of nearly these pairs).
 
         OLS, then TLS if asked; a ``warm`` start (a fit of nearly the same pairs) or a
         ``fitted`` one (an OLS fit of a subsample) goes to TLS directly, its inputs starting at
         ``inputs`` (``carried``) if given. A fit to be ``screened`` for outliers may pause
-        (``FastPaths.screen``, ``reject_outliers``).
+        (``FastPaths.screen``, ``reject_outliers``). ``residuals`` False: a TLS fit leaves its
+        residuals to ``with_residuals``.
         """
         settings = self.settings
         n_keep = int(keep.sum())
@@ -290,8 +293,26 @@ class _Fitter:
                           and normal_equations.applies(problem)) else None
             sol = solve_tls(problem, start, max_iterations=settings.max_iterations, xtol=XTOL,
                             inputs=inputs, damping=1e-6 if inputs is None else WARM_DAMPING,
-                            pause_at=pause)
+                            pause_at=pause, residuals=residuals)
         return sol
+
+    def with_residuals(self, handed: list, keep: np.ndarray) -> Solution:
+        """
+        Return the fit of the pairs ``keep`` handed over (one-item list) with its residuals.
+
+        A robust refit leaves them out (``refit``): the screening reads its own statistic, and
+        a refit that is not the last would have made them for nothing. The fit's resume state
+        (its factors, ~200 MB at 2M pairs) goes before they are made; the numbers are those
+        the fit would have made (``estimator.tls_residuals``).
+        """
+        sol = handed.pop()
+        if sol.residuals is not None:
+            return sol
+        x = sol.resume.inputs
+        sol = replace(sol, resume=None)
+        res_y, res_x = tls_residuals(self.problem(keep, with_priors=False, lazy=True),
+                                     sol.params, x)
+        return replace(sol, residuals=res_y, input_residuals=res_x)
 
     def start(self, keep: np.ndarray) -> tuple[Parameters, bool]:
         """
@@ -434,10 +455,11 @@ class _Fitter:
             del sol
             return solve_tls(self.problem(kept, with_priors=False, lazy=True), params,
                              max_iterations=settings.max_iterations, xtol=XTOL,
-                             seed=seed.pop())
+                             seed=seed.pop(), residuals=False)
         inputs = self.carried(sol, fitted, kept)
         del sol
-        return self.solve(kept, params, warm=True, with_priors=False, inputs=inputs)
+        return self.solve(kept, params, warm=True, with_priors=False, inputs=inputs,
+                          residuals=False)
 
     def _refuse_if_mostly_outside(self, outside: np.ndarray, max_share: float) -> None:
         share = float(outside.mean())
@@ -560,6 +582,8 @@ def calibrate(pairs: Pairs, settings: Optional[Settings] = None, prior: Optional
         raise ConvergenceError(
             f'the numbers do not allow a solution ({e}); check the data for absurd values '
             f'(units, a corrupt sample) with coreg diagnose') from e
+    handed, sol = [sol], None
+    sol = fitter.with_residuals(handed, keep)
     # the verdict's numbers: chi-square (B.4.1), posterior covariance (B.4.2) in ROS layout
     result = _result(sol, spec, settings, len(pairs), fitter.found)
     return replace(result, inliers=keep,

@@ -58,6 +58,7 @@ from coreg_ros.core.estimator.tls import (
     DAMPING_SHARE,
     solve_tls,
     tls_linearization,
+    tls_residuals,
 )
 from coreg_ros.core.noise_model import noise_covariance  # the noise in any form, as 6×6
 
@@ -85,6 +86,7 @@ __all__ = [
     'solve_ols',
     'solve_tls',
     'tls_linearization',
+    'tls_residuals',
     'TlsResume',
     'TlsSeed',
     'TlsSums',

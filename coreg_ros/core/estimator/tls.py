@@ -243,7 +243,8 @@ def tls_linearization(problem: Problem, params: Parameters, x: InputState, lam: 
 def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
               xtol: Optional[float] = None, ftol: float = 1e-12,
               inputs: Optional[InputState] = None, damping: float = 1e-6,
-              seed: Optional[TlsSeed] = None, pause_at: Optional[int] = None) -> Solution:
+              seed: Optional[TlsSeed] = None, pause_at: Optional[int] = None,
+              residuals: bool = True) -> Solution:
     """
     Errors-in-variables TLS (Ikits B.2) by Levenberg-Marquardt on the Schur complement.
 
@@ -277,6 +278,9 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         Stop before trying the step of this iteration (``lm.levenberg_marquardt``): the
         Solution has status ``lm.PAUSED`` and that step and the linearisation in its resume
         state, from which a refit (``seed``) goes on without a new pass.
+    residuals : bool
+        Make the residuals at the solution (False: None, for a fit whose caller may refit
+        before reading them; ``tls_residuals`` makes them later from the resume's inputs).
 
     Returns
     -------
@@ -350,10 +354,13 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
         # a light one (a paused fit goes on before anything reads them: none).
         info, chi2 = last.info, last.cost
         sums, factors = TlsSums(last.info, last.rhs, last.cost, lam), last.factors
-        res_y, res_x = (None, None) if paused else tls_residuals(problem, params, x)
+        res_y, res_x = (None, None) if paused or not residuals else tls_residuals(
+            problem, params, x)
     else:
         last = None
-        info, b, chi2, (res_y, res_x), factors, _ = tls_linearization(problem, params, x, 0.0)
+        info, b, chi2, made, factors, _ = tls_linearization(problem, params, x, 0.0,
+                                                           with_residuals=residuals)
+        res_y, res_x = made if residuals else (None, None)
         sums = TlsSums(info, b, chi2, 0.0)
     if not (isinstance(factors, normal_equations_tls.TlsFactors) and factors.chunks):
         # a refit from sums needs the structured factors (back-substitution by n), intact
