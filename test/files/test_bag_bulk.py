@@ -327,8 +327,16 @@ def test_dropped_timestamp_index_reads_through_rosbags(tmp_path):
     assert not fast_path_used(path, topics)
 
 
-def test_damaged_timestamp_index_gives_the_same_outcome(tmp_path):
-    """Byte flips in the index pages: the same arrays or the same BagError both ways."""
+@pytest.mark.parametrize('page', [None, 200])
+def test_damaged_timestamp_index_gives_the_same_outcome(tmp_path, monkeypatch, page):
+    """
+    Byte flips in the index pages: the same arrays or the same BagError both ways.
+
+    In pages of 200 rows too: walked by ranges, a damaged index may leave rows out without
+    the error rosbags' full walk gives (``_sqlite_page``'s count of the rows reached).
+    """
+    if page is not None:
+        monkeypatch.setattr(bulk_read, '_SQLITE_PAGE', page)
     path = tmp_path / 'bag'
     write_pose_bag(path, streams_for(np.random.default_rng(6), 3000), storage='sqlite3')
     data = path / 'bag.db3'

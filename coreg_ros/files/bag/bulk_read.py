@@ -206,8 +206,11 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
     index = _index_walked(db, theirs, ids)
     parts: dict[str, list[Parts]] = {t: [] for t in cids.values()}
     (total,), = db.execute('SELECT count(*) FROM messages').fetchall()
+    (in_table,), = db.execute('SELECT count(*) FROM messages NOT INDEXED').fetchall()
+    reached = 0
     for lo, hi in _sqlite_pages(db, total):
-        page = _sqlite_page(db, ids, lo, hi, index)
+        in_range, page = _sqlite_page(db, ids, lo, hi, index)
+        reached += in_range
         if page is None:
             continue
         log_ns, tid, size, mem = page
@@ -229,6 +232,8 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
             elif np.all(mine == mine[0]):
                 block = _gather(mem, starts[pick], int(mine[0]))
             parts[topic].append((log_ns[pick], None if block is None else [block]))
+    if reached != in_table:
+        raise Unsupported(f'the timestamp index reaches {reached} of the {in_table} rows')
     return {topic: _concat(items) for topic, items in parts.items()}
 
 
@@ -273,14 +278,15 @@ def _index_walked(db: Any, query: str, args: Sequence[int]) -> str:
 
 def _sqlite_page(
     db: Any, ids: list[int], lo: Optional[int], hi: Optional[int], index: str,
-) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+) -> tuple[int, Optional[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]]:
     """
     One page of the wanted rows in rosbags' order, fetched in one SQLite statement.
 
-    Returns the log times, topic ids and blob sizes (int64, (N,)) and the N blobs laid end
-    to end (uint8), or None for an empty page.
+    Returns the number of rows of any topic the index reaches in the page's range, and the
+    log times, topic ids and blob sizes (int64, (N,)) and the N blobs laid end to end
+    (uint8) of the wanted rows, or None for none.
     """
-    cond = [f"topic_id IN ({','.join(str(int(c)) for c in ids)})"]
+    cond: list[str] = []
     args: list[int] = []
     if lo is not None:
         cond.append('timestamp >= ?')
@@ -288,6 +294,13 @@ def _sqlite_page(
     if hi is not None:
         cond.append('timestamp < ?')
         args.append(hi)
+    # the rows the page's index range reaches (a covering count): their sum over the pages
+    # must be the table's rows, which a damaged index that rosbags' full walk refuses may
+    # not be when walked by ranges (rows left out without an error)
+    (reached,), = db.execute(f'SELECT count(*) FROM messages INDEXED BY "{index}"'
+                             + ''.join(f" {'WHERE' if not k else 'AND'} {c}"
+                                       for k, c in enumerate(cond)), args).fetchall()
+    cond.insert(0, f"topic_id IN ({','.join(str(int(c)) for c in ids)})")
     # Per row, one integer holds both the blob size and the topic id (parsed from text in
     # one numpy call): cheaper for SQLite than per-topic size aggregates. A value that is not
     # a blob (rosbags would hand it on as text or a number) gets size -1.
@@ -303,7 +316,7 @@ def _sqlite_page(
              f'group_concat(tag), count(*) FROM ({rows})')
     (blob, ts_text, tag_text, count), = db.execute(query, args).fetchall()
     if not count:
-        return None
+        return reached, None
     log_ns, tag = (np.fromstring(t, dtype=np.int64, sep=',') for t in (ts_text, tag_text))
     if log_ns.size != count or tag.size != count:
         raise Unsupported('log times or tags did not parse')
@@ -314,7 +327,7 @@ def _sqlite_page(
     size, tid = np.divmod(tag, _TOPIC_ID_LIMIT)
     if np.any(size < 0) or not isinstance(blob, bytes) or len(blob) != int(size.sum()):
         raise Unsupported('concatenated blobs have the wrong size')
-    return log_ns, tid, size, np.frombuffer(blob, dtype=np.uint8)
+    return reached, (log_ns, tid, size, np.frombuffer(blob, dtype=np.uint8))
 
 
 # --- mcap -----------------------------------------------------------------------------------
