@@ -358,8 +358,8 @@ def solve_tls(problem: Problem, params: Parameters, max_iterations: int = 100,
             problem, params, x)
     else:
         last = None
-        info, b, chi2, made, factors, _ = tls_linearization(problem, params, x, 0.0,
-                                                           with_residuals=residuals)
+        info, b, chi2, made, factors, _ = tls_linearization(
+            problem, params, x, 0.0, with_residuals=residuals)
         res_y, res_x = made if residuals else (None, None)
         sums = TlsSums(info, b, chi2, 0.0)
     if not (isinstance(factors, normal_equations_tls.TlsFactors) and factors.chunks):
