@@ -96,6 +96,17 @@ def unit_quaternions(q, name: str = 'quaternion') -> np.ndarray:
     return validate_quaternions(q, name)
 
 
+def normalised(q: np.ndarray) -> np.ndarray:
+    """
+    Return quaternions (N, 4) divided by their norms, in place (unit to rounding).
+
+    For quaternions unit up to a few rounding errors (a slerp's), as ``unit_quaternions``
+    divides them; q itself is returned, changed.
+    """
+    q /= np.sqrt(np.einsum('ij,ij->i', q, q))[:, None]
+    return q
+
+
 def canonical(q: np.ndarray) -> np.ndarray:
     """
     Return the sign-canonical representative (w >= 0) of each quaternion, shape (..., 4).

@@ -6,6 +6,7 @@ import dataclasses
 from coreg_ros.core import quaternion as quat
 from coreg_ros.core.calibration.pairing import (
     pair_streams,
+    UNIT_QUATERNIONS,
     UNPAIRED_REASONS,
     validate_stream,
     VALIDATED,
@@ -336,3 +337,32 @@ def test_a_validated_stream_is_checked_once():
     assert full is not positions and np.array_equal(full.quat_wxyz, once.quat_wxyz)
     # the mark is no field (equality, copies and the fingerprint do not see it)
     assert all(f.name != VALIDATED for f in dataclasses.fields(once))
+
+
+def test_pairs_come_with_unit_quaternions_that_calibrate_takes_as_they_are():
+    """
+    The pairing's quaternions are unit and canonical (slerps normalised), and marked so.
+
+    ``calibrate`` then uses them without normalising a copy: the same fit as of the same
+    pairs given unmarked (normalised by ``calibrate``), to rounding.
+    """
+    from coreg_ros.core.calibration.calibrate import calibrate
+    from coreg_ros.core.settings import Settings
+    from coreg_ros.core.types import Pairs
+    from coreg_ros.sim import simulate_recording
+
+    rec = simulate_recording(11, 60.0, 'full_pose', rate_a=100.0, rate_b=37.0)
+    a, b = rec.streams[rec.topics_a], rec.streams[rec.topics_b[0]]
+    pairs, _ = pair_streams(a, b, max_gap_ns=50_000_000, offset_ns=1_234_567)
+    assert getattr(pairs, UNIT_QUATERNIONS) is True
+    assert all(f.name != UNIT_QUATERNIONS for f in dataclasses.fields(pairs))
+    for q in (pairs.quat_a, pairs.quat_b):
+        assert np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)) <= 4e-16
+        assert np.all(q[:, 0] >= 0.0)
+    # raw slerps are unit to a few ulps only: their normalised rows are what the fit sees
+    plain = Pairs(*(np.array(getattr(pairs, f.name)) for f in dataclasses.fields(pairs)))
+    settings = Settings(estimate_time_offset=False)
+    marked, unmarked = calibrate(pairs, settings), calibrate(plain, settings)
+    sigma = np.sqrt(np.diag(unmarked.param_cov))
+    assert np.max(np.abs(marked.params - unmarked.params) / sigma) < 1e-9
+    assert abs(marked.chi2 - unmarked.chi2) <= 1e-9 * unmarked.chi2

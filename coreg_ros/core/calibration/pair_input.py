@@ -8,6 +8,7 @@ NaN or inf, quaternions that are not unit, input weights out of range).
 from __future__ import annotations
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration.pairing import UNIT_QUATERNIONS
 from coreg_ros.core.errors import InputError, TooFewPairsError
 from coreg_ros.core.models import ModelSpec
 from coreg_ros.core.settings import Settings
@@ -61,13 +62,16 @@ def validated_arrays(pairs: Pairs, spec: ModelSpec, settings: Settings) -> tuple
         if q is not None and np.shape(q) != (n, 4):
             raise InputError(f'{name}: expected shape ({n}, 4) (one (w, x, y, z) per pair), got '
                              f'{np.shape(q)}')
-    quat_a = quat.unit_quaternions(pairs.quat_a, 'device A orientation')
+    # the pairing's are unit and canonical already (UNIT_QUATERNIONS): taken as they are
+    unit = quat.unit_quaternions if not getattr(pairs, UNIT_QUATERNIONS, False) else (
+        lambda q, _: np.asarray(q, dtype=float))
+    quat_a = unit(pairs.quat_a, 'device A orientation')
     quat_b = None
     if spec.has_q1:
         if pairs.quat_b is None:
             raise InputError('model full_pose needs device B orientations; use '
                              '--model position_only for a position-only tracker')
-        quat_b = quat.unit_quaternions(pairs.quat_b, 'device B orientation')
+        quat_b = unit(pairs.quat_b, 'device B orientation')
     scale = None
     if pairs.a_var_scale is not None:
         scale = np.asarray(pairs.a_var_scale, dtype=float)
