@@ -238,8 +238,9 @@ def velocity_step(trajectory: Trajectory, t_a: np.ndarray, half: float,
 
     """
     def step_over(h):
-        v, w = trajectory.velocity(t_a, h, max_gap=max_gap)
-        return offset_step(params, data, np.hstack([v, w]), since_ref, param_cov,
+        velocity = np.empty((len(t_a), 6))  # [v | w], written in place (92 MB at 2M pairs)
+        trajectory.velocity(t_a, h, max_gap=max_gap, out=velocity)
+        return offset_step(params, data, velocity, since_ref, param_cov,
                            velocity_noise_cov(cov_a, h), prior_information)
 
     step, used = step_over(half), half

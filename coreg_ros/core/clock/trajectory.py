@@ -101,7 +101,8 @@ class Trajectory:
         return pos, q, before
 
     def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW,
-                 max_gap: Optional[float] = None, linear: bool = True, angular: bool = True):
+                 max_gap: Optional[float] = None, linear: bool = True, angular: bool = True,
+                 out: Optional[np.ndarray] = None):
         """
         Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
 
@@ -111,13 +112,17 @@ class Trajectory:
         than ``max_gap`` gives zero: no velocity is known there (interpolating across a
         tracking dropout or between recorded still poses would invent one). ``linear`` or
         ``angular`` False: that part is not computed (None), as the coarse offset search,
-        which needs one speed, asks.
+        which needs one speed, asks. ``out`` (N, 6): both parts are written into it, [v | w]
+        (the offset step's layout, without joining two arrays).
         """
         t = np.asarray(t, dtype=float)
         if len(self) > 1:
             half = max(half, 1.5 * self.median_step())
-        v = np.empty((t.shape[0], 3)) if linear else None
-        w = np.empty((t.shape[0], 3)) if angular else None
+        if out is not None:
+            v, w = out[:, 0:3], out[:, 3:6]
+        else:
+            v = np.empty((t.shape[0], 3)) if linear else None
+            w = np.empty((t.shape[0], 3)) if angular else None
         # in chunks: each time's velocity is its own, and a 2M-pair recording's temporaries
         # (two poses a time) would otherwise take ~600 MB at the peak of the offset search
         for start in range(0, t.shape[0], VELOCITY_CHUNK):
