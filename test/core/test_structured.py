@@ -114,6 +114,32 @@ def test_tls_schur_complement_matches_the_generic_path(model, kind, weighted, la
     dx2 = est.back_substitute(problem.n, f2, delta)
     assert dx1.shape == (6, N)
     assert _rel(dx1, dx2) < 1e-5
+    # the corrections of some pairs only (a refit's): those of all, taken, to the bit
+    kept = np.flatnonzero(rng.random(N) < 0.8)
+    for factors, dx in ((f1, dx1), (f2, dx2)):
+        assert np.array_equal(est.back_substitute(problem.n, factors, delta, kept),
+                              np.take(dx, kept, axis=1))
+    # the residuals made at the solution alone (a light pass) are the linearisation's
+    for path, (ry, rx) in (('structured', (ry1, rx1)), ('generic', (ry2, rx2))):
+        with generic(monkeypatch) if path == 'generic' else contextlib.nullcontext():
+            got_y, got_x = est.tls_residuals(problem, params, x)
+        assert np.array_equal(got_y, ry) and np.array_equal(got_x, rx), path
+
+
+def test_a_lazily_taken_state_steps_as_the_taken_copy():
+    rng = np.random.default_rng(8)
+    n = 3 * 8192 + 17  # several chunks of the step
+    x = est.InputState(rng.normal(size=(n, 3)),
+                       quat.exp(rng.normal(size=(n, 3))))
+    idx = np.flatnonzero(rng.random(n) < 0.9)
+    dx = rng.normal(0.0, 1e-3, (6, idx.size))
+    copied, lazy = x.take(idx), x.take(idx, lazy=True)
+    assert lazy.n == copied.n == idx.size
+    stepped = lazy.stepped(dx)  # gathered a chunk at a time, not kept
+    assert np.array_equal(stepped.pos_t, copied.stepped(dx).pos_t)
+    assert np.array_equal(stepped.quat_t, copied.stepped(dx).quat_t)
+    # read, it is gathered once: the same arrays as the copy
+    assert np.array_equal(lazy.quat_t, copied.quat_t) and np.array_equal(lazy.pos, copied.pos)
 
 
 def _half_turn(axis):
