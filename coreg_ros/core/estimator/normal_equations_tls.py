@@ -264,8 +264,7 @@ def _input_position(frame: _Frame, xp: np.ndarray, pos_a: np.ndarray, w) -> tupl
     """A's whitened input position residual r_ap (3, c), unweighted, and its gradient w·g_ap."""
     r_ap = frame.Lap @ (xp - pos_a)
     gap = frame.Lap.T @ r_ap
-    if not isinstance(w, float):
-        gap *= w
+    gap *= w  # (w = 1.0: exact, the same numbers)
     return r_ap, gap
 
 

@@ -297,9 +297,9 @@ def _sqlite_page(
     # the rows the page's index range reaches (a covering count): their sum over the pages
     # must be the table's rows, which a damaged index that rosbags' full walk refuses may
     # not be when walked by ranges (rows left out without an error)
-    (reached,), = db.execute(f'SELECT count(*) FROM messages INDEXED BY "{index}"'
-                             + ''.join(f" {'WHERE' if not k else 'AND'} {c}"
-                                       for k, c in enumerate(cond)), args).fetchall()
+    where = f" WHERE {' AND '.join(cond)}" if cond else ''
+    (reached,), = db.execute(f'SELECT count(*) FROM messages INDEXED BY "{index}"{where}',
+                             args).fetchall()
     cond.insert(0, f"topic_id IN ({','.join(str(int(c)) for c in ids)})")
     # Per row, one integer holds both the blob size and the topic id (parsed from text in
     # one numpy call): cheaper for SQLite than per-topic size aggregates. A value that is not

@@ -13,8 +13,9 @@ rosbags' queries minus the count join and the whole-table ``MIN/MAX/COUNT``.
 It is a fast first try only: ``posebag`` reads through it when every wanted topic then comes
 out of the bulk path, and otherwise (any error, anything unusual) drops it and opens the
 bag with plain rosbags, which reports errors exactly as before. The bulk fetch walks every
-row of ``messages`` through the timestamp index as rosbags' read does, so a table or index
-that the skipped count would have found damaged still fails there.
+row of ``messages`` through the timestamp index as rosbags' read does (in pages of index
+ranges whose row counts must add up to the table's), so a table or index that the skipped
+count would have found damaged still fails there, or sends the read to rosbags.
 """
 
 from __future__ import annotations
