@@ -132,6 +132,7 @@ def cmd_calibrate(args) -> int:
     """Calibrate a recording offline and print (and optionally write) the result."""
     import json
 
+    from coreg_ros.allocator import keep_memory_for_reuse
     from coreg_ros.core.result_text import format_result
     from coreg_ros.files.atomic import write_json
     from coreg_ros.files.output_paths import check_output_dir, check_output_file
@@ -139,6 +140,7 @@ def cmd_calibrate(args) -> int:
 
     settings, devices = settings_and_devices(args)
     check_output_file(args.json, '--json')  # before the work, not after it
+    keep_memory_for_reuse()  # a long recording's arrays: reused, not asked of the kernel again
     if devices:  # a rig: several devices B
         from coreg_ros.cli.rig_calibrate import run_rig
         return run_rig(args, settings, devices, config_frames(args))

@@ -275,17 +275,41 @@ def sqlite_pages(path):
         return bulk_read._sqlite_pages(db, total)
 
 
+def fetch_on_cores(monkeypatch, cores):
+    """Have bulk_read see ``cores`` cores; return the list of second readers it opens."""
+    opened = []
+    second_reader = bulk_read._second_reader
+
+    def recorded(storage):
+        other = second_reader(storage)
+        opened.append(other)
+        return other
+
+    monkeypatch.setattr(bulk_read, '_cores', lambda: cores)
+    monkeypatch.setattr(bulk_read, '_second_reader', recorded)
+    return opened
+
+
+@pytest.mark.parametrize('cores', [1, 2])
 @pytest.mark.parametrize('page', [1, 7, 100])
 @pytest.mark.parametrize('seed', range(3))
-def test_sqlite_pages_of_any_size_give_the_same_arrays(tmp_path, monkeypatch, page, seed):
-    """Pages of a few rows, with runs of equal log times longer than a page."""
+def test_sqlite_pages_of_any_size_give_the_same_arrays(tmp_path, monkeypatch, page, seed,
+                                                       cores):
+    """
+    Pages of a few rows, with runs of equal log times longer than a page.
+
+    Fetched one by one (one core) or two at a time on two connections: rosbags' arrays.
+    """
     rng = np.random.default_rng(3000 + seed)
     topics = write_random_bag(tmp_path / 'bag', 'sqlite3', rng, n_max=300)
     monkeypatch.setattr(bulk_read, '_SQLITE_PAGE', page)
+    opened = fetch_on_cores(monkeypatch, cores)
     assert len(sqlite_pages(tmp_path / 'bag')) > 1
     ref = assert_same_outcome(tmp_path / 'bag', topics)
     assert not isinstance(ref, str), ref
     assert fast_path_used(tmp_path / 'bag', topics)
+    # two cores: the light open's reader opened a second time, one core: never asked
+    assert (opened and all(r is not None for r in opened)) if cores == 2 else not opened
 
 
 def test_sqlite_pages_cover_every_row_once(tmp_path, monkeypatch):
@@ -327,16 +351,18 @@ def test_dropped_timestamp_index_reads_through_rosbags(tmp_path):
     assert not fast_path_used(path, topics)
 
 
-@pytest.mark.parametrize('page', [None, 200])
-def test_damaged_timestamp_index_gives_the_same_outcome(tmp_path, monkeypatch, page):
+@pytest.mark.parametrize('page,cores', [(None, 2), (200, 1), (200, 2)])
+def test_damaged_timestamp_index_gives_the_same_outcome(tmp_path, monkeypatch, page, cores):
     """
     Byte flips in the index pages: the same arrays or the same BagError both ways.
 
     In pages of 200 rows too: walked by ranges, a damaged index may leave rows out without
-    the error rosbags' full walk gives (``_sqlite_page``'s count of the rows reached).
+    the error rosbags' full walk gives (``_sqlite_page``'s count of the rows reached); those
+    pages fetched one by one or two at a time.
     """
     if page is not None:
         monkeypatch.setattr(bulk_read, '_SQLITE_PAGE', page)
+    fetch_on_cores(monkeypatch, cores)
     path = tmp_path / 'bag'
     write_pose_bag(path, streams_for(np.random.default_rng(6), 3000), storage='sqlite3')
     data = path / 'bag.db3'
