@@ -7,7 +7,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import importlib
 import sys
+import threading
 from typing import Any
 
 from coreg_ros.cli.argtypes import finite
@@ -84,16 +86,23 @@ def calibrate_bag(bag, settings, prior=None, frames=None, direction_check: bool 
         the wrong way round when that explains it).
 
     """
-    from coreg_ros.core.calibration.pairing import validated_streams
-    from coreg_ros.core.calibration.pipeline import calibrate_streams
-    from coreg_ros.core.provenance import data_sketch
     from coreg_ros.files.bag.posebag import read_pose_bag
-    from coreg_ros.files.results import result_to_dict
-    from coreg_ros.threads import one_blas_thread
 
+    # the calibration's modules (SciPy among them: 0.2 s) are imported while SQLite reads the
+    # bag outside Python's lock; a failed import fails again, with its error, below
+    importer = threading.Thread(target=importlib.import_module, daemon=True,
+                                args=('coreg_ros.core.calibration.pipeline',))
+    importer.start()
     # the log times are the diagnosis's (coreg diagnose), not the calibration's: let go
     streams = {topic: replace(s, receive_stamps=None)
                for topic, s in read_pose_bag(bag, [settings.topic_a, *settings.topic_b]).items()}
+    importer.join()
+    from coreg_ros.core.calibration.pairing import validated_streams
+    from coreg_ros.core.calibration.pipeline import calibrate_streams
+    from coreg_ros.core.provenance import data_sketch
+    from coreg_ros.files.results import result_to_dict
+    from coreg_ros.threads import one_blas_thread
+
     sketch = data_sketch([streams[t] for t in settings.topic_b])  # --prior refuses the same
     # checked and normalised once here, and the samples as read let go: the pipeline takes
     # the validated streams as they are (a 4M-message recording's quaternions: 122 MiB)
