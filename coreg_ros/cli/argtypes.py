@@ -86,3 +86,37 @@ def add_parallel_arguments(parser) -> None:
     parser.add_argument('--scheduler', metavar='ADDRESS',
                         help='run the cases on an existing Dask distributed cluster instead, '
                              "e.g. tcp://host:8786 (needs pip install 'coreg_ros[dask]')")
+
+
+def points_from_flat(values, report_dir=None):
+    """
+    Turn ``--points X Y Z [X Y Z ...]`` into an (M, 3) array (None stays None).
+
+    Parameters
+    ----------
+    values : sequence of float, optional
+        The flat numbers, metres.
+    report_dir : str, optional
+        ``--report``; points without a report are refused rather than ignored.
+
+    Returns
+    -------
+    points : ndarray, shape (M, 3), or None
+
+    Raises
+    ------
+    ConfigError
+        If the number of values is not a positive multiple of three, or no report is asked.
+
+    """
+    if values is None:
+        return None
+    from coreg_ros.core.errors import ConfigError
+    import numpy as np
+
+    if not report_dir:
+        raise ConfigError('--points are shown in the report: add --report DIR')
+    flat = np.asarray(values, dtype=float).ravel()
+    if flat.size == 0 or flat.size % 3:
+        raise ConfigError(f'--points takes X Y Z triples (metres), got {flat.size} number(s)')
+    return flat.reshape(-1, 3)

@@ -12,7 +12,7 @@ import sys
 import threading
 from typing import Any
 
-from coreg_ros.cli.argtypes import finite
+from coreg_ros.cli.argtypes import finite, points_from_flat
 from coreg_ros.cli.options import (
     add_calibration_options,
     add_check_options,
@@ -145,7 +145,6 @@ def cmd_calibrate(args) -> int:
     from coreg_ros.core.result_text import format_result
     from coreg_ros.files.atomic import write_json
     from coreg_ros.files.output_paths import check_output_dir, check_output_file
-    from coreg_ros.report.calibration_report import points_from_flat
 
     settings, devices = settings_and_devices(args)
     check_output_file(args.json, '--json')  # before the work, not after it

@@ -18,7 +18,6 @@ from pathlib import Path
 import re
 
 from coreg_ros.core import quaternion as quat
-from coreg_ros.core.calibration.verdict import unit_mismatch
 from coreg_ros.core.errors import ConfigError, InputError
 from coreg_ros.core.so3 import invert_poses
 from coreg_ros.core.types import PoseStream
@@ -369,6 +368,10 @@ def check_conventions(a: CsvStream, b: CsvStream, *, units=('m', 'm'), time_unit
         One line each, naming the option that fixes it; empty when nothing is suspicious.
 
     """
+    # imported here: the verdict's statistics (SciPy, 0.15 s) would otherwise load with the
+    # option choices of every coreg command (coreg_ros.cli.main registers them all)
+    from coreg_ros.core.calibration.verdict import unit_mismatch
+
     sa, sb = a.stream, b.stream
     # the same check as a calibration's verdict, told which units each file was read in
     findings = [f for f in (unit_mismatch(sa, sb, units),) if f]
