@@ -9,6 +9,7 @@ from coreg_ros.core.calibration.pairing import (
     UNIT_QUATERNIONS,
     UNPAIRED_REASONS,
     validate_stream,
+    validated_streams,
     VALIDATED,
 )
 from coreg_ros.core.errors import InputError
@@ -231,6 +232,24 @@ def test_bad_values_are_refused_with_index():
         validate_stream(PoseStream(t / 1e9, pos, q), 'a')
     with pytest.raises(InputError, match=r'shape \(6, 3\)'):
         validate_stream(PoseStream(t, pos[:5], q), 'a')
+
+
+@pytest.mark.parametrize('bad_a', [True, False])
+@pytest.mark.parametrize('bad_b', [True, False])
+def test_validated_streams_names_a_first_then_b(bad_a, bad_b):
+    """A is checked in a second thread: its error is still the one told when both are bad."""
+    t = T0 + np.arange(6) * MS
+    pos, q = truth(t)
+    nan_pos = pos.copy()
+    nan_pos[4, 1] = np.nan
+    a = stream(t, nan_pos if bad_a else pos, q)
+    b = stream(t[::-1] if bad_b else t)
+    if not (bad_a or bad_b):
+        va, (vb,) = validated_streams(a, [b], True)
+        assert np.array_equal(va.position, pos) and np.array_equal(vb.stamps, t)
+        return
+    with pytest.raises(InputError, match='stream_a' if bad_a else 'stream_b'):
+        validated_streams(a, [b], True)
 
 
 def test_bad_arguments_are_refused():
