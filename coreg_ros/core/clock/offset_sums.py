@@ -25,6 +25,7 @@ draws); ``structured_offset_sums`` returns None where they do not apply.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
@@ -56,7 +57,9 @@ def _isotropic_blocks(cov: np.ndarray) -> Optional[tuple]:
 
 
 def structured_offset_sums(params: Parameters, data: PairData, velocity: np.ndarray,
-                           since_ref: Optional[np.ndarray]) -> Optional[tuple]:
+                           since_ref: Optional[np.ndarray],
+                           ready: Optional[Callable[[int], None]] = None
+                           ) -> Optional[tuple]:
     """
     ``h_ττ``, ``h_φτ`` and ``g_τ`` of the offset step in closed form (module docstring).
 
@@ -71,6 +74,9 @@ def structured_offset_sums(params: Parameters, data: PairData, velocity: np.ndar
         A's linear (m/s) and angular (rad/s, A's base frame) velocity per pair.
     since_ref : ndarray, shape (N,), optional
         ``t_B - t_mid`` (s) per pair when the drift is a second time parameter.
+    ready : callable, optional
+        ``ready(stop)`` waits until the rows of ``velocity`` before ``stop`` are written
+        (the chunks are read in order; None: all are written).
 
     Returns
     -------
@@ -93,6 +99,8 @@ def structured_offset_sums(params: Parameters, data: PairData, velocity: np.ndar
     # rotation of B's base), p1, θ1 (a rotation of the marker, in A's tool frame)
     blocks = np.zeros((4, 3, k))
     for sl in chunk_slices(len(data)):
+        if ready is not None:
+            ready(sl.stop)
         since = None if since_ref is None else since_ref[sl]
         g, u, y, e = _weighted_columns(params, data, sl, velocity[sl], since, noise_a,
                                        noise_b)

@@ -19,6 +19,7 @@ dimensionless; reported in ppm).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Optional
 
@@ -123,7 +124,8 @@ def velocity_noise_cov(cov_a: np.ndarray, half: float) -> np.ndarray:
 def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
                 since_ref: Optional[np.ndarray], param_cov: np.ndarray,
                 noise_velocity_cov: np.ndarray,
-                prior_information: Optional[np.ndarray] = None) -> OffsetStep:
+                prior_information: Optional[np.ndarray] = None,
+                ready: Optional[Callable[[int], None]] = None) -> OffsetStep:
     """
     Gauss-Newton step of the time parameters with φ eliminated.
 
@@ -144,6 +146,9 @@ def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
         What A's noise alone puts into ``velocity`` (``velocity_noise_cov``).
     prior_information : ndarray, shape (P, P), optional
         JᵀJ of the prior rows at φ, for the fallback below.
+    ready : callable, optional
+        ``ready(stop)`` waits until the rows of ``velocity`` before ``stop`` are written
+        (``Trajectory.velocity_arriving``); None: all are.
 
     Returns
     -------
@@ -158,7 +163,7 @@ def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
 
     """
     step = _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_cov,
-                        None)
+                        None, ready)
     if step.cov is None:
         step = _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_cov,
                             np.zeros_like(param_cov) if prior_information is None
@@ -167,7 +172,7 @@ def offset_step(params: Parameters, data: PairData, velocity: np.ndarray,
 
 
 def _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_cov,
-                 own_information: Optional[np.ndarray]) -> OffsetStep:
+                 own_information: Optional[np.ndarray], ready=None) -> OffsetStep:
     """``offset_step`` with H⁻¹ = param_cov, or from the pairs (+ ``own_information``)."""
     k = 1 if since_ref is None else 2
     P = param_cov.shape[0]
@@ -176,7 +181,9 @@ def _offset_step(params, data, velocity, since_ref, param_cov, noise_velocity_co
     h_pp = None if own_information is None else own_information.copy()
     sums = None
     if h_pp is None:
-        sums = structured_offset_sums(params, data, velocity, since_ref)
+        sums = structured_offset_sums(params, data, velocity, since_ref, ready)
+    if ready is not None:
+        ready(len(velocity))  # every row, for what follows
     if sums is not None:  # closed form (offset_sums); the noise share on the generic path
         h_tt, h_pt, g_t = sums
         noise_tt = _velocity_noise(params, data, velocity, noise_factor)
@@ -239,9 +246,10 @@ def velocity_step(trajectory: Trajectory, t_a: np.ndarray, half: float,
     """
     def step_over(h):
         velocity = np.empty((len(t_a), 6))  # [v | w], written in place (92 MB at 2M pairs)
-        trajectory.velocity(t_a, h, max_gap=max_gap, out=velocity)
+        # made in a second thread while the step's sums read the rows already made
+        ready = trajectory.velocity_arriving(t_a, h, max_gap, velocity)
         return offset_step(params, data, velocity, since_ref, param_cov,
-                           velocity_noise_cov(cov_a, h), prior_information)
+                           velocity_noise_cov(cov_a, h), prior_information, ready=ready)
 
     step, used = step_over(half), half
     longer = half

@@ -9,6 +9,8 @@ pairing itself never uses float seconds.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+import threading
 from typing import Optional
 
 from coreg_ros.core import quaternion as quat
@@ -18,6 +20,34 @@ import numpy as np
 VELOCITY_HALF_WINDOW = 0.04
 #: Times whose velocities are computed at once (bounds the temporaries; cache-sized).
 VELOCITY_CHUNK = 1 << 16
+
+
+class _RowsWritten:
+    """How many rows a writer thread has written; a reader waits for the ones it needs."""
+
+    def __init__(self):
+        self._done = 0
+        self._error: Optional[BaseException] = None
+        self._changed = threading.Condition()
+
+    def run(self, write: Callable[[], object]) -> None:
+        try:
+            write()
+        except BaseException as e:  # noqa: BLE001 - handed to the reader, which raises it
+            with self._changed:
+                self._error = e
+                self._changed.notify_all()
+
+    def advance(self, stop: int) -> None:
+        with self._changed:
+            self._done = stop
+            self._changed.notify_all()
+
+    def wait(self, stop: int) -> None:
+        with self._changed:
+            self._changed.wait_for(lambda: self._done >= stop or self._error is not None)
+            if self._error is not None:
+                raise self._error
 
 
 class Trajectory:
@@ -102,7 +132,8 @@ class Trajectory:
 
     def velocity(self, t: np.ndarray, half: float = VELOCITY_HALF_WINDOW,
                  max_gap: Optional[float] = None, linear: bool = True, angular: bool = True,
-                 out: Optional[np.ndarray] = None):
+                 out: Optional[np.ndarray] = None,
+                 written: Optional[Callable[[int], None]] = None):
         """
         Linear (m/s) and angular (rad/s, A's base frame) velocity at t by central differences.
 
@@ -113,7 +144,8 @@ class Trajectory:
         tracking dropout or between recorded still poses would invent one). ``linear`` or
         ``angular`` False: that part is not computed (None), as the coarse offset search,
         which needs one speed, asks. ``out`` (N, 6): both parts are written into it, [v | w]
-        (the offset step's layout, without joining two arrays).
+        (the offset step's layout, without joining two arrays). ``written(stop)`` is called
+        once the rows before ``stop`` are written (``velocity_arriving``).
         """
         t = np.asarray(t, dtype=float)
         if len(self) > 1:
@@ -129,7 +161,29 @@ class Trajectory:
             sl = slice(start, start + VELOCITY_CHUNK)
             self._velocity_into(t[sl], half, max_gap, None if v is None else v[sl],
                                 None if w is None else w[sl])
+            if written is not None:
+                written(min(t.shape[0], start + VELOCITY_CHUNK))
         return v, w
+
+    def velocity_arriving(self, t: np.ndarray, half: float, max_gap: Optional[float],
+                          out: np.ndarray) -> Callable[[int], None]:
+        """
+        Write ``velocity(t, half, max_gap, out=out)`` in a second thread, chunk by chunk.
+
+        Returns ``ready(stop)``, which waits until the rows before ``stop`` are written (and
+        raises what the thread raised). The velocity's chunks are whole-array NumPy calls,
+        which run outside Python's lock, so a caller that reads the rows in order (the offset
+        step's sums) works on the first rows while the next are made: at 2M pairs the two
+        take 0.5 instead of 0.73 s on two cores. A single chunk is written here, at once.
+        """
+        if t.shape[0] <= VELOCITY_CHUNK:
+            self.velocity(t, half, max_gap=max_gap, out=out)
+            return lambda stop: None
+        rows = _RowsWritten()
+        threading.Thread(target=rows.run, daemon=True, name='coreg-velocity', args=(
+            lambda: self.velocity(t, half, max_gap=max_gap, out=out, written=rows.advance),
+        )).start()
+        return rows.wait
 
     def _velocity_into(self, t: np.ndarray, half: float, max_gap: Optional[float],
                        v: Optional[np.ndarray], w: Optional[np.ndarray]) -> None:
