@@ -9,8 +9,8 @@ from coreg_ros.core.calibration.pairing import (
     UNIT_QUATERNIONS,
     UNPAIRED_REASONS,
     validate_stream,
-    validated_streams,
     VALIDATED,
+    validated_streams,
 )
 from coreg_ros.core.errors import InputError
 from coreg_ros.core.types import PoseStream

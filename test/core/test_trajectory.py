@@ -15,7 +15,7 @@ import pytest
 
 
 def _trajectory(rng, n):
-    """A random motion sampled at n irregular times, with a few gaps of 0.2 s."""
+    """Sample a random motion at n irregular times, with a few gaps of 0.2 s."""
     step = rng.uniform(0.5e-3, 1.5e-3, n)
     step[rng.integers(0, n, 5)] = 0.2
     t = np.cumsum(step)

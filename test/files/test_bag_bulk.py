@@ -223,6 +223,33 @@ def test_compressed_bags(tmp_path, storage, mode, bulk):
     assert fast_path_used(tmp_path / 'bag', topics) == bulk
 
 
+@pytest.mark.parametrize('cores', [1, 2])
+@pytest.mark.parametrize('mode', [None, CompressionMode.STORAGE])
+def test_mcap_chunks_read_one_by_one_or_two_at_a_time(tmp_path, monkeypatch, cores, mode):
+    """Several chunks, plain (bulk_write's) or zstd (rosbags'): rosbags' arrays both ways."""
+    path = tmp_path / 'bag'
+    if mode is None:
+        write_pose_bag(path, streams_for(np.random.default_rng(8), 12_000), storage='mcap')
+        topics = ['/t0', '/t1', '/t2']
+    else:
+        topics = write_random_bag(path, 'mcap', np.random.default_rng(9), n_max=20_000,
+                                  compression=mode)
+    monkeypatch.setattr(bulk_read, '_cores', lambda: cores)
+    handles = []
+    two_at_a_time = bulk_read._two_at_a_time
+
+    def recorded(work, items, hands):
+        handles.append((len(items), len(hands)))
+        return two_at_a_time(work, items, hands)
+
+    monkeypatch.setattr(bulk_read, '_two_at_a_time', recorded)
+    ref = assert_same_outcome(path, topics)
+    assert not isinstance(ref, str), ref
+    assert fast_path_used(path, topics)
+    assert handles and all(n > 1 for n, _ in handles)  # several chunks in every file
+    assert {h for _, h in handles} == {cores}  # a second file handle on two cores only
+
+
 @pytest.mark.parametrize('storage', STORAGES)
 @pytest.mark.parametrize('seed', range(3))
 def test_fallback_topics_give_the_same_result(tmp_path, storage, seed):
