@@ -89,14 +89,17 @@ def calibrate_bag(bag, settings, prior=None, frames=None, direction_check: bool 
     from coreg_ros.files.bag.posebag import read_pose_bag
 
     # the calibration's modules (SciPy among them: 0.2 s) are imported while SQLite reads the
-    # bag outside Python's lock; a failed import fails again, with its error, below
+    # bag outside Python's lock; a failed import fails again, with its error, below. Joined
+    # in any case: no import outlives this call (a process forked later would inherit its lock)
     importer = threading.Thread(target=importlib.import_module, daemon=True,
                                 args=('coreg_ros.core.calibration.pipeline',))
     importer.start()
-    # the log times are the diagnosis's (coreg diagnose), not the calibration's: let go
-    streams = {topic: replace(s, receive_stamps=None)
-               for topic, s in read_pose_bag(bag, [settings.topic_a, *settings.topic_b]).items()}
-    importer.join()
+    try:
+        # the log times are the diagnosis's (coreg diagnose), not the calibration's: let go
+        streams = {topic: replace(s, receive_stamps=None) for topic, s in
+                   read_pose_bag(bag, [settings.topic_a, *settings.topic_b]).items()}
+    finally:
+        importer.join()
     from coreg_ros.core.calibration.pairing import validated_streams
     from coreg_ros.core.calibration.pipeline import calibrate_streams
     from coreg_ros.core.provenance import data_sketch
