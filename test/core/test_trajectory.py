@@ -7,7 +7,7 @@ velocity made at once, to the bit, and to the errors it raises.
 
 from coreg_ros.core.calibration.pipeline import calibrate_streams
 from coreg_ros.core.clock import trajectory as trajectory_module
-from coreg_ros.core.clock.trajectory import Trajectory, VELOCITY_CHUNK
+from coreg_ros.core.clock.trajectory import ARRIVING_CHUNKS, Trajectory, VELOCITY_CHUNK
 from coreg_ros.core.settings import Settings
 from coreg_ros.sim import parse_effect, simulate_recording
 import numpy as np
@@ -28,12 +28,14 @@ def _trajectory(rng, n):
 @pytest.mark.parametrize('seed', range(3))
 def test_velocity_arriving_is_the_velocity_row_by_row(seed):
     rng = np.random.default_rng(seed)
-    traj = _trajectory(rng, 3 * VELOCITY_CHUNK + 101)
-    t = np.sort(rng.uniform(traj.t[0] - 0.01, traj.t[-1] + 0.01, 3 * VELOCITY_CHUNK + 17))
+    n = (ARRIVING_CHUNKS + 1) * VELOCITY_CHUNK + 17  # beyond the chunks written at once
+    traj = _trajectory(rng, n + 84)
+    t = np.sort(rng.uniform(traj.t[0] - 0.01, traj.t[-1] + 0.01, n))
     expected = np.empty((t.size, 6))
     traj.velocity(t, 0.004, max_gap=0.05, out=expected)
     got = np.full((t.size, 6), np.nan)
     ready = traj.velocity_arriving(t, 0.004, 0.05, got)
+    assert isinstance(ready.__self__, trajectory_module._RowsWritten)  # a writer thread
     for stop in (1, VELOCITY_CHUNK, VELOCITY_CHUNK + 1, 2 * VELOCITY_CHUNK + 5, t.size):
         ready(stop)  # the rows before stop are final once it returns
         assert np.array_equal(got[:stop], expected[:stop])
@@ -43,7 +45,7 @@ def test_velocity_arriving_is_the_velocity_row_by_row(seed):
 def test_an_error_of_the_writer_is_raised_by_the_reader():
     rng = np.random.default_rng(7)
     traj = _trajectory(rng, 1000)
-    t = np.linspace(traj.t[0], traj.t[-1], 2 * VELOCITY_CHUNK)
+    t = np.linspace(traj.t[0], traj.t[-1], (ARRIVING_CHUNKS + 1) * VELOCITY_CHUNK)
     ready = traj.velocity_arriving(t, 0.004, None, np.empty((t.size, 2)))  # no room for v
     with pytest.raises(ValueError):
         ready(t.size)
@@ -55,12 +57,12 @@ def test_offset_estimate_is_the_same_with_the_velocity_arriving(monkeypatch):
                              effects=[parse_effect('time_offset=0.02')])
     a, bs = rec.streams[rec.topics_a], [rec.streams[t] for t in rec.topics_b]
     at_once, _ = calibrate_streams(a, bs, Settings())
-    monkeypatch.setattr(trajectory_module, 'VELOCITY_CHUNK', 512)  # 8 chunks: a thread
+    monkeypatch.setattr(trajectory_module, 'VELOCITY_CHUNK', 512)  # ~8 chunks: a thread
     threads = []
     arriving = Trajectory.velocity_arriving
 
     def counted(self, t, *args):
-        threads.append(t.shape[0] > trajectory_module.VELOCITY_CHUNK)
+        threads.append(t.shape[0] > ARRIVING_CHUNKS * trajectory_module.VELOCITY_CHUNK)
         return arriving(self, t, *args)
 
     monkeypatch.setattr(Trajectory, 'velocity_arriving', counted)
