@@ -25,6 +25,14 @@ from coreg_ros.files.bag.cdr_pose import (
 from coreg_ros.files.bag.posebag import read_fast
 import numpy as np
 import pytest
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
@@ -248,6 +256,31 @@ def test_mcap_chunks_read_one_by_one_or_two_at_a_time(tmp_path, monkeypatch, cor
     assert fast_path_used(path, topics)
     assert handles and all(n > 1 for n, _ in handles)  # several chunks in every file
     assert {h for _, h in handles} == {cores}  # a second file handle on two cores only
+
+
+@pytest.mark.parametrize('cores', [1, 2])
+@pytest.mark.parametrize('storage', STORAGES)
+def test_a_topic_of_two_connections_is_read_whole(tmp_path, monkeypatch, storage, cores):
+    """One topic recorded on two connections (two QoS): every message of both, in order."""
+    t0 = QosTime(0, 0)
+    best_effort = Qos(QosHistory.KEEP_LAST, 1, QosReliability.BEST_EFFORT,
+                      QosDurability.VOLATILE, t0, t0, QosLiveliness.AUTOMATIC, t0, False)
+    rng = np.random.default_rng(41)
+    stamps, pos, quat = random_values(rng, 400)
+    path = tmp_path / 'bag'
+    with Writer(path, version=9, storage_plugin=STORAGES[storage]) as writer:
+        conns = [writer.add_connection('/t', POSE_STAMPED, typestore=TYPESTORE),
+                 writer.add_connection('/t', POSE_STAMPED, typestore=TYPESTORE,
+                                       offered_qos_profiles=[best_effort])]
+        for i in range(400):
+            writer.write(conns[int(rng.integers(2))], 10**18 + int(rng.integers(0, 300)) * 1000,
+                         TYPESTORE.serialize_cdr(message(stamps[i], 'w', pos[i], quat[i]),
+                                                 POSE_STAMPED))
+    monkeypatch.setattr(bulk_read, '_cores', lambda: cores)
+    ref = assert_same_outcome(path, ['/t'])
+    assert not isinstance(ref, str), ref
+    assert len(ref['/t']) == 400
+    assert fast_path_used(path, ['/t'])
 
 
 @pytest.mark.parametrize('storage', STORAGES)

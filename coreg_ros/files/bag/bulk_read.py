@@ -220,13 +220,7 @@ def _sqlite_storage(storage: Any, cids: dict[int, str]) -> dict[str, Parts]:
         log_ns, tid, size, mem = page
         starts = np.cumsum(size) - size
         for topic in parts:
-            topic_ids = [c for c, t in cids.items() if t == topic]
-            if len(cids) == 1:
-                pick = slice(None)
-            elif len(topic_ids) == 1:
-                pick = tid == topic_ids[0]
-            else:
-                pick = np.isin(tid, topic_ids)
+            pick = slice(None) if len(cids) == 1 else _rows_of(tid, _ids_of(cids, topic))
             mine = size[pick]
             if not mine.size:
                 continue
@@ -333,6 +327,16 @@ def _second_reader(storage: Any) -> Any:
     except Exception:  # noqa: BLE001 - the pages are then fetched on one connection
         return None
     return other
+
+
+def _ids_of(cids: dict[int, str], topic: str) -> list[int]:
+    """Return the storage's connection (or topic) ids of one topic: several if recorded so."""
+    return [c for c, t in cids.items() if t == topic]
+
+
+def _rows_of(ids: np.ndarray, wanted: list[int]) -> np.ndarray:
+    """Tell which rows carry one of the ``wanted`` ids (bool, the shape of ``ids``)."""
+    return ids == wanted[0] if len(wanted) == 1 else np.isin(ids, wanted)
 
 
 def _cores() -> int:
@@ -460,7 +464,12 @@ def _mcap_chunks(storage: Any, chunks: list, cids: dict[int, str]) -> Iterator[d
 
 
 def _mcap_chunk(bio: Any, chunk: Any, cids: dict[int, str]) -> dict:
-    """Per wanted topic of one chunk: its log times and its messages' rows (None: sizes vary)."""
+    """
+    Per wanted topic of one chunk: its log times and its messages' rows (None: sizes vary).
+
+    A topic's messages are picked from all its connections at once (a topic recorded with two
+    QoS has two), so they stay in record order, as rosbags yields ties.
+    """
     from rosbags.rosbag2.storage_mcap import decompress, read_exact  # noqa: PLC0415
 
     # Exactly what rosbags' msgsrc reads: CRC from the chunk record, sizes from the index.
@@ -473,8 +482,8 @@ def _mcap_chunk(bio: Any, chunk: Any, cids: dict[int, str]) -> dict:
     offsets = _indexed_offsets(bio, chunk, read_exact)
     heads = _message_heads(mem, offsets)
     found = {}
-    for cid, topic in cids.items():
-        pick = heads['channel'] == cid
+    for topic in dict.fromkeys(cids.values()):
+        pick = _rows_of(heads['channel'], _ids_of(cids, topic))
         if not pick.any():
             continue
         head = heads[pick]
