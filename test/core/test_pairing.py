@@ -1,9 +1,11 @@
 """Tests of coreg_ros.core.calibration.pairing: the one pairing rule of the package."""
 
 
+from concurrent.futures import ThreadPoolExecutor
 import dataclasses
 
 from coreg_ros.core import quaternion as quat
+from coreg_ros.core.calibration import pairing
 from coreg_ros.core.calibration.pairing import (
     pair_streams,
     UNIT_QUATERNIONS,
@@ -234,10 +236,15 @@ def test_bad_values_are_refused_with_index():
         validate_stream(PoseStream(t, pos[:5], q), 'a')
 
 
+@pytest.mark.parametrize('in_thread', [True, False])
 @pytest.mark.parametrize('bad_a', [True, False])
 @pytest.mark.parametrize('bad_b', [True, False])
-def test_validated_streams_names_a_first_then_b(bad_a, bad_b):
-    """A is checked in a second thread: its error is still the one told when both are bad."""
+def test_validated_streams_names_a_first_then_b(monkeypatch, bad_a, bad_b, in_thread):
+    """A checked in a second thread or not: its error is the one told when both are bad."""
+    monkeypatch.setattr(pairing, 'VALIDATE_IN_THREAD', 1 if in_thread else 10**9)
+    started = []
+    monkeypatch.setattr(pairing, 'ThreadPoolExecutor', lambda *a, **k: started.append(1) or
+                        ThreadPoolExecutor(*a, **k))
     t = T0 + np.arange(6) * MS
     pos, q = truth(t)
     nan_pos = pos.copy()
@@ -247,9 +254,11 @@ def test_validated_streams_names_a_first_then_b(bad_a, bad_b):
     if not (bad_a or bad_b):
         va, (vb,) = validated_streams(a, [b], True)
         assert np.array_equal(va.position, pos) and np.array_equal(vb.stamps, t)
+        assert bool(started) == in_thread
         return
     with pytest.raises(InputError, match='stream_a' if bad_a else 'stream_b'):
         validated_streams(a, [b], True)
+    assert bool(started) == in_thread
 
 
 def test_bad_arguments_are_refused():
